@@ -1,0 +1,249 @@
+"""Closed-loop batched simulation: ``lax.scan`` over control ticks of
+``controller(params, state, observation) -> joint torques -> mjx.step``.
+
+The simulation is split the way MJX splits physics: a static :class:`SimConfig` (rates and
+horizon), an ``mjx.Model`` (batched per instance by :func:`hyqjax.model.batch_model`), and
+pure functions. A controller is a :class:`Controller`, a pair of pure functions::
+
+    init(params, obs) -> ctrl_state
+    step(params, ctrl_state, obs) -> (ctrl_state, torques (12,), info)
+
+Metrics are accumulated on the device by a :class:`Metrics` pair (``init``, ``update``) so a
+long sweep keeps only summaries; traces are recorded every ``record_every`` ticks.
+
+Observations (:class:`Observation`) hold what HyQ measures: joint positions, velocities and
+torques, the IMU's orientation and angular velocity, and foot forces estimated from joint
+torques. Ground truth (``mjx.Data``) stays available to metrics, never to controllers.
+
+An instance whose state becomes non-finite or whose speed exceeds ``SimConfig.max_speed`` is
+*diverged*: its state is frozen at the last finite tick and the flag is returned, so a sweep
+counts it as a failure instead of averaging NaN.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from mujoco import mjx
+
+from hyqjax import kinematics, model as hmodel, robot, spatial
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static simulation settings (changing them recompiles).
+
+    Attributes:
+      control_dt: controller period (s). HyQ's loop runs at 1 kHz; hyqjax defaults to 500 Hz.
+      substeps: physics steps per control tick; the physics timestep is ``control_dt / substeps``.
+      duration: simulated time (s).
+      record_every: record a trace sample every this many ticks (0: no trace).
+      max_speed: a generalized velocity above this (m/s or rad/s) flags divergence.
+    """
+
+    control_dt: float = 0.002
+    substeps: int = 1
+    duration: float = 2.0
+    record_every: int = 10
+    max_speed: float = 100.0
+
+    def __post_init__(self):
+        if not (0.0 < self.control_dt <= 0.02):
+            raise ValueError(f"control_dt must be in (0, 0.02] s, got {self.control_dt}")
+        if not (isinstance(self.substeps, int) and 1 <= self.substeps <= 100):
+            raise ValueError(f"substeps must be an int in [1, 100], got {self.substeps}")
+        if not (0.0 < self.duration <= 600.0):
+            raise ValueError(f"duration must be in (0, 600] s, got {self.duration}")
+        if not (isinstance(self.record_every, int) and self.record_every >= 0):
+            raise ValueError(f"record_every must be an int >= 0, got {self.record_every}")
+        if self.record_every and self.n_ticks % self.record_every:
+            raise ValueError(f"record_every ({self.record_every}) must divide the number of ticks ({self.n_ticks})")
+
+    @property
+    def physics_dt(self) -> float:
+        return self.control_dt / self.substeps
+
+    @property
+    def n_ticks(self) -> int:
+        return int(round(self.duration / self.control_dt))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Observation:
+    """What the robot measures at one control tick (all in the trunk frame ``B`` unless noted).
+
+    Attributes:
+      q, qd, tau: joint positions, velocities, applied torques, (12,).
+      quat: IMU orientation ``W_q_B`` (w, x, y, z).
+      gyro: trunk angular velocity in ``B``, (3,).
+      foot_force: ground reaction forces at the feet estimated from joint torques, (4, 3), in ``B``:
+        ``f = J_f^{-T} (h - tau)`` per leg with ``h`` the leg's bias torques (gravity, Coriolis).
+      time: seconds since the start.
+    """
+
+    q: jax.Array
+    qd: jax.Array
+    tau: jax.Array
+    quat: jax.Array
+    gyro: jax.Array
+    foot_force: jax.Array
+    time: jax.Array
+
+
+class Controller(NamedTuple):
+    init: Callable[[Any, Observation], Any]
+    step: Callable[[Any, Any, Observation], tuple[Any, jax.Array, Any]]
+
+
+class Metrics(NamedTuple):
+    """Metrics accumulated on the device: ``init(d) -> m``, ``update(m, d, obs, info) -> m``."""
+
+    init: Callable[[mjx.Data], Any]
+    update: Callable[[Any, mjx.Data, Observation, Any], Any]
+
+
+def no_metrics() -> Metrics:
+    return Metrics(lambda d: (), lambda m, d, o, i: ())
+
+
+def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array) -> Observation:
+    """Build an :class:`Observation` from MJX data (the sensors HyQ has)."""
+    qadr = np.asarray(ids.qpos_joints)
+    vadr = np.asarray(ids.dof_joints)
+    q = d.qpos[qadr]
+    qd = d.qvel[vadr]
+    quat = d.qpos[3:7]
+    w_r_b = spatial.quat_to_rot(quat)
+    gyro = d.qvel[3:6]  # MuJoCo's free-joint angular velocity is in the body frame.
+    bias = d.qfrc_bias[vadr].reshape(4, 3)
+    jac = kinematics.foot_jacobians(q)
+    rhs = (bias - tau.reshape(4, 3))[..., None]
+    reg = 1e-6 * jnp.eye(3, dtype=q.dtype)
+    jt = jnp.swapaxes(jac, -1, -2)
+    force = jnp.linalg.solve(jt + reg, rhs)[..., 0]
+    del w_r_b
+    return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
+
+
+def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, substeps: int) -> mjx.Data:
+    vadr = np.asarray(ids.dof_joints)
+    del vadr
+    d = d.replace(ctrl=tau)
+    return jax.lax.fori_loop(0, substeps, lambda _, dd: mjx.step(mx, dd), d)
+
+
+def _finite_tree(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
+              if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+class RolloutResult(NamedTuple):
+    data: mjx.Data
+    ctrl_state: Any
+    metrics: Any
+    diverged: jax.Array
+    diverged_tick: jax.Array
+    trace: Any
+
+
+def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
+            cfg: SimConfig, metrics: Metrics = no_metrics(),
+            record: Callable[[mjx.Data, Observation, Any], Any] | None = None) -> RolloutResult:
+    """Simulate ONE instance for ``cfg.n_ticks`` control ticks (``vmap`` it for a batch).
+
+    Per tick: observe, ``controller.step``, clip torques to ``robot.TORQUE_LIMIT``, ``cfg.substeps``
+    calls of ``mjx.step``, divergence check, metric update. Returns the final state, metrics,
+    the divergence flag and tick, and the decimated trace (``record(d, obs, info)`` every
+    ``cfg.record_every`` ticks).
+    """
+    tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
+    obs0 = observe(ids, d0, tau0)
+    cs0 = controller.init(params, obs0)
+    ms0 = metrics.init(d0)
+
+    def tick(carry, _):
+        d, cs, ms, tau_prev, div, div_tick, k = carry
+        obs = observe(ids, d, tau_prev)
+        cs_new, tau, info = controller.step(params, cs, obs)
+        tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        d_new = _physics(mx, d, tau, ids, cfg.substeps)
+        ok = _finite_tree((d_new.qpos, d_new.qvel, tau)) & (jnp.max(jnp.abs(d_new.qvel)) < cfg.max_speed)
+        newly = (~div) & (~ok)
+        div = div | ~ok
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
+        d_new = keep(d_new, d)
+        cs_new = keep(cs_new, cs)
+        tau = jnp.where(div, tau_prev, tau)
+        ms_new = metrics.update(ms, d_new, obs, info)
+        ms_new = keep(ms_new, ms)
+        div_tick = jnp.where(newly, k, div_tick)
+        out = record(d_new, obs, info) if record is not None else None
+        return (d_new, cs_new, ms_new, tau, div, div_tick, k + 1), out
+
+    carry = (d0, cs0, ms0, tau0, jnp.array(False), jnp.array(-1), jnp.array(0))
+    n = cfg.n_ticks
+    if record is not None and cfg.record_every:
+        def chunk(c, _):
+            c, outs = jax.lax.scan(tick, c, None, length=cfg.record_every)
+            return c, jax.tree_util.tree_map(lambda x: x[-1], outs)
+
+        carry, trace = jax.lax.scan(chunk, carry, None, length=n // cfg.record_every)
+    else:
+        carry, _ = jax.lax.scan(lambda c, x: (tick(c, x)[0], None), carry, None, length=n)
+        trace = None
+    d, cs, ms, _, div, div_tick, _ = carry
+    return RolloutResult(d, cs, ms, div, div_tick, trace)
+
+
+def initial_data(m: mujoco.MjModel, mx: mjx.Model, qpos: jax.Array) -> mjx.Data:
+    """MJX data at ``qpos`` (one instance) with zero velocity, forward kinematics applied."""
+    d = mjx.make_data(mx)
+    d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype))
+    return d
+
+
+def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller,
+                  params: Any, cfg: SimConfig, metrics: Metrics = no_metrics(), record=None,
+                  params_axes: Any = 0, mesh: Mesh | None = None) -> RolloutResult:
+    """``vmap`` of :func:`rollout` over instances, jitted, optionally sharded over ``mesh``'s ``batch`` axis.
+
+    Args:
+      mx_batched: model from :func:`hyqjax.model.batch_model` (leading batch axis on its batched fields).
+      d0: batched initial data (leading batch axis on every field).
+      params: controller parameters; ``params_axes`` is their ``vmap`` axes (0: per instance, None: shared).
+      mesh: a 1-D ``jax.sharding.Mesh`` with axis ``"batch"`` (see :func:`batch_mesh`); the batch must be
+        divisible by its size (:func:`pad_batch`). ``None`` runs on the default device.
+    """
+    m_axes = hmodel.model_in_axes(mx_batched)
+    fn = jax.vmap(lambda mm, dd, pp: rollout(mm, ids, dd, controller, pp, cfg, metrics, record),
+                  in_axes=(m_axes, 0, params_axes))
+    if mesh is None:
+        return jax.jit(fn)(mx_batched, d0, params)
+    shard = NamedSharding(mesh, PartitionSpec("batch"))
+    repl = NamedSharding(mesh, PartitionSpec())
+    m_shard = jax.tree_util.tree_map(lambda ax: shard if ax == 0 else repl, m_axes,
+                                     is_leaf=lambda x: x is None or isinstance(x, int))
+    p_shard = jax.tree_util.tree_map(lambda _: shard if params_axes == 0 else repl, params)
+    d_shard = jax.tree_util.tree_map(lambda _: shard, d0)
+    out_shape = jax.eval_shape(fn, mx_batched, d0, params)
+    out_shard = jax.tree_util.tree_map(lambda _: shard, out_shape)
+    jf = jax.jit(fn, in_shardings=(m_shard, d_shard, p_shard), out_shardings=out_shard)
+    return jf(mx_batched, d0, params)
+
+
+def batch_mesh(devices=None) -> Mesh:
+    """A 1-D mesh named ``"batch"`` over ``devices`` (default: all local devices)."""
+    devs = np.asarray(jax.local_devices() if devices is None else devices)
+    return Mesh(devs, ("batch",))
+
+
+def pad_batch(n: int, multiple: int) -> int:
+    """Smallest batch size >= n divisible by ``multiple``."""
+    return -(-n // multiple) * multiple
