@@ -96,6 +96,21 @@ class Observation:
     time: jax.Array
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Push:
+    """A lateral push on the trunk: ``force`` (3,) N in the world frame, applied at the trunk's
+    centre of mass during ``[t_start, t_start + duration)``. Per instance under ``vmap``."""
+
+    force: jax.Array
+    t_start: jax.Array
+    duration: jax.Array
+
+    @staticmethod
+    def none(dtype=jnp.float32) -> "Push":
+        return Push(jnp.zeros(3, dtype), jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype))
+
+
 class Controller(NamedTuple):
     init: Callable[[Any, Observation], Any]
     step: Callable[[Any, Any, Observation], tuple[Any, jax.Array, Any]]
@@ -131,10 +146,13 @@ def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array) -> Observation:
     return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
 
 
-def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, substeps: int) -> mjx.Data:
-    vadr = np.asarray(ids.dof_joints)
-    del vadr
+def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, substeps: int,
+             push: Push | None) -> mjx.Data:
     d = d.replace(ctrl=tau)
+    if push is not None:
+        on = (d.time >= push.t_start) & (d.time < push.t_start + push.duration)
+        wrench = jnp.concatenate([jnp.where(on, push.force, 0.0), jnp.zeros(3, push.force.dtype)])
+        d = d.replace(xfrc_applied=d.xfrc_applied.at[ids.trunk_body].set(wrench.astype(d.xfrc_applied.dtype)))
     return jax.lax.fori_loop(0, substeps, lambda _, dd: mjx.step(mx, dd), d)
 
 
@@ -155,13 +173,14 @@ class RolloutResult(NamedTuple):
 
 def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
             cfg: SimConfig, metrics: Metrics = no_metrics(),
-            record: Callable[[mjx.Data, Observation, Any], Any] | None = None) -> RolloutResult:
+            record: Callable[[mjx.Data, Observation, Any], Any] | None = None,
+            push: Push | None = None) -> RolloutResult:
     """Simulate ONE instance for ``cfg.n_ticks`` control ticks (``vmap`` it for a batch).
 
     Per tick: observe, ``controller.step``, clip torques to ``robot.TORQUE_LIMIT``, ``cfg.substeps``
     calls of ``mjx.step``, divergence check, metric update. Returns the final state, metrics,
     the divergence flag and tick, and the decimated trace (``record(d, obs, info)`` every
-    ``cfg.record_every`` ticks).
+    ``cfg.record_every`` ticks). ``push`` optionally applies an external force to the trunk.
     """
     tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
     obs0 = observe(ids, d0, tau0)
@@ -173,7 +192,7 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
         obs = observe(ids, d, tau_prev)
         cs_new, tau, info = controller.step(params, cs, obs)
         tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
-        d_new = _physics(mx, d, tau, ids, cfg.substeps)
+        d_new = _physics(mx, d, tau, ids, cfg.substeps, push)
         ok = _finite_tree((d_new.qpos, d_new.qvel, tau)) & (jnp.max(jnp.abs(d_new.qvel)) < cfg.max_speed)
         newly = (~div) & (~ok)
         div = div | ~ok
@@ -202,40 +221,49 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
     return RolloutResult(d, cs, ms, div, div_tick, trace)
 
 
-def initial_data(m: mujoco.MjModel, mx: mjx.Model, qpos: jax.Array) -> mjx.Data:
-    """MJX data at ``qpos`` (one instance) with zero velocity, forward kinematics applied."""
+def initial_data(mx: mjx.Model, qpos: jax.Array, batch: int | None = None) -> mjx.Data:
+    """MJX data at ``qpos`` with zero velocity. With ``batch``, ``qpos`` is ``(batch, nq)`` (or broadcast)
+    and every field gets a leading batch axis."""
     d = mjx.make_data(mx)
-    d = d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype))
-    return d
+    if batch is None:
+        return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype))
+    qpos = jnp.broadcast_to(jnp.asarray(qpos, d.qpos.dtype), (batch, d.qpos.shape[0]))
+    db = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), d)
+    return db.replace(qpos=qpos)
 
 
 def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller,
                   params: Any, cfg: SimConfig, metrics: Metrics = no_metrics(), record=None,
-                  params_axes: Any = 0, mesh: Mesh | None = None) -> RolloutResult:
+                  params_axes: Any = 0, mesh: Mesh | None = None, push: Push | None = None) -> RolloutResult:
     """``vmap`` of :func:`rollout` over instances, jitted, optionally sharded over ``mesh``'s ``batch`` axis.
 
     Args:
       mx_batched: model from :func:`hyqjax.model.batch_model` (leading batch axis on its batched fields).
       d0: batched initial data (leading batch axis on every field).
       params: controller parameters; ``params_axes`` is their ``vmap`` axes (0: per instance, None: shared).
+      push: optional per-instance :class:`Push` (leading batch axis).
       mesh: a 1-D ``jax.sharding.Mesh`` with axis ``"batch"`` (see :func:`batch_mesh`); the batch must be
         divisible by its size (:func:`pad_batch`). ``None`` runs on the default device.
     """
     m_axes = hmodel.model_in_axes(mx_batched)
-    fn = jax.vmap(lambda mm, dd, pp: rollout(mm, ids, dd, controller, pp, cfg, metrics, record),
-                  in_axes=(m_axes, 0, params_axes))
+    if push is None:
+        push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (d0.qpos.shape[0],) + x.shape), Push.none())
+    fn = jax.vmap(lambda mm, dd, pp, pu: rollout(mm, ids, dd, controller, pp, cfg, metrics, record, pu),
+                  in_axes=(m_axes, 0, params_axes, 0))
     if mesh is None:
-        return jax.jit(fn)(mx_batched, d0, params)
+        return jax.jit(fn)(mx_batched, d0, params, push)
     shard = NamedSharding(mesh, PartitionSpec("batch"))
     repl = NamedSharding(mesh, PartitionSpec())
     m_shard = jax.tree_util.tree_map(lambda ax: shard if ax == 0 else repl, m_axes,
                                      is_leaf=lambda x: x is None or isinstance(x, int))
     p_shard = jax.tree_util.tree_map(lambda _: shard if params_axes == 0 else repl, params)
     d_shard = jax.tree_util.tree_map(lambda _: shard, d0)
-    out_shape = jax.eval_shape(fn, mx_batched, d0, params)
+    out_shape = jax.eval_shape(fn, mx_batched, d0, params, push)
     out_shard = jax.tree_util.tree_map(lambda _: shard, out_shape)
-    jf = jax.jit(fn, in_shardings=(m_shard, d_shard, p_shard), out_shardings=out_shard)
-    return jf(mx_batched, d0, params)
+    jf = jax.jit(fn, in_shardings=(m_shard, d_shard, p_shard, jax.tree_util.tree_map(lambda _: shard, push)),
+                 out_shardings=out_shard)
+    return jf(*jax.device_put((mx_batched, d0, params, push),  # committed (single-device) inputs move onto the mesh
+                              (m_shard, d_shard, p_shard, jax.tree_util.tree_map(lambda _: shard, push))))
 
 
 def batch_mesh(devices=None) -> Mesh:

@@ -1,0 +1,1 @@
+"""Subcommands of the ``hyqjax`` CLI (see :mod:`hyqjax.cli`)."""

@@ -1,0 +1,387 @@
+"""Height reflex of Focchi et al. (2017), Section III: viscosity-based replanning of the feet.
+
+M. Focchi, R. Featherstone, R. Orsolino, D. G. Caldwell, C. Semini, "Viscosity-based Height
+Reflex for Workspace Augmentation for Quadrupedal Locomotion on Rough Terrain", IROS 2017.
+
+While a leg swings down searching for a foothold, the reflex replaces the planned feet
+positions ``x^d`` (base frame) by corrected ones ``x^r``. It integrates a massless model of the
+robot with virtual viscous joints (Eq. 1, 10): a spring pulls the swing foot toward its plan
+(Eq. 2); the vertical part of that force is balanced by stance-foot forces that keep the stance
+feet distances (Eq. 3-6); joint dampings are scheduled on the swing leg's mobility (Section
+III-E, Eq. 12) so that, when the swing leg stretches, the motion moves to the stance legs, which
+retract: the trunk lowers ("squats") and the swing foot reaches further down in the world. Joint
+end-stop springs (Eq. 9) keep the joints inside their range.
+
+Public API (all pure, float32/float64, ``jit``/``vmap``/``grad``-able; single robot per call,
+use ``jax.vmap`` for batches):
+
+* :class:`ReflexParams` (Table I), :class:`ReflexState`, :class:`ReflexInputs`, :class:`ReflexOutput`
+* :func:`reflex_init`, :func:`reflex_step` (one control tick, Eq. 10-11), :func:`reflex_rollout`
+* building blocks: :func:`virtual_spring_force` (Eq. 2), :func:`distribute_virtual_forces`
+  (Eq. 3-6), :func:`eq6_system`, :func:`relative_distance_jacobian` (Eq. 4),
+  :func:`terrain_normal` (Eq. 7), :func:`orientation_error` (Eq. 8), :func:`end_stop_torques`
+  (Eq. 9), :func:`damping_schedule` and :func:`damping_matrix_diag` (Fig. 7),
+  :func:`velocity_transformation_ratio` (Eq. 12), :func:`planned_terrain_normal`.
+
+Deviations from the paper (all documented where they occur):
+
+* End-stop sign: ``qd = D^-1 (J^T f + tau_kl)`` with ``tau_kl`` of Eq. 9 as printed, so the
+  springs repel (the printed minus in Eq. 10 would attract; see :func:`end_stop_torques`).
+* Stance constraints include the end-stop torques: ``J~ D^-1 (J_st^T f_st + tau_kl) = 0``, so
+  Eq. 4 holds also while a stance joint is in its end-stop band (Eq. 5 is the case ``tau_kl=0``).
+* The search direction for the mobility ``m`` is the current terrain normal ``n_t`` (Eq. 7 on the
+  reflex stance feet), i.e. the normal of the stance plane seen from the (possibly rotated) base.
+* Degenerate / invalid inputs have defined, flagged outcomes (see :func:`reflex_step`).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from hyqjax import kinematics, robot
+from hyqjax.reflex_forces import (
+    COLLINEAR_TOL,
+    SCHEDULE_SHAPES,
+    damping_matrix_diag,
+    damping_schedule,
+    distribute_virtual_forces,
+    effective_k_x,
+    end_stop_torques,
+    eq6_system,
+    leg_compliances,
+    virtual_spring_force,
+)
+from hyqjax.reflex_geometry import (
+    _select,
+    _usum,
+    MOBILITY_FLOOR,
+    MOBILITY_RIDGE,
+    STANCE_LEGS,
+    STANCE_PAIRS,
+    orientation_error,
+    relative_distance_jacobian,
+    safe_normalize,
+    stance_feet,
+    stance_selector,
+    swing_one_hot,
+    terrain_normal,
+    transmission_ratio,
+    velocity_transformation_ratio,
+)
+from hyqjax.reflex_params import ReflexParams, params_finite
+
+__all__ = [
+    "COLLINEAR_TOL",
+    "MOBILITY_FLOOR",
+    "MOBILITY_RIDGE",
+    "SCHEDULE_SHAPES",
+    "STANCE_LEGS",
+    "STANCE_PAIRS",
+    "ReflexInputs",
+    "ReflexOutput",
+    "ReflexParams",
+    "ReflexState",
+    "damping_matrix_diag",
+    "damping_schedule",
+    "distribute_virtual_forces",
+    "effective_k_x",
+    "end_stop_torques",
+    "eq6_system",
+    "leg_compliances",
+    "orientation_error",
+    "planned_terrain_normal",
+    "reflex_init",
+    "reflex_rollout",
+    "reflex_step",
+    "relative_distance_jacobian",
+    "stance_feet",
+    "stance_selector",
+    "swing_one_hot",
+    "terrain_normal",
+    "transmission_ratio",
+    "velocity_transformation_ratio",
+    "virtual_spring_force",
+]
+
+_UP = (0.0, 0.0, 1.0)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ReflexState:
+    """Reflex state carried between control ticks.
+
+    Attributes:
+      q_r: ``(12,)`` reflex joint positions ``q^r`` (Eq. 10). While the reflex is inactive they
+        track ``IK(x^d)``, so on activation the reflex starts from the plan.
+      qd_r: ``(12,)`` reflex joint velocities of the last tick (needed by the trapezoidal rule);
+        zero while inactive.
+    """
+
+    q_r: jax.Array
+    qd_r: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ReflexInputs:
+    """Per-tick inputs of :func:`reflex_step` (all may be traced; batch with ``vmap``).
+
+    Attributes:
+      x_des: ``(4, 3)`` planned feet positions ``x_f^d`` in the base frame.
+      swing_leg: integer ``0..3`` (LF, RF, LH, RH); values outside are clipped.
+      active: bool, True during the downward part of the swing (Section III-E remark).
+      n_t_des: ``(3,)`` terrain normal ``n_t^d`` in the base frame sampled at the beginning of the
+        swing (Eq. 8); see :func:`planned_terrain_normal`.
+      up: ``(3,)`` gravity-up direction ``e_z`` in the base frame (``f_sw^perp``, Eq. 3).
+    """
+
+    x_des: jax.Array
+    swing_leg: jax.Array
+    active: jax.Array
+    n_t_des: jax.Array
+    up: jax.Array
+
+    @classmethod
+    def make(cls, x_des, swing_leg, active=True, n_t_des=None, up=None) -> "ReflexInputs":
+        """Convenience constructor; ``n_t_des`` defaults to :func:`planned_terrain_normal`."""
+        x_des = jnp.asarray(x_des)
+        dtype = x_des.dtype if jnp.issubdtype(x_des.dtype, jnp.floating) else jnp.float32
+        x_des = x_des.astype(dtype)
+        up = jnp.asarray(_UP if up is None else up, dtype)
+        if n_t_des is None:
+            n_t_des = planned_terrain_normal(x_des, swing_leg, up)
+        return cls(
+            x_des=x_des,
+            swing_leg=jnp.asarray(swing_leg, jnp.int32),
+            active=jnp.asarray(active, bool),
+            n_t_des=jnp.asarray(n_t_des, dtype),
+            up=up,
+        )
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ReflexOutput:
+    """Per-tick outputs of :func:`reflex_step`.
+
+    Attributes:
+      x_r: ``(4, 3)`` corrected feet positions ``x_f^r = K(q^r)`` (Eq. 11), to be sent to the
+        controller instead of the plan; equal to ``x_des`` while inactive.
+      xd_r: ``(4, 3)`` corrected feet velocities ``J(q^r) qd^r`` (Eq. 11); zero while inactive.
+      q_r, qd_r: ``(12,)`` the new reflex joint positions / velocities.
+      mobility: ``(4,)`` velocity transformation ratio ``m(n_t)`` of every leg (Eq. 12).
+      d_diag: ``(12,)`` diagonal of the damping matrix ``D_r`` used (Fig. 7).
+      f_r: ``(4, 3)`` virtual feet forces (Eq. 2, 6); zero while inactive.
+      e_b: ``(3,)`` base orientation error ``e_b = -e_t`` (Eq. 8).
+      n_t: ``(3,)`` current terrain (stance-plane) normal (Eq. 7).
+      tau_kl: ``(12,)`` end-stop torques (Eq. 9).
+      active: bool, the reflex moved this tick (``inputs.active`` and inputs valid).
+      degenerate: bool, Eq. 6 was singular (collinear stance feet or ill-conditioned): stance
+        forces were set to zero for this tick.
+      input_ok: bool, all inputs (state, plan, normals, params, dt) were finite.
+    """
+
+    x_r: jax.Array
+    xd_r: jax.Array
+    q_r: jax.Array
+    qd_r: jax.Array
+    mobility: jax.Array
+    d_diag: jax.Array
+    f_r: jax.Array
+    e_b: jax.Array
+    n_t: jax.Array
+    tau_kl: jax.Array
+    active: jax.Array
+    degenerate: jax.Array
+    input_ok: jax.Array
+
+
+def planned_terrain_normal(x_des: jax.Array, swing_leg: jax.Array, up: jax.Array | None = None) -> jax.Array:
+    """Terrain normal ``n_t^d`` of the planned stance feet (Eq. 7), to sample at swing start.
+
+    ``x_des`` ``(4, 3)`` planned feet (base frame); returns the unit normal ``(3,)`` of the plane
+    through the three stance feet, oriented along ``up``.
+    """
+    with jax.named_scope("planned_terrain_normal"):
+        x_des = jnp.asarray(x_des)
+        return terrain_normal(stance_feet(x_des, swing_leg), up)
+
+
+def reflex_init(x_des: jax.Array, dtype=None) -> ReflexState:
+    """Initial state: ``q^r = IK(x^d)`` (the reflex starts from the plan), ``qd^r = 0``.
+
+    Args:
+      x_des: ``(4, 3)`` planned feet positions in the base frame.
+      dtype: floating dtype of the state (default: that of ``x_des``, float32 for non-floats).
+        The state's dtype sets the precision of :func:`reflex_step`.
+    """
+    with jax.named_scope("reflex_init"):
+        x_des = jnp.asarray(x_des)
+        if dtype is None:
+            dtype = x_des.dtype if jnp.issubdtype(x_des.dtype, jnp.floating) else jnp.float32
+        q = kinematics.inverse_kinematics(x_des.astype(dtype)).reshape(12)
+        return ReflexState(q_r=q, qd_r=jnp.zeros(12, dtype))
+
+
+def _all_finite(x):
+    return jnp.all(jnp.isfinite(x))
+
+
+def reflex_step(
+    state: ReflexState,
+    inputs: ReflexInputs,
+    params: ReflexParams,
+    dt: float | jax.Array,
+    shape: str = "smoothstep",
+) -> tuple[ReflexState, ReflexOutput]:
+    """One control tick of the height reflex (Eq. 1-12). Single robot; ``vmap`` for batches.
+
+    When ``inputs.active`` (downward part of the swing), at ``q = q^r`` of the previous tick:
+
+    1. ``x = K(q)``, per-leg Jacobians ``J_l(q)``; current terrain normal ``n_t`` of the three
+       stance feet (Eq. 7); mobility ``m_l = m(n_t)`` of every leg (Eq. 12).
+    2. Damping ``D_r`` from the swing leg's ``m`` (Fig. 7, :func:`damping_matrix_diag`).
+    3. ``f_sw = K_x (x_sw^d - x_sw)`` (Eq. 2); ``tau_kl(q)`` (Eq. 9);
+       ``e_b = -orientation_error(n_t, n_t^d)`` (Eq. 8); stance forces from Eq. 6.
+    4. ``qd_new = D_r^{-1} (J^T f^r + tau_kl)`` (Eq. 10; end-stop sign, see
+       :func:`end_stop_torques`).
+    5. Trapezoidal rule ``q^r <- q + dt/2 (qd_prev + qd_new)``; ``x^r = K(q^r)``,
+       ``xd^r = J(q^r) qd_new`` (Eq. 11).
+
+    The stance-leg plan is ignored while active (the base does not move during the swing phase,
+    Section II). When inactive, the reflex passes the plan through: ``q^r = IK(x^d)``,
+    ``x^r = x^d``, ``qd^r = 0``, ``f^r = 0``; diagnostics (mobility, damping, ``e_b``,
+    ``tau_kl``) are evaluated at ``IK(x^d)``. Hence the reflex always (re)starts from the plan at
+    activation, and when it deactivates (touchdown) the caller takes over from ``x^r``.
+
+    Stability: the explicit integration is stable for roughly
+    ``dt * k_x * |J|^2 / d_sw_min < 2`` (``|J| ~ 0.6`` m/rad for HyQ); with Table I and
+    ``k_x_max`` this allows ``dt`` up to ~2 ms at ``k_x`` = 2e4 (and ~5 ms at 5000).
+
+    Degenerate and invalid inputs (never a silent NaN):
+
+    * collinear stance feet / singular Eq. 6: zero stance forces (the motion stays in the swing
+      leg), ``degenerate=True`` (see :func:`distribute_virtual_forces`);
+    * any non-finite entry in the state, ``x_des``, ``n_t_des``, ``up``, ``params`` or ``dt``:
+      ``input_ok=False``, ``active=False``, the previous state is held (``q^r`` unchanged,
+      ``qd^r = 0``) and ``x^r = K(q^r)``. If the held ``q^r`` is itself non-finite it is
+      replaced by ``IK(x_des)`` (or the standing pose if ``x_des`` is not finite either).
+
+    Args:
+      state: :class:`ReflexState`; its dtype sets the computation precision.
+      inputs: :class:`ReflexInputs`.
+      params: :class:`ReflexParams` (validate them beforehand with ``.validate()``).
+      dt: control period (s), e.g. ``1e-3``.
+      shape: damping-schedule blend, ``"smoothstep"`` or ``"linear"`` (static).
+    Returns:
+      ``(new_state, output)``.
+    """
+    with jax.named_scope("reflex_step"):
+        dtype = state.q_r.dtype
+        p = params.astype(dtype)
+        x_des = jnp.asarray(inputs.x_des, dtype)
+        n_des = jnp.asarray(inputs.n_t_des, dtype)
+        up = jnp.asarray(inputs.up, dtype)
+        swing = jnp.clip(jnp.asarray(inputs.swing_leg, jnp.int32), 0, 3)
+        active = jnp.asarray(inputs.active, bool)
+        dt = jnp.asarray(dt, dtype)
+        z_up = jnp.asarray(_UP, dtype)
+
+        # ---- Validity and sanitisation (so the numerics never see a NaN) ----
+        q_ok = _all_finite(state.q_r)
+        x_ok = _all_finite(x_des)
+        up_ok = _all_finite(up) & (jnp.sum(up * up) > 0)
+        n_ok = _all_finite(n_des) & (jnp.sum(n_des * n_des) > 0)
+        p_ok = params_finite(p)
+        dt_ok = jnp.isfinite(dt)
+        ok = q_ok & x_ok & up_ok & n_ok & p_ok & dt_ok & _all_finite(state.qd_r)
+
+        q_stand = jnp.asarray(robot.Q_STANDING, dtype)
+        x_safe = jnp.where(x_ok, x_des, kinematics.foot_positions(q_stand))
+        q_plan = kinematics.inverse_kinematics(x_safe).reshape(12)
+        q_hold = jnp.where(q_ok, state.q_r, jnp.where(x_ok, q_plan, q_stand))
+        qd_prev = jnp.where(ok, state.qd_r, 0.0)
+        up = safe_normalize(jnp.where(up_ok, up, z_up), fallback=z_up)
+        n_des = jnp.where(n_ok, n_des, up)
+        defaults = ReflexParams().astype(dtype)
+        p = jax.tree.map(lambda a, d: jnp.where(jnp.isfinite(a), a, d), p, defaults)
+        dt = jnp.where(dt_ok, dt, 0.0)
+
+        run = active & ok
+        q = jnp.where(run, q_hold, q_plan)
+
+        # ---- Eq. 7, 12: geometry and mobility at q ----
+        x = kinematics.foot_positions(q)
+        j_legs = kinematics.foot_jacobians(q)
+        hot = swing_one_hot(swing, dtype)
+        n_t = terrain_normal(_select(stance_selector(swing, dtype), x), up)
+        mobility = transmission_ratio(j_legs, n_t[None, :])
+        # ---- Fig. 7: damping schedule on the swing leg's mobility ----
+        d_diag = damping_matrix_diag(swing, _usum(hot * mobility, 0), p, shape)
+        # ---- Eq. 2, 8, 9, 6 ----
+        f_sw = virtual_spring_force(_select(hot[None], x_safe)[0], _select(hot[None], x)[0], p)
+        tau_kl = end_stop_torques(q, p)
+        e_b = -orientation_error(n_t, n_des)
+        f_r, degenerate = distribute_virtual_forces(
+            x, f_sw, swing, j_legs, d_diag, e_b, p, up=up, tau_kl=tau_kl, return_degenerate=True
+        )
+        # ---- Eq. 10: damper model (end-stop torque added, see end_stop_torques) ----
+        tau_r = _usum(j_legs * f_r[:, :, None], 1).reshape(12) + tau_kl  # J^T f^r
+        qd_new = tau_r / d_diag
+        # ---- trapezoidal integration ----
+        q_next = q_hold + 0.5 * dt * (qd_prev + qd_new)
+
+        q_new = jnp.where(run, q_next, jnp.where(ok, q_plan, q_hold))
+        qd_out = jnp.where(run, qd_new, 0.0)
+        # ---- Eq. 11 ----
+        x_new, xd_r = jax.jvp(kinematics.foot_positions, (q_new,), (qd_out,))  # K(q^r), J(q^r) qd^r
+        x_r = jnp.where(ok & ~active, x_safe, x_new)
+        out = ReflexOutput(
+            x_r=x_r,
+            xd_r=xd_r,
+            q_r=q_new,
+            qd_r=qd_out,
+            mobility=mobility,
+            d_diag=d_diag,
+            f_r=jnp.where(run, f_r, 0.0),
+            e_b=e_b,
+            n_t=n_t,
+            tau_kl=tau_kl,
+            active=run,
+            degenerate=degenerate & run,
+            input_ok=ok,
+        )
+        return ReflexState(q_r=q_new, qd_r=qd_out), out
+
+
+def reflex_rollout(
+    state: ReflexState,
+    inputs: ReflexInputs,
+    params: ReflexParams,
+    dt: float | jax.Array,
+    n_steps: int | None = None,
+    shape: str = "smoothstep",
+) -> tuple[ReflexState, ReflexOutput]:
+    """Run :func:`reflex_step` over time with ``lax.scan``.
+
+    Args:
+      inputs: either per-tick inputs with a leading time axis (``n_steps=None``), or constant
+        inputs repeated for ``n_steps`` ticks.
+    Returns:
+      ``(final_state, outputs)`` with a leading time axis on every output field.
+    """
+    with jax.named_scope("reflex_rollout"):
+        if n_steps is not None:
+            xs = None
+            length = int(n_steps)
+        else:
+            xs = inputs
+            length = None
+
+        def body(carry, inp):
+            return reflex_step(carry, inputs if inp is None else inp, params, dt, shape)
+
+        return jax.lax.scan(body, state, xs, length=length)
+

@@ -1,0 +1,56 @@
+"""Shared fixtures of the hyqjax test suite (CPU-sized; every test jits what it calls)."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import hyqjax  # noqa: F401  (sets the XLA:CPU flags before jax is imported)
+import jax
+import numpy as np
+import pytest
+
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture
+def x64():
+    """Run the test with 64-bit JAX types, restoring the previous setting afterwards."""
+    with jax.enable_x64(True):
+        yield
+
+
+@pytest.fixture(scope="session")
+def hyq():
+    """The compiled default HyQ + terrain ``MjModel`` and its named ids."""
+    from hyqjax import model as hmodel
+
+    m = hmodel.load_model()
+    return m, hmodel.model_ids(m)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)
+
+
+def run_python(code: str, timeout: float, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+    """Run ``code`` in a fresh Python (repo root on the path) and return the finished process.
+
+    A ``subprocess.TimeoutExpired`` (a hang, e.g. a deadlock) propagates and fails the calling test.
+    """
+    full_env = dict(os.environ)
+    full_env["PYTHONPATH"] = REPO_ROOT + os.pathsep + full_env.get("PYTHONPATH", "")
+    full_env.update(env or {})
+    return subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO_ROOT, env=full_env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def start_python(code: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+    """Start ``code`` in a fresh Python in the background (see :func:`run_python`); ``.communicate(timeout=...)`` it."""
+    full_env = dict(os.environ)
+    full_env["PYTHONPATH"] = REPO_ROOT + os.pathsep + full_env.get("PYTHONPATH", "")
+    full_env.update(env or {})
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO_ROOT, env=full_env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -1,0 +1,281 @@
+"""The HyQ MJCF and the per-instance terrain batching of hyqjax.model."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from hyqjax import model as hmodel
+from hyqjax import robot, stand
+
+
+def _body(m, name):
+    return m.body(name)
+
+
+# ---------------------------------------------------------------- the URDF's numbers
+
+
+def test_masses(hyq):
+    m, ids = hyq
+    assert m.body("trunk").mass[0] == pytest.approx(58.96, abs=1e-9)
+    for leg in robot.LEG_NAMES:
+        assert m.body(f"{leg}_hipassembly").mass[0] == pytest.approx(2.93, abs=1e-9)
+        assert m.body(f"{leg}_upperleg").mass[0] == pytest.approx(2.638, abs=1e-9)
+        assert m.body(f"{leg}_lowerleg").mass[0] == pytest.approx(0.881, abs=1e-9)
+    assert m.body_mass[ids.payload_body] == 0.0
+    assert m.body_mass.sum() == pytest.approx(84.756, abs=1e-9)
+    assert m.body_subtreemass[ids.trunk_body] == pytest.approx(robot.TOTAL_MASS, abs=1e-9)
+
+
+def test_leg_geometry(hyq):
+    m, _ = hyq
+    for leg, hip in zip(robot.LEG_NAMES, robot.B_P_HIP):
+        np.testing.assert_allclose(m.body(f"{leg}_hipassembly").pos, hip, atol=1e-12)
+        np.testing.assert_allclose(np.abs(hip), (0.3735, 0.207, 0.0), atol=1e-12)
+        np.testing.assert_allclose(m.body(f"{leg}_upperleg").pos, (0, 0, -robot.L_HAA_HFE), atol=1e-12)
+        np.testing.assert_allclose(m.body(f"{leg}_lowerleg").pos, (0, 0, -robot.L_UPPER), atol=1e-12)
+        np.testing.assert_allclose(m.site(f"{leg}_foot").pos, (0, 0, -robot.L_LOWER), atol=1e-12)
+        foot = m.geom(f"{leg}_foot")
+        assert foot.type[0] == mujoco.mjtGeom.mjGEOM_SPHERE
+        np.testing.assert_allclose(foot.pos, (0, 0, -robot.L_LOWER), atol=1e-12)
+        assert foot.size[0] == pytest.approx(robot.FOOT_RADIUS, abs=1e-12)
+    assert (robot.L_HAA_HFE, robot.L_UPPER, robot.L_LOWER, robot.FOOT_RADIUS) == (0.08, 0.35, 0.341, 0.02175)
+    # Sides: left hips at +y, front at +x; HAA axes along -+x as robot.HAA_AXIS_SIGN says, HFE/KFE along +y.
+    for i, leg in enumerate(robot.LEG_NAMES):
+        np.testing.assert_allclose(m.joint(f"{leg}_haa").axis, (robot.HAA_AXIS_SIGN[i], 0, 0), atol=1e-12)
+        np.testing.assert_allclose(m.joint(f"{leg}_hfe").axis, (0, 1, 0), atol=1e-12)
+        np.testing.assert_allclose(m.joint(f"{leg}_kfe").axis, (0, 1, 0), atol=1e-12)
+
+
+def test_joint_ranges_and_actuators(hyq):
+    m, ids = hyq
+    jids = [m.joint(f"{leg}_{j}").id for leg in robot.LEG_NAMES for j in robot.JOINT_NAMES]
+    assert all(m.jnt_limited[j] for j in jids)
+    rng = m.jnt_range[jids]
+    np.testing.assert_allclose(rng[:, 0], robot.Q_MIN, atol=1e-9)
+    np.testing.assert_allclose(rng[:, 1], robot.Q_MAX, atol=1e-9)
+    # Front and hind ranges differ (HFE and KFE), HAA is the same on all legs.
+    assert not np.allclose(robot.Q_MIN_LEG[robot.LF, 1:], robot.Q_MIN_LEG[robot.LH, 1:])
+    assert not np.allclose(robot.Q_MAX_LEG[robot.LF, 1:], robot.Q_MAX_LEG[robot.LH, 1:])
+    np.testing.assert_allclose(robot.Q_MIN_LEG[robot.LF], robot.Q_MIN_LEG[robot.RF])
+    np.testing.assert_allclose(robot.Q_MIN_LEG[robot.LH], robot.Q_MIN_LEG[robot.RH])
+    np.testing.assert_allclose(robot.Q_MIN_LEG[:, 0], robot.Q_MIN_LEG[0, 0])
+    # Knee direction of the ranges is robot.KNEE_SIGN.
+    assert np.all(np.sign(robot.Q_MIN_LEG[:, 2] + robot.Q_MAX_LEG[:, 2]) == robot.KNEE_SIGN)
+    # 12 motors in joint order, +-150 N m, gear 1.
+    assert m.nu == 12
+    assert list(m.actuator_trnid[:, 0]) == jids
+    assert np.all(m.actuator_ctrllimited == 1)
+    np.testing.assert_array_equal(m.actuator_ctrlrange, np.tile([-150.0, 150.0], (12, 1)))
+    assert robot.TORQUE_LIMIT == 150.0
+    np.testing.assert_array_equal(m.actuator_gear[:, 0], 1.0)
+
+
+def test_standing_keyframe(hyq):
+    m, ids = hyq
+    key = m.key("standing")
+    np.testing.assert_allclose(key.qpos[7:], robot.Q_STANDING, atol=1e-12)
+    np.testing.assert_allclose(key.qpos[:7], (0, 0, robot.STANDING_BASE_Z, 1, 0, 0, 0), atol=1e-12)
+    np.testing.assert_allclose(hmodel.standing_qpos(m), key.qpos)
+    np.testing.assert_allclose(hmodel.standing_qpos(m, (1.0, 2.0), 0.3)[:3], (1.0, 2.0, robot.STANDING_BASE_Z + 0.3))
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, key.id)
+    mujoco.mj_forward(m, d)
+    # The feet are the robot's lowest points and touch the ground (to 0.1 mm).
+    bottoms = d.site_xpos[list(ids.foot_sites), 2] - robot.FOOT_RADIUS
+    assert np.all(np.abs(bottoms) < 1e-4), bottoms
+    robot_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] != 0]
+    low = np.full(m.ngeom, np.inf)
+    for g in robot_geoms:
+        low[g] = d.geom_xpos[g, 2] - (m.geom_rbound[g] if g not in ids.foot_geoms else robot.FOOT_RADIUS)
+    assert np.argmin(low) in ids.foot_geoms or np.min(low[list(ids.foot_geoms)]) <= np.min(low) + 1e-9
+
+
+# ---------------------------------------------------------------- contacts
+
+
+def _can_collide(m, g1, g2):
+    return bool((m.geom_contype[g1] & m.geom_conaffinity[g2]) or (m.geom_contype[g2] & m.geom_conaffinity[g1]))
+
+
+def test_contact_filtering_masks(hyq):
+    m, ids = hyq
+    terrain = [g for g in range(m.ngeom) if m.geom_bodyid[g] == 0]
+    robot_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] != 0]
+    assert set(terrain) == {ids.floor_geom, ids.platform_geom, *ids.block_geoms}
+    assert set(robot_geoms) == {ids.trunk_geom, *ids.foot_geoms, *ids.shin_geoms}
+    for g1 in range(m.ngeom):
+        for g2 in range(g1 + 1, m.ngeom):
+            one_each = (g1 in terrain) != (g2 in terrain)
+            assert _can_collide(m, g1, g2) == one_each, (m.geom(g1).name, m.geom(g2).name)
+    # Rough-terrain blocks get the terrain masks too.
+    mb = hmodel.load_model(hmodel.TerrainLayout(n_blocks_x=2, n_blocks_y=1))
+    ib = hmodel.model_ids(mb)
+    assert len(ib.block_geoms) == 4
+    for b in ib.block_geoms:
+        assert _can_collide(mb, b, ib.foot_geoms[0]) and not _can_collide(mb, b, ib.floor_geom)
+
+
+def test_feet_shins_trunk_touch_the_terrain_and_nothing_else(hyq):
+    m, ids = hyq
+    d = mujoco.MjData(m)
+    # Trunk lowered into the floor with straight legs: feet, shins and trunk all penetrate the
+    # terrain, and the legs cross each other's space (HAA at the inner limit) without contacting.
+    d.qpos[:] = hmodel.standing_qpos(m, base_xy=(1.5, 0.0))
+    d.qpos[2] = 0.05
+    q = np.zeros(12)
+    q[0::3] = robot.Q_MAX[0::3]  # HAA inward
+    d.qpos[7:] = q
+    mujoco.mj_forward(m, d)
+    pairs = {(int(c.geom1), int(c.geom2)) for c in d.contact[: d.ncon]}
+    touched = {g for p in pairs for g in p if m.geom_bodyid[g] != 0}
+    assert ids.trunk_geom in touched
+    assert set(ids.foot_geoms) <= touched
+    assert set(ids.shin_geoms) <= touched
+    for g1, g2 in pairs:
+        assert (m.geom_bodyid[g1] == 0) != (m.geom_bodyid[g2] == 0), (m.geom(g1).name, m.geom(g2).name)
+
+
+# ---------------------------------------------------------------- per-instance terrain in MJX
+
+HEIGHTS = np.array([0.0, 0.15, 0.3])
+PAYLOAD = (0.0, 0.0, 15.0)
+PAYLOAD_COM = np.array([[0, 0, 0], [0, 0, 0], [0.1, -0.05, 0.05]])
+
+
+@pytest.fixture(scope="module")
+def batched_platform_run(hyq):
+    """One jitted, vmapped MJX program over 3 instances with different platform heights (and a payload
+    on the last): forward at the start, then 0.5 s of ``mjx.step`` under joint PD + weight feed-forward,
+    HyQ standing on the platform (all feet on it, at x = -1 m)."""
+    m, ids = hyq
+    mx = mjx.put_model(m)
+    terrain = hmodel.InstanceTerrain.make(HEIGHTS, payload_mass=PAYLOAD, payload_com=PAYLOAD_COM)
+    mxb = hmodel.batch_model(mx, ids, terrain)
+    qpos0 = np.stack([hmodel.standing_qpos(m, base_xy=(-1.0, 0.0), ground_height=h) for h in HEIGHTS])
+    qadr, vadr = np.asarray(ids.qpos_joints), np.asarray(ids.dof_joints)
+    gains = stand.StandParams.make()
+    kp, kd = gains.gains.per_joint()
+
+    def one(mm, qpos):
+        d = mjx.make_data(mm).replace(qpos=qpos)
+        d_first = mjx.forward(mm, d)
+
+        def body(dd, _):
+            q, qd = dd.qpos[qadr], dd.qvel[vadr]
+            tau = kp * (gains.q_ref - q) - kd * qd + stand.weight_feedforward(q, dd.qpos[3:7])
+            return mjx.step(mm, dd.replace(ctrl=jnp.clip(tau, -150.0, 150.0))), None
+
+        d_last, _ = jax.lax.scan(body, d_first, None, length=250)
+        return d_first, d_last
+
+    fn = jax.jit(jax.vmap(one, in_axes=(hmodel.model_in_axes(mxb), 0)))
+    d_first, d_last = jax.block_until_ready(fn(mxb, jnp.asarray(qpos0, jnp.float32)))
+    return m, ids, mxb, qpos0, d_first, d_last
+
+
+def test_batched_model_fields(batched_platform_run):
+    m, ids, mxb, _, _, _ = batched_platform_run
+    hz = hmodel.PLATFORM_HALF_SIZE[2]
+    np.testing.assert_allclose(mxb.geom_pos[:, ids.platform_geom, 2], HEIGHTS - hz, atol=1e-6)
+    np.testing.assert_allclose(mxb.geom_size[ids.platform_geom], hmodel.PLATFORM_HALF_SIZE, atol=1e-6)
+    np.testing.assert_allclose(mxb.body_mass[:, ids.payload_body], PAYLOAD, atol=1e-6)
+    axes = hmodel.model_in_axes(mxb)
+    assert axes.geom_pos == 0 and axes.body_mass == 0 and axes.geom_size is None
+
+
+def test_platform_contact_height_per_instance(batched_platform_run):
+    m, ids, _, _, d_first, d_last = batched_platform_run
+    for d in (d_first, d_last):
+        c = d._impl.contact
+        g1, g2, dist = np.asarray(c.geom1), np.asarray(c.geom2), np.asarray(c.dist)
+        pos = np.asarray(c.pos)
+        for b, h in enumerate(HEIGHTS):
+            for foot in ids.foot_geoms:
+                on_platform = ((g1[b] == ids.platform_geom) & (g2[b] == foot)) | (
+                    (g2[b] == ids.platform_geom) & (g1[b] == foot))
+                on_floor = ((g1[b] == ids.floor_geom) & (g2[b] == foot)) | ((g2[b] == ids.floor_geom) & (g1[b] == foot))
+                assert on_platform.sum() >= 1 and on_floor.sum() == 1
+                # The foot touches the platform top at z = h (within a millimetre of penetration).
+                k = np.flatnonzero(on_platform)[np.argmin(dist[b][on_platform])]
+                assert abs(dist[b, k]) < 1e-3, (h, dist[b, k])
+                assert abs(pos[b, k, 2] - h) < 1e-3, (h, pos[b, k])
+                # ... and is h above the floor.
+                assert np.min(dist[b][on_floor]) == pytest.approx(h, abs=1e-3)
+    # After 0.5 s of standing the feet rest on each instance's platform and the trunk is 0.5957 m above it.
+    sites = np.asarray(d_last.site_xpos)[:, list(ids.foot_sites), 2]
+    np.testing.assert_allclose(sites, HEIGHTS[:, None] + robot.FOOT_RADIUS, atol=1.5e-3)
+    np.testing.assert_allclose(np.asarray(d_last.qpos)[:, 2], HEIGHTS + robot.STANDING_BASE_Z, atol=0.01)
+    assert np.all(np.isfinite(np.asarray(d_last.qpos)))
+
+
+def test_payload_shifts_mass_and_com(batched_platform_run):
+    m, ids, mxb, qpos0, d_first, _ = batched_platform_run
+    # Total mass per instance.
+    np.testing.assert_allclose(np.asarray(mxb.body_mass).sum(1), robot.TOTAL_MASS + np.asarray(PAYLOAD), atol=1e-4)
+    # Whole-robot CoM from MJX (subtree of the trunk) against the bare robot's from C MuJoCo.
+    com_mjx = np.asarray(d_first.subtree_com)[:, ids.trunk_body]
+    for b in range(len(HEIGHTS)):
+        d = mujoco.MjData(m)
+        d.qpos[:] = qpos0[b]
+        mujoco.mj_forward(m, d)
+        c0 = d.subtree_com[ids.trunk_body]
+        p = d.xpos[ids.trunk_body] + d.xmat[ids.trunk_body].reshape(3, 3) @ PAYLOAD_COM[b]
+        expect = (robot.TOTAL_MASS * c0 + PAYLOAD[b] * p) / (robot.TOTAL_MASS + PAYLOAD[b])
+        np.testing.assert_allclose(com_mjx[b], expect, atol=2e-5)
+    shift = com_mjx[2] - com_mjx[1] - (HEIGHTS[2] - HEIGHTS[1]) * np.array([0, 0, 1])
+    assert shift[0] > 0.01 and shift[1] < -0.005  # toward the payload's (+x, -y)
+    # Its inertia is that of a solid 0.3 x 0.2 x 0.1 m box.
+    box = np.array([0.2**2 + 0.1**2, 0.3**2 + 0.1**2, 0.3**2 + 0.2**2]) / 12.0
+    np.testing.assert_allclose(np.asarray(mxb.body_inertia)[2, ids.payload_body], PAYLOAD[2] * box, rtol=1e-5)
+
+
+def test_friction_is_per_instance(hyq):
+    m, ids = hyq
+    mx = mjx.put_model(m)
+    mxb = hmodel.batch_model(mx, ids, hmodel.InstanceTerrain.make([0.0, 0.1], friction=[0.3, 1.2]))
+    fr = np.asarray(mxb.geom_friction)
+    np.testing.assert_allclose(fr[:, ids.floor_geom, 0], [0.3, 1.2], atol=1e-6)
+    np.testing.assert_allclose(fr[:, ids.platform_geom, 0], [0.3, 1.2], atol=1e-6)
+    np.testing.assert_allclose(fr[:, ids.foot_geoms[0], 0], 0.8, atol=1e-6)  # the robot's own unchanged
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(platform_height=-0.01), "platform_height"),
+        (dict(platform_height=hmodel.MAX_PLATFORM_HEIGHT + 0.01), "platform_height"),
+        (dict(platform_height=np.nan), "platform_height"),
+        (dict(platform_height=0.1, friction=0.0), "friction"),
+        (dict(platform_height=0.1, friction=-1.0), "friction"),
+        (dict(platform_height=0.1, friction=np.inf), "friction"),
+        (dict(platform_height=0.1, payload_mass=-1.0), "payload_mass"),
+        (dict(platform_height=0.1, payload_mass=101.0), "payload_mass"),
+        (dict(platform_height=0.1, payload_com=(0.0, 0.0, 0.6)), "payload_com"),
+        (dict(platform_height=0.1, block_heights=[0.2], n_blocks=1), "block_heights"),
+    ],
+)
+def test_instance_terrain_rejects_bad_values(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        hmodel.InstanceTerrain.make(**kwargs)
+
+
+def test_instance_terrain_broadcasts():
+    t = hmodel.InstanceTerrain.make([0.0, 0.1, 0.2], friction=0.5, payload_mass=3.0, payload_com=(0.1, 0, 0))
+    assert t.batch_size == 3
+    assert t.friction.shape == (3,) and t.payload_com.shape == (3, 3) and t.block_heights.shape == (3, 0)
+
+
+def test_load_model_rejects_bad_settings():
+    with pytest.raises(ValueError, match="timestep"):
+        hmodel.load_model(timestep=0.0)
+    with pytest.raises(ValueError, match="iterations"):
+        hmodel.load_model(iterations=0)
+    m = hmodel.load_model(timestep=0.001, iterations=2, ls_iterations=4)
+    assert (m.opt.timestep, m.opt.iterations, m.opt.ls_iterations) == (0.001, 2, 4)
+    dflt = hmodel.load_model()
+    assert (dflt.opt.timestep, dflt.opt.iterations, dflt.opt.ls_iterations) == (0.002, 4, 8)
