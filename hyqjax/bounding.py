@@ -4,7 +4,12 @@ strategy for quadrupedal bounding gait").
 The controller is a :class:`hyqjax.sim.Controller`; it sees only :class:`hyqjax.sim.Observation`
 (joint states and torques, IMU orientation and angular rate, foot forces, time). Base height and
 linear velocity are **estimated** (leg odometry, Section "State estimation" below); no ground truth
-reaches the controller.
+reaches the controller (the only exception: :func:`hyqjax.bounding_cycle.return_map` starts the estimator at
+the true apex state, as the return map is a function of that state).
+
+Defaults: period 0.4 s, duty 0.4 per pair (hind stance at phases 0.05-0.45, front at 0.55-0.95, two
+0.04 s flights), base height 0.6 m, feet 0.10 m inside the hips. Simulation: MJX, 2 ms step, 500 Hz
+control, flat ground (:func:`hyqjax.bounding_cycle._model` switches off the flush platform's collisions).
 
 Gait baseline (Section II of the paper, Park & Kim's impulses)
 ---------------------------------------------------------------
@@ -25,7 +30,8 @@ initial guess :func:`impulse_guess`:
           a_{f,z} d_f (x_f - x_c) + a_{h,z} d_h (x_h - x_c) = 0.                      \\qquad (B2)
 
 The exact periodic amplitudes ``a*`` come from :mod:`hyqjax.bounding_cycle` (return-map
-optimisation through MJX). The force reaches the joints through the leg Jacobian (the ground
+optimisation through MJX); the stored cycle is :mod:`hyqjax.bounding_defaults`. The force reaches
+the joints through the leg Jacobian (the ground
 pushes the foot with ``f``, the leg must push the ground with ``-f``):
 
 .. math:: \\tau_{ff,i} = -J_i(q)^T\\, {}_bR_h\\, {}_h f_i, \\qquad {}_bR_h = (R_y(\\theta) R_x(\\phi))^T. \\qquad (B3)
@@ -33,39 +39,58 @@ pushes the foot with ``f``, the leg must push the ground with ``-f``):
 Joint impedance (:func:`hyqjax.impedance.joint_impedance`) tracks the foot references below,
 with separate stance and swing gains: ``tau = Kp (q^d - q) + Kd (qd^d - qd) + tau_ff``.
 
-Apex state feedback (Park & Kim's vertical impulse scaling)
------------------------------------------------------------
-Phase 0 is the middle of the flight before the hind stance: the apex. At every apex ``k`` the
-controller samples ``s_k = (z, theta, xdot, zdot, thetadot)`` (estimated height and velocities,
-IMU pitch and pitch rate) and scales this cycle's vertical impulses:
+Stabilising state feedback
+--------------------------
+Phase 0 is the middle of the flight before the hind stance: the apex. The feed-forward cycle alone
+is unstable (return-map eigenvalues up to ~3.4, see :mod:`hyqjax.bounding_cycle`); three feedbacks
+stabilise it, all zero on the limit cycle (so the cycle is the same with and without them):
+
+*Stance PD on the cycle reference* (continuous, Park & Kim's attitude control). ``params.reference``
+holds the cycle's ``(z, theta, zdot, thetadot)`` against phase (recorded from the optimised cycle);
+during stance each leg adds ``beta(s)/2`` times
+
+.. math:: \Delta f_z = k_{sz} (z^{ref} - z) + k_{s\dot z} (\dot z^{ref} - \dot z), \qquad
+          \Delta f_x = [k_{s\theta} (\theta - \theta^{ref}) + k_{s\dot\theta} (\dot\theta - \dot\theta^{ref})] / h
+          \qquad (B7)
+
+(a forward push at the foot, ``h`` below the CoM, pitches the trunk nose-up: ``tau_y = -h f_x``).
+
+*Apex impulse scaling* (per cycle, Park & Kim's vertical impulse scaling). At every apex ``k`` the
+controller samples ``s_k = (z, theta, xdot, zdot, thetadot)`` (estimated height and velocities, IMU
+pitch and pitch rate), integrates the errors ``I_k = I_{k-1} + (z* - z_k, theta_k - theta*, ...)``
+and scales this cycle's vertical impulses:
 
 .. math::
-    \\alpha_k = 1 + k_z (z^* - z_k) + k_{\\dot z} (\\dot z^* - \\dot z_k), \\qquad
-    \\Delta_k = k_\\theta (\\theta_k - \\theta^*) + k_{\\dot\\theta} (\\dot\\theta_k - \\dot\\theta^*),
+    \alpha_k = 1 + k_z (z^* - z_k) + k_{\dot z} (\dot z^* - \dot z_k) + k_{zI} I_{z,k}, \qquad
+    \Delta_k = k_\theta (\theta_k - \theta^*) + k_{\dot\theta} (\dot\theta_k - \dot\theta^*) + k_{\theta I} I_{\theta,k},
 
-.. math:: a_{f,z} = a^*_{f,z}\\, \\alpha_k (1 + \\Delta_k), \\qquad a_{h,z} = a^*_{h,z}\\, \\alpha_k (1 - \\Delta_k).  \\qquad (B4)
+.. math:: a_{f,z} = a^*_{f,z}\, \alpha_k (1 + \Delta_k), \qquad a_{h,z} = a^*_{h,z}\, \alpha_k (1 - \Delta_k).  \qquad (B4)
 
-(``theta > 0`` is nose down; the front push pitches the nose up.) The feedback vanishes on the
-cycle, so the limit cycle is the same with and without it; only its stability changes
-(:func:`hyqjax.bounding_cycle.return_map_jacobian`).
+(``theta > 0`` is nose down; the front push pitches the nose up.)
+
+*Foot placement* (Raibert): the touchdown target is the neutral point of the stride for the estimated
+speed plus a correction on the apex speed error, Eq. B8 (:func:`touchdown_target`). Without the
+neutral point, forward speed shifts the vertical forces' moment arms and feeds the pitch loop.
 
 Speed and turning control (Section IV)
 --------------------------------------
-Per cycle, from the apex sample of the estimated velocity in ``H``:
+Per cycle, from the apex sample of the estimated velocity in ``H`` (``xdot*`` the cycle's apex speed):
 
-.. math:: a_{i,x} = a^*_{i,x} + K_{d,\\dot x} (\\dot x^d - \\dot x), \\qquad
-          a_{i,y} = a^*_{i,y} + K_{d,\\dot y} (\\dot y^d - \\dot y)                   \\qquad (B5)
+.. math:: a_{i,x} = a^*_{i,x} + K_{d,\dot x} (\dot x^d + \dot x^* - \dot x) + K_{I} I_{\dot x}, \qquad
+          a_{i,y} = a^*_{i,y} + K_{d,\dot y} (\dot y^d - \dot y) + K_I I_{\dot y}              \qquad (B5)
 
-and continuously, from the gyro (``x_{f,i}`` the nominal foot x in ``B``; ``f_y x_f`` is a yaw
-moment):
+(the paper's law is the ``K_d`` term; ``K_I`` defaults to 0). The switch ``apex_feedback`` gates all
+per-cycle terms (B4, B5 and the correction of B8). Continuously, from the gyro (``x_{f,i}`` the
+nominal foot x in ``B``; ``f_y x_f`` is a yaw moment):
 
-.. math:: a_{i,y} \\mathrel{+}= \\big[K_{d,\\psi} (\\dot\\psi^d - \\dot\\psi) + K_{p,\\psi} (\\psi^d - \\psi)\\big] / x_{f,i}. \\qquad (B6)
+.. math:: a_{i,y} \mathrel{+}= \big[K_{d,\psi} (\dot\psi^d - \dot\psi) + K_{p,\psi} (\psi^d - \psi)\big] / x_{f,i}. \qquad (B6)
 
-``K_{p,psi}`` (yaw-angle feedback) is **not** in the paper (which uses the rate term only); it is
-zero-able and defaults to a small value so the yaw *angle* error stays bounded (see the README).
+``K_{p,psi}`` (yaw-angle feedback) is **not** in the paper, whose law has the rate term only. With the
+rate term alone the yaw angle lags the integrated command by a steady 4-6 deg in our simulation; the
+default ``K_{p,psi} = 200 N m/rad`` keeps it below ~2.5 deg (set ``k_yaw=0`` for the paper's law).
+``psi^d`` integrates the (ramped) yaw-rate command from the initial heading.
 Roll is held by a stance PD that shifts vertical force from one side to the other,
-``a_{i,z} += -sgn(y_i) [K_\\phi (\\phi - \\phi^d) + K_{\\dot\\phi} \\dot\\phi] / (2 |y_f|)``.
-The foot stride follows the desired speed (Fig. 2): touchdown ``x = x_nom + d_p T xdot^d / 2``.
+``a_{i,z} += -sgn(y_i) [K_\phi (\phi - \phi^d) + K_{\dot\phi} \dot\phi] / (2 |y_f|)``.
 
 Centrifugal compensation (Eqs. 3-4)
 -----------------------------------
@@ -213,9 +238,13 @@ class BoundingGains:
       stance, swing: joint impedance in stance and in swing.
       k_height, k_height_rate: impulse scaling per apex height error (1/m) and vertical speed error (s/m), Eq. B4.
       k_pitch, k_pitch_rate: front/hind impulse shift per apex pitch error (1/rad) and pitch-rate error (s/rad).
-      k_speed, k_lateral: ``K_{d,xdot}``, ``K_{d,ydot}`` (N s/m), Eq. B5.
+      k_height_int, k_pitch_int: integral of the apex height / pitch errors (per m, per rad, per cycle), Eq. B4.
+      k_speed, k_lateral: ``K_{d,xdot}``, ``K_{d,ydot}`` (N s/m), Eq. B5.  k_speed_int: integral (N s/m per cycle).
       k_yaw_rate: ``K_{d,psi}`` (N m s/rad), Eq. B6.  k_yaw: yaw-angle gain ``K_{p,psi}`` (N m/rad), ours.
       k_roll, k_roll_rate: stance roll PD (N m/rad, N m s/rad).
+      k_stance_z, k_stance_zdot: stance height PD on the cycle reference (N/m, N s/m), Eq. B7.
+      k_stance_pitch, k_stance_pitch_rate: stance pitch PD on the cycle reference (N m/rad, N m s/rad), Eq. B7.
+      k_foot: Raibert foot-placement gain on the velocity error (s), Eq. B8.
       tau_est: leg-odometry blending time constant (s).
     """
 
@@ -225,30 +254,49 @@ class BoundingGains:
     k_height_rate: jax.Array
     k_pitch: jax.Array
     k_pitch_rate: jax.Array
+    k_height_int: jax.Array
+    k_pitch_int: jax.Array
     k_speed: jax.Array
     k_lateral: jax.Array
+    k_speed_int: jax.Array
     k_yaw_rate: jax.Array
     k_yaw: jax.Array
     k_roll: jax.Array
     k_roll_rate: jax.Array
+    k_stance_z: jax.Array
+    k_stance_zdot: jax.Array
+    k_stance_pitch: jax.Array
+    k_stance_pitch_rate: jax.Array
+    k_foot: jax.Array
     tau_est: jax.Array
 
     @staticmethod
     def make(stance=None, swing=None, k_height=0.0, k_height_rate=0.0, k_pitch=0.0, k_pitch_rate=0.0,
-             k_speed=0.0, k_lateral=0.0, k_yaw_rate=0.0, k_yaw=0.0, k_roll=0.0, k_roll_rate=0.0,
+             k_height_int=0.0, k_pitch_int=0.0, k_speed=0.0, k_lateral=0.0, k_speed_int=0.0, k_yaw_rate=0.0,
+             k_yaw=0.0, k_roll=0.0, k_roll_rate=0.0,
+             k_stance_z=0.0, k_stance_zdot=0.0, k_stance_pitch=0.0, k_stance_pitch_rate=0.0, k_foot=0.0,
              tau_est=0.01) -> "BoundingGains":
         for name, v, lo, hi in (("k_height", k_height, -50, 50), ("k_height_rate", k_height_rate, -10, 10),
                                 ("k_pitch", k_pitch, -20, 20), ("k_pitch_rate", k_pitch_rate, -5, 5),
+                                ("k_height_int", k_height_int, 0, 10), ("k_pitch_int", k_pitch_int, 0, 10),
                                 ("k_speed", k_speed, 0, 2000), ("k_lateral", k_lateral, 0, 2000),
+                                ("k_speed_int", k_speed_int, 0, 500),
                                 ("k_yaw_rate", k_yaw_rate, 0, 2000), ("k_yaw", k_yaw, 0, 2000),
-                                ("k_roll", k_roll, 0, 5000), ("k_roll_rate", k_roll_rate, 0, 500)):
+                                ("k_roll", k_roll, 0, 5000), ("k_roll_rate", k_roll_rate, 0, 500),
+                                ("k_stance_z", k_stance_z, 0, 50000), ("k_stance_zdot", k_stance_zdot, 0, 5000),
+                                ("k_stance_pitch", k_stance_pitch, 0, 20000),
+                                ("k_stance_pitch_rate", k_stance_pitch_rate, 0, 2000),
+                                ("k_foot", k_foot, 0, 0.5)):
             _check(name, v, lo, hi)
         _check("tau_est", tau_est, 0.0, 1.0, lo_open=True)
         stance = stance or impedance.ImpedanceGains.make(kp=(300.0, 150.0, 150.0), kd=(8.0, 6.0, 6.0))
         swing = swing or impedance.ImpedanceGains.make(kp=(300.0, 300.0, 300.0), kd=(8.0, 8.0, 6.0))
-        return BoundingGains(stance, swing, *(_f32(v) for v in (k_height, k_height_rate, k_pitch, k_pitch_rate,
-                                                                k_speed, k_lateral, k_yaw_rate, k_yaw, k_roll,
-                                                                k_roll_rate, tau_est)))
+        vals = dict(k_height=k_height, k_height_rate=k_height_rate, k_pitch=k_pitch, k_pitch_rate=k_pitch_rate,
+                    k_height_int=k_height_int, k_pitch_int=k_pitch_int, k_speed=k_speed, k_lateral=k_lateral,
+                    k_speed_int=k_speed_int, k_yaw_rate=k_yaw_rate, k_yaw=k_yaw, k_roll=k_roll, k_roll_rate=k_roll_rate,
+                    k_stance_z=k_stance_z, k_stance_zdot=k_stance_zdot, k_stance_pitch=k_stance_pitch,
+                    k_stance_pitch_rate=k_stance_pitch_rate, k_foot=k_foot, tau_est=tau_est)
+        return BoundingGains(stance=stance, swing=swing, **{k: _f32(v) for k, v in vals.items()})
 
 
 @_dc
@@ -259,20 +307,25 @@ class Switches:
       kinematic_linear: linear kinematic adjustment, Eq. 1.
       kinematic_angular: angular kinematic adjustment, Eq. 2.
       centrifugal: centrifugal compensation, Eqs. 3-4.
-      apex_feedback: the apex impulse scaling, Eq. B4 (off: the open-loop limit cycle).
+      apex_feedback: all per-cycle (apex-sampled) feedback: impulse scaling Eq. B4, speed control Eq. B5 and the
+        foot-placement correction of Eq. B8.
+      stance_feedback: the stance height / pitch PD on the cycle reference, Eq. B7.
+      (Both off: the open-loop, feed-forward limit cycle.)
     """
 
     kinematic_linear: jax.Array
     kinematic_angular: jax.Array
     centrifugal: jax.Array
     apex_feedback: jax.Array
+    stance_feedback: jax.Array
 
     @staticmethod
-    def make(kinematic_adjustment=True, centrifugal=True, apex_feedback=True, kinematic_linear=None,
-             kinematic_angular=None) -> "Switches":
+    def make(kinematic_adjustment=True, centrifugal=True, apex_feedback=True, stance_feedback=True,
+             kinematic_linear=None, kinematic_angular=None) -> "Switches":
         lin = kinematic_adjustment if kinematic_linear is None else kinematic_linear
         ang = kinematic_adjustment if kinematic_angular is None else kinematic_angular
-        return Switches(*(_f32(1.0 if bool(v) else 0.0) for v in (lin, ang, centrifugal, apex_feedback)))
+        return Switches(*(_f32(1.0 if bool(v) else 0.0)
+                          for v in (lin, ang, centrifugal, apex_feedback, stance_feedback)))
 
 
 @_dc
@@ -308,6 +361,7 @@ class BoundingParams:
       gait: timing and geometry.
       amplitudes: (4, 3) optimal impulse amplitudes ``a*_i = [a_x, a_y, a_z]`` per leg (N), in ``H``.
       apex_ref: (5,) apex state of the limit cycle ``s* = (z, theta, xdot, zdot, thetadot)``.
+      reference: (N, 4) the cycle's ``(z, theta, zdot, thetadot)`` at phases ``k / N`` (Eq. B7).
       gains: feedback gains.  switches: module switches.  command: operator command.
       init_estimate: (4,) initial estimate ``(z, vx, vy, vz)`` of base height and velocity.
       mass: robot mass the estimator assumes (kg).
@@ -316,6 +370,7 @@ class BoundingParams:
     gait: GaitParams
     amplitudes: jax.Array
     apex_ref: jax.Array
+    reference: jax.Array
     gains: BoundingGains
     switches: Switches
     command: BoundingCommand
@@ -344,42 +399,52 @@ def impulse_guess(gait: GaitParams, mass: float = robot.TOTAL_MASS, com_x: float
     return np.array([af, ah])
 
 
-# The limit cycle found by ``python -m experiments.bounding_figures`` (hyqjax.bounding_cycle.optimise_cycle)
-# for the default gait; the test suite checks its periodicity. Order: a_f,z, a_h,z, a_f,x, a_h,x (N per leg)
-# and the apex state (z, theta, xdot, zdot, thetadot).
-DEFAULT_CYCLE_AMPLITUDES = np.array([793.0, 810.0, 0.0, 0.0])
-DEFAULT_CYCLE_APEX = np.array([0.60, 0.0, 0.0, 0.0, -2.4])
-#: Default apex feedback gains (chosen on the linearised return map, see bounding_cycle.design_feedback).
-DEFAULT_APEX_GAINS = dict(k_height=2.0, k_height_rate=0.1, k_pitch=0.5, k_pitch_rate=0.05)
+#: Default gains that are not part of the generated cycle data (hand-tuned; see the README).
+DEFAULT_GAINS = dict(k_foot=0.05, k_lateral=150.0, k_yaw_rate=100.0, k_yaw=200.0, k_roll=600.0, k_roll_rate=60.0,
+                     k_stance_z=8000.0, k_stance_zdot=300.0, k_stance_pitch=3000.0, k_stance_pitch_rate=300.0)
 
 
 def default_params(speed=0.0, yaw_rate=0.0, lateral_speed=0.0, ramp_time=1.0, kinematic_adjustment=True,
-                   centrifugal=True, apex_feedback=True, gait: GaitParams | None = None,
-                   cycle_amplitudes=None, cycle_apex=None, **gain_overrides) -> BoundingParams:
-    """The default bound: the stored limit cycle, default gains and the given command.
+                   centrifugal=True, apex_feedback=True, stance_feedback=True, gait: GaitParams | None = None,
+                   cycle_amplitudes=None, cycle_apex=None, reference=None, **gain_overrides) -> BoundingParams:
+    """The default bound: the stored limit cycle (:mod:`hyqjax.bounding_defaults`), default gains, the command.
 
-    ``cycle_amplitudes`` (4,) = ``(a_fz, a_hz, a_fx, a_hx)`` and ``cycle_apex`` (5,) override the stored cycle.
-    Other keyword arguments override :class:`BoundingGains` fields.
+    ``cycle_amplitudes`` (4,) = ``(a_fz, a_hz, a_fx, a_hx)``, ``cycle_apex`` (5,) and ``reference`` (N, 4)
+    override the stored cycle. Other keyword arguments override :class:`BoundingGains` fields.
     """
+    from hyqjax import bounding_defaults as bdef
+
     gait = gait or GaitParams.make()
-    amp = np.asarray(DEFAULT_CYCLE_AMPLITUDES if cycle_amplitudes is None else cycle_amplitudes, np.float64)
-    apex = np.asarray(DEFAULT_CYCLE_APEX if cycle_apex is None else cycle_apex, np.float64)
+    amp = np.asarray(bdef.CYCLE_AMPLITUDES if cycle_amplitudes is None else cycle_amplitudes, np.float64)
+    apex = np.asarray(bdef.CYCLE_APEX if cycle_apex is None else cycle_apex, np.float64)
+    ref = np.asarray(bdef.CYCLE_REFERENCE if reference is None else reference, np.float64)
     if amp.shape != (4,):
         raise ValueError(f"cycle_amplitudes must have shape (4,), got {amp.shape}")
     if apex.shape != (N_APEX,):
         raise ValueError(f"cycle_apex must have shape ({N_APEX},), got {apex.shape}")
+    if ref.ndim != 2 or ref.shape[1] != 4 or ref.shape[0] < 2 or np.any(~np.isfinite(ref)):
+        raise ValueError(f"reference must be a finite (N >= 2, 4) table, got shape {ref.shape}")
     _check("cycle_amplitudes[:2] (vertical)", amp[:2], 0.0, 1500.0)
     _check("cycle_amplitudes[2:] (horizontal)", amp[2:], -500.0, 500.0)
     _check("cycle_apex z", apex[0], 0.35, 0.8)
-    gkw = dict(DEFAULT_APEX_GAINS, k_speed=150.0, k_lateral=150.0, k_yaw_rate=60.0, k_yaw=30.0, k_roll=600.0,
-               k_roll_rate=60.0)
+    gkw = dict(bdef.APEX_GAINS, **DEFAULT_GAINS)
     gkw.update(gain_overrides)
     a = pair_amplitudes([amp[2], 0.0, amp[0]], [amp[3], 0.0, amp[1]])
     return BoundingParams(
-        gait=gait, amplitudes=a, apex_ref=_f32(apex), gains=BoundingGains.make(**gkw),
-        switches=Switches.make(kinematic_adjustment, centrifugal, apex_feedback),
+        gait=gait, amplitudes=a, apex_ref=_f32(apex), reference=_f32(ref), gains=BoundingGains.make(**gkw),
+        switches=Switches.make(kinematic_adjustment, centrifugal, apex_feedback, stance_feedback),
         command=BoundingCommand.make(speed, yaw_rate, lateral_speed, ramp_time),
         init_estimate=_f32([apex[0], apex[2], 0.0, apex[3]]), mass=_f32(robot.TOTAL_MASS))
+
+
+def cycle_reference(params: BoundingParams, phase):
+    """The cycle's ``(z, theta, zdot, thetadot)`` at ``phase`` (periodic linear interpolation of ``params.reference``)."""
+    tab = params.reference
+    n = tab.shape[0]
+    x = jnp.mod(phase, 1.0) * n
+    i0 = jnp.floor(x).astype(jnp.int32) % n
+    w = x - jnp.floor(x)
+    return (1.0 - w) * tab[i0] + w * tab[(i0 + 1) % n]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -478,7 +543,9 @@ class BoundingState:
       foot_td: (4, 3) touchdown (stance) foot position in ``W``.  base_td: (4, 3) base estimate at touchdown.
       liftoff_h: (4, 3) latest stance reference in ``H`` (start of the next swing).
       stance_prev: (4,) stance flags of the previous tick.
-      apex: (5,) latest apex sample.  cycle_amp: (4, 3) this cycle's amplitudes (apex feedback, speed).
+      apex: (5,) latest apex sample.  integ: (4,) per-cycle error integrals (:func:`apex_errors`).
+      cycle_amp: (4, 3) this cycle's amplitudes (apex feedback, speed).
+      apex_vel: (2,) apex sample of the estimated horizontal velocity in ``H``.
       yaw0: yaw at start.  force_w: (3,) sum of last commanded ground forces in ``W`` (estimator input).
     """
 
@@ -491,7 +558,9 @@ class BoundingState:
     liftoff_h: jax.Array
     stance_prev: jax.Array
     apex: jax.Array
+    integ: jax.Array
     cycle_amp: jax.Array
+    apex_vel: jax.Array
     yaw0: jax.Array
     force_w: jax.Array
 
@@ -503,18 +572,28 @@ def _imu(obs: sim.Observation):
     return w_r_b, rpy, rates
 
 
-def _cycle_amplitudes(params: BoundingParams, apex: jax.Array, vel_h: jax.Array, v_des: jax.Array):
-    """Eqs. B4-B5: this cycle's (4, 3) amplitudes from the apex sample."""
+INTEGRATOR_LIMIT = np.array([0.5, 0.5, 2.0, 2.0])
+
+
+def apex_errors(params: BoundingParams, apex: jax.Array, vel_h: jax.Array, v_des: jax.Array) -> jax.Array:
+    """Errors integrated per cycle (Eq. B4 integral terms): ``(z* - z_k, theta_k - theta*, xdot^d - xdot_k, ydot^d - ydot_k)``."""
+    ref = params.apex_ref
+    return jnp.stack([ref[0] - apex[0], apex[1] - ref[1], v_des[0] + ref[2] - vel_h[0], v_des[1] - vel_h[1]])
+
+
+def _cycle_amplitudes(params: BoundingParams, apex: jax.Array, vel_h: jax.Array, v_des: jax.Array, integ: jax.Array):
+    """Eqs. B4-B5: this cycle's (4, 3) amplitudes from the apex sample and the per-cycle error integrals."""
     g, ref = params.gains, params.apex_ref
     on = params.switches.apex_feedback
-    alpha = 1.0 + on * (g.k_height * (ref[0] - apex[0]) + g.k_height_rate * (ref[3] - apex[3]))
-    delta = on * (g.k_pitch * (apex[1] - ref[1]) + g.k_pitch_rate * (apex[4] - ref[4]))
+    alpha = 1.0 + on * (g.k_height * (ref[0] - apex[0]) + g.k_height_rate * (ref[3] - apex[3])
+                        + g.k_height_int * integ[0])
+    delta = on * (g.k_pitch * (apex[1] - ref[1]) + g.k_pitch_rate * (apex[4] - ref[4]) + g.k_pitch_int * integ[1])
     alpha = jnp.clip(alpha, 0.5, 1.5)
     delta = jnp.clip(delta, -0.5, 0.5)
     scale_z = alpha * jnp.where(LEG_PAIR == FRONT, 1.0 + delta, 1.0 - delta)
     a = params.amplitudes
-    ax = a[:, 0] + g.k_speed * (v_des[0] - vel_h[0])
-    ay = a[:, 1] + g.k_lateral * (v_des[1] - vel_h[1])
+    ax = a[:, 0] + on * (g.k_speed * (v_des[0] + ref[2] - vel_h[0]) + g.k_speed_int * integ[2])
+    ay = a[:, 1] + on * (g.k_lateral * (v_des[1] - vel_h[1]) + g.k_speed_int * integ[3])
     az = a[:, 2] * scale_z
     return jnp.stack([jnp.clip(ax, -400.0, 400.0), jnp.clip(ay, -300.0, 300.0), az], -1)
 
@@ -537,12 +616,31 @@ def bounding_init(params: BoundingParams, obs: sim.Observation) -> BoundingState
     return BoundingState(
         t_prev=jnp.asarray(obs.time, dt), cycle=jnp.floor(obs.time / params.gait.period + 1e-4).astype(jnp.int32),
         pos=pos, vel=vel, foot_td=jnp.zeros((4, 3), dt), base_td=jnp.zeros((4, 3), dt), liftoff_h=nom.astype(dt),
-        stance_prev=jnp.zeros(4, bool), apex=apex, cycle_amp=_cycle_amplitudes(params, apex, vel_h, v_des),
-        yaw0=rpy[2], force_w=jnp.zeros(3, dt))
+        stance_prev=jnp.zeros(4, bool), apex=apex, integ=apex_errors(params, apex, vel_h, v_des),
+        cycle_amp=_cycle_amplitudes(params, apex, vel_h, v_des, apex_errors(params, apex, vel_h, v_des)),
+        apex_vel=vel_h[:2], yaw0=rpy[2], force_w=jnp.zeros(3, dt))
+
+
+def touchdown_target(params: BoundingParams, v_est, v_err_apex, dy):
+    """Touchdown foot positions (4, 2) in ``H``: the neutral point of the stride plus a Raibert correction,
+
+    .. math:: {}_h x_{td} = x_{nom} + \tfrac12 d_p T\, \dot x + k_{fp} (\dot x_k - \dot x^d), \qquad
+              {}_h y_{td} = y_{nom} + \tfrac12 d_p T\, \dot y + k_{fp} (\dot y_k - \dot y^d) + \Delta y_f   \qquad (B8)
+
+    ``xdot`` the current velocity estimate in ``H`` (with ``xdot = xdot^d`` the stride is ``D = d_p T xdot^d``,
+    Fig. 2), ``xdot_k`` its apex sample minus the cycle's apex speed (so the correction vanishes on the cycle).
+    The stance feet sweep
+    symmetrically under the hips, so forward speed does not feed the pitch loop.
+    """
+    gait, g = params.gait, params.gains
+    half = 0.5 * gait.duty[LEG_PAIR] * gait.period
+    off = half[:, None] * v_est[None, :2] + params.switches.apex_feedback * g.k_foot * v_err_apex[None, :]
+    off = jnp.clip(off, -0.15, 0.15)
+    return gait.foot_xy + off + jnp.stack([jnp.zeros(4), jnp.full(4, 1.0) * dy], -1)
 
 
 def foot_references(params: BoundingParams, state: BoundingState, t, rpy, rates, omega_b, stance, s_st, s_sw,
-                    v_des, yaw_rate_des, dy):
+                    v_des, target_xy, dy):
     """Desired foot positions / velocities in ``B`` (4, 3) and the stance references in ``H`` (kinematic adjustment).
 
     Returns ``(b_x, b_xd, h_x_stance)``.
@@ -565,8 +663,6 @@ def foot_references(params: BoundingParams, state: BoundingState, t, rpy, rates,
     # --- Swing in H: min-jerk in x, y from lift-off to the touchdown target; z lifts above the ground.
     duty = gait.duty[LEG_PAIR]
     t_sw = (1.0 - duty) * gait.period
-    target_xy = gait.foot_xy + jnp.stack([0.5 * duty * gait.period * v_des[0] * jnp.ones(4),
-                                          0.5 * duty * gait.period * v_des[1] + dy], -1)
     sig, dsig = _min_jerk(s_sw)
     xy = state.liftoff_h[:, :2] + (target_xy - state.liftoff_h[:, :2]) * sig[:, None]
     dxy = (target_xy - state.liftoff_h[:, :2]) * (dsig / t_sw)[:, None]
@@ -630,7 +726,11 @@ def bounding_step(params: BoundingParams, state: BoundingState, obs: sim.Observa
     v_des, yaw_rate_des, yaw_des_off = ramped_command(params.command, t)
     apex_now, vel_h = _apex_sample(pos, vel, rpy, rates, psi)
     apex = jnp.where(new_cycle, apex_now, state.apex)
-    cycle_amp = jnp.where(new_cycle, _cycle_amplitudes(params, apex_now, vel_h, v_des), state.cycle_amp)
+    apex_vel = jnp.where(new_cycle, vel_h[:2], state.apex_vel)
+    lim = jnp.asarray(INTEGRATOR_LIMIT, dtype)
+    integ = jnp.where(new_cycle, jnp.clip(state.integ + apex_errors(params, apex_now, vel_h, v_des), -lim, lim),
+                      state.integ)
+    cycle_amp = jnp.where(new_cycle, _cycle_amplitudes(params, apex_now, vel_h, v_des, integ), state.cycle_amp)
     shift = jnp.where(new_cycle, jnp.stack([pos[0], pos[1], 0.0]), jnp.zeros(3, dtype))
     pos = pos - shift
     foot_td = state.foot_td - shift
@@ -642,11 +742,8 @@ def bounding_step(params: BoundingParams, state: BoundingState, obs: sim.Observa
 
     # ---- Touchdown events: fix the stance foot in W at the end of its swing (target in H).
     touchdown = stance & ~state.stance_prev
-    duty = gait.duty[LEG_PAIR]
-    target_h = jnp.concatenate([
-        gait.foot_xy + jnp.stack([0.5 * duty * gait.period * v_des[0] * jnp.ones(4),
-                                  0.5 * duty * gait.period * v_des[1] + dy], -1),
-        jnp.zeros((4, 1), dtype)], -1)
+    target_xy = touchdown_target(params, vel_h_now, apex_vel - v_des - jnp.stack([params.apex_ref[2], 0.0]), dy)
+    target_h = jnp.concatenate([target_xy, jnp.zeros((4, 1), dtype)], -1)
     rz = _rot_z(psi)
     td_w = pos[None, :] + target_h @ rz.T
     td_w = td_w.at[:, 2].set(robot.FOOT_RADIUS)
@@ -658,7 +755,7 @@ def bounding_step(params: BoundingParams, state: BoundingState, obs: sim.Observa
 
     # ---- Foot references with kinematic adjustment (Eqs. 1-2) -> IK.
     b_x, b_xd, h_ref = foot_references(params, state_k, t, rpy, rates, obs.gyro, stance, s_st, s_sw,
-                                       v_des, yaw_rate_des, dy)
+                                       v_des, target_xy, dy)
     q_des = kinematics.inverse_kinematics(b_x).reshape(12)
     q_des = jnp.clip(q_des, robot.Q_MIN + 0.02, robot.Q_MAX - 0.02)
     jac_des = kinematics.foot_jacobians(q_des)
@@ -673,10 +770,17 @@ def bounding_step(params: BoundingParams, state: BoundingState, obs: sim.Observa
     yaw_force = (gains.k_yaw_rate * (yaw_rate_des - rates[2]) + gains.k_yaw * yaw_err) / x_f
     roll_d = roll_lean
     roll_moment = gains.k_roll * (rpy[0] - roll_d) + gains.k_roll_rate * rates[0]
+    # Stance PD on the cycle reference (Eq. B7): vertical force for height, horizontal for pitch.
+    ref = cycle_reference(params, t / gait.period)
+    on_st = sw.stance_feedback
+    d_fz = on_st * (gains.k_stance_z * (ref[0] - pos[2]) + gains.k_stance_zdot * (ref[2] - vel[2]))
+    d_fx = on_st * (gains.k_stance_pitch * (rpy[1] - ref[1]) + gains.k_stance_pitch_rate * (rates[1] - ref[3]))
+    d_fx = d_fx / gait.height
     amp = cycle_amp
-    az = amp[:, 2] - LEG_SIDE * roll_moment / (2.0 * y_f)
+    az = amp[:, 2] + 0.5 * jnp.clip(d_fz, -600.0, 600.0) - LEG_SIDE * roll_moment / (2.0 * y_f)
+    ax = amp[:, 0] + 0.5 * jnp.clip(d_fx, -500.0, 500.0)
     ay = amp[:, 1] + jnp.clip(yaw_force, -300.0, 300.0) + amp[:, 2] * a_cf / robot.GRAVITY
-    f_h = beta[:, None] * jnp.stack([amp[:, 0], ay, jnp.maximum(az, 0.0)], -1)
+    f_h = beta[:, None] * jnp.stack([ax, ay, jnp.maximum(az, 0.0)], -1)
     h_r_b = horizontal_to_base(rpy[0], rpy[1])
     f_b = f_h @ h_r_b  # (hR_b^T f)^T
     tau_ff = -jnp.einsum("lij,li->lj", jac, f_b).reshape(12)
@@ -692,7 +796,9 @@ def bounding_step(params: BoundingParams, state: BoundingState, obs: sim.Observa
     liftoff_h = jnp.where(stance[:, None], h_ref, state.liftoff_h)
     new_state = BoundingState(
         t_prev=jnp.asarray(t, dtype), cycle=cycle, pos=pos, vel=vel, foot_td=foot_td, base_td=base_td,
-        liftoff_h=liftoff_h, stance_prev=stance, apex=apex, cycle_amp=cycle_amp, yaw0=state.yaw0, force_w=f_w)
+        liftoff_h=liftoff_h, stance_prev=stance, apex=apex, integ=integ, cycle_amp=cycle_amp, apex_vel=apex_vel,
+        yaw0=state.yaw0,
+        force_w=f_w)
     info = dict(est_pos=pos, est_vel=vel, vel_h=vel_h_now, apex=apex, new_cycle=new_cycle, stance=stance,
                 yaw_des=yaw_des, yaw_rate_des=yaw_rate_des, v_des=v_des, roll_des=roll_d, rpy=rpy,
                 rates=rates, force_h=f_h, cycle=cycle)

@@ -14,27 +14,36 @@ period ``T`` of the closed loop (``sim.rollout``, ``mjx.step``) and reads ``s`` 
 Periodicity (cycle optimisation)
 --------------------------------
 A limit cycle is a fixed point ``s* = P(s*, a*)``. The decision vector is
-``u = (a_{f,z}, a_{h,z}, a_{f,x}, a_{h,x}, z_0, zdot_0, thetadot_0)`` with ``theta_0 = xdot_0 = 0``
-(bounding in place). :func:`residual` is ``r(u) = W (P(s_0(u), a(u)) - s_0(u))`` with per-component
-scales ``W = diag(1 / RESIDUAL_SCALE)``. The cycle family has two free directions (height and
+``u = (a_{f,z}, a_{h,z}, a_{f,x}, a_{h,x}, z_0, zdot_0, thetadot_0, xdot_0)`` with ``theta_0 = 0``;
+the feedback (Eqs. B4, B5, B7, B8) is switched off. :func:`residual` (6,) is
+``r(u) = (W (P(s_0(u), a(u)) - s_0(u)), Delta x / 0.01 m)``, per-component scales
+``W = diag(1 / RESIDUAL_SCALE)``, plus the forward displacement over the period (bounding *in place*
+has zero net drift, not only a periodic speed). The family of cycles has free directions (height,
 ``a_{f,x} - a_{h,x}``), fixed by a soft prior; the loss is
 
-.. math:: L(u) = \\tfrac12 \\|r(u)\\|^2 + \\tfrac{\\lambda}{2} \\Big[\\Big(\\frac{z_0 - z^d}{0.02}\\Big)^2 +
-          \\Big(\\frac{a_{f,x}}{100}\\Big)^2 + \\Big(\\frac{a_{h,x}}{100}\\Big)^2\\Big].   \\qquad (C2)
+.. math:: L(u) = \tfrac12 \|r(u)\|^2 + \tfrac{\lambda}{2} \Big[\Big(\frac{z_0 - z^d}{0.02}\Big)^2 +
+          \Big(\frac{a_{f,x}}{100}\Big)^2 + \Big(\frac{a_{h,x}}{100}\Big)^2\Big].   \qquad (C2)
 
 Its gradient ``J_r^T r + ...`` uses the forward-mode Jacobian ``J_r = jax.jacfwd(residual)``
-(seven tangents through ``mjx.step``; reverse mode through MJX's solver ``while_loop`` is not
-available). :func:`optimise_cycle` runs optax (Adam on the scaled ``u``, or a Levenberg-Marquardt
-direction fed through ``optax.scale_by_schedule``) from many initial guesses at once (``vmap``).
+(eight tangents through ``mjx.step``; reverse mode through MJX's solver ``while_loop`` is not
+available). :func:`optimise_cycle` runs optax from many initial guesses at once (``vmap``): by default
+the Levenberg-Marquardt step ``-(J^T J + mu I)^{-1} J^T r`` fed to ``optax.sgd`` (step clipped,
+warm-up schedule), or ``optax.adam`` on the gradient. :func:`gradient_check` compares the
+forward-mode Jacobian with central finite differences.
 
 Stability
 ---------
-:func:`return_map_jacobian` is ``dP/ds`` at the fixed point (``jax.jacfwd`` w.r.t. the apex state);
-its eigenvalues are the Floquet multipliers of the sagittal cycle, with the apex feedback
-(Eq. B4) switched on or off. The feedback is zero on the cycle, so both maps share ``s*``.
+:func:`linearise` gives ``A = dP/ds`` and ``B = dP/da`` at the fixed point (``jax.jacfwd``, 9 tangents).
+The eigenvalues of ``A`` are the multipliers of the sagittal cycle with the configured feedback
+(switches ``apex_feedback``, ``stance_feedback``); the feedback is zero on the cycle, so all maps
+share ``s*``. :func:`feedback_matrix` is the apex feedback's ``K`` (``A_stance + B K`` predicts
+``A_stance+apex``), :func:`augmented_matrix` adds the per-cycle integrators as states, and
+:func:`design_feedback` picks apex gains on the linear model. :func:`reference_table` records the
+cycle's ``(z, theta, zdot, thetadot)`` against phase: the stance feedback's reference (Eq. B7).
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 from typing import NamedTuple
@@ -51,27 +60,39 @@ from hyqjax import bounding as bd, kinematics, model as hmodel, robot, sim, spat
 #: Residual scales of ``(z, theta, xdot, zdot, thetadot)``: a residual of 1 is 1 cm, 0.01 rad, 0.05 m/s,
 #: 0.05 m/s, 0.1 rad/s.
 RESIDUAL_SCALE = np.array([0.01, 0.01, 0.05, 0.05, 0.1])
+#: Scale of the sixth residual, the forward displacement over one period (m): bounding *in place*.
+DISPLACEMENT_SCALE = 0.01
+N_DECISION = 8
 #: Scales of the decision vector ``u = (a_fz, a_hz, a_fx, a_hx, z0, zdot0, thetadot0)``.
-DECISION_SCALE = np.array([100.0, 100.0, 100.0, 100.0, 0.05, 0.1, 1.0])
-DECISION_NAMES = ("a_fz", "a_hz", "a_fx", "a_hx", "z0", "zdot0", "thetadot0")
+DECISION_SCALE = np.array([100.0, 100.0, 100.0, 100.0, 0.05, 0.1, 1.0, 0.05])
+DECISION_NAMES = ("a_fz", "a_hz", "a_fx", "a_hx", "z0", "zdot0", "thetadot0", "xdot0")
 
 
 @functools.lru_cache(maxsize=4)
 def _model(timestep: float = 0.002):
-    m = hmodel.load_model(timestep=timestep)
+    """HyQ on flat ground: :func:`hyqjax.model.load_model` with the platform's collisions switched off.
+
+    Bounding runs with platform height 0, where the platform's top is flush with the floor for
+    ``x < 0``; disabling it removes the duplicate foot-floor contacts (14 instead of 28 contact
+    slots), which halves the contact work and shortens the forward-mode compile.
+    """
+    m = copy.deepcopy(hmodel.load_model(timestep=timestep))
+    ids = hmodel.model_ids(m)
+    m.geom_contype[ids.platform_geom] = 0
+    m.geom_conaffinity[ids.platform_geom] = 0
     with jax.ensure_compile_time_eval():  # concrete arrays even if first called inside a trace
         mx = mjx.put_model(m)
-    return m, mx, hmodel.model_ids(m)
+    return m, mx, ids
 
 
 def apex_state(u: jax.Array) -> jax.Array:
-    """``s_0(u) = (z_0, 0, 0, zdot_0, thetadot_0)`` from the decision vector."""
+    """``s_0(u) = (z_0, 0, xdot_0, zdot_0, thetadot_0)`` from the decision vector."""
     z = jnp.zeros((), u.dtype)
-    return jnp.stack([u[4], z, z, u[5], u[6]])
+    return jnp.stack([u[4], z, u[7], u[5], u[6]])
 
 
 def with_cycle(params: bd.BoundingParams, u: jax.Array) -> bd.BoundingParams:
-    """``params`` with amplitudes and apex reference from the decision vector ``u`` (7,)."""
+    """``params`` with amplitudes and apex reference from the decision vector ``u`` (8,)."""
     amp = params.amplitudes
     amp = amp.at[0:2, 2].set(u[0]).at[2:4, 2].set(u[1]).at[0:2, 0].set(u[2]).at[2:4, 0].set(u[3])
     return params.replace(amplitudes=amp, apex_ref=apex_state(u).astype(jnp.float32))
@@ -94,9 +115,11 @@ def reference_joints(params: bd.BoundingParams, s: jax.Array) -> jax.Array:
     st = bd.bounding_init(p, obs)
     _, rpy, rates = bd._imu(obs)
     stance, s_st, s_sw = bd.leg_phase(p.gait, obs.time)
-    v_des, yr, _ = bd.ramped_command(p.command, obs.time)
-    b_x, _, _ = bd.foot_references(p, st, obs.time, rpy, rates, obs.gyro, stance, s_st, s_sw, v_des, yr,
-                                   jnp.zeros((), s.dtype))
+    v_des, _, _ = bd.ramped_command(p.command, obs.time)
+    zero = jnp.zeros((), s.dtype)
+    target = bd.touchdown_target(p, jnp.stack([s[2], zero, s[3]]),
+                                 st.apex_vel - v_des - jnp.stack([p.apex_ref[2], zero]), zero)
+    b_x, _, _ = bd.foot_references(p, st, obs.time, rpy, rates, obs.gyro, stance, s_st, s_sw, v_des, target, zero)
     return jnp.clip(kinematics.inverse_kinematics(b_x).reshape(12), robot.Q_MIN + 0.02, robot.Q_MAX - 0.02)
 
 
@@ -136,27 +159,31 @@ def data_apex(d: mjx.Data) -> jax.Array:
 
 
 def return_map(mx, m, ids, params: bd.BoundingParams, s: jax.Array, n_periods: int = 1,
-               control_dt: float = 0.002) -> jax.Array:
+               control_dt: float = 0.002, period: float | None = None, displacement: bool = False):
     """``P(s)`` (Eq. C1): apex state after ``n_periods`` gait periods of the closed loop from apex state ``s``.
 
     ``params.apex_ref`` is the cycle the apex feedback regulates to; the estimator starts at the true state.
+    ``period`` (static) defaults to ``params.gait.period``, which must then be concrete. With ``displacement``
+    also returns the forward displacement over the simulated time.
     """
     s = jnp.asarray(s, jnp.float32)
     p = params.replace(init_estimate=jnp.stack([s[0], s[2], jnp.zeros((), s.dtype), s[3]]))
     d0 = apex_data(mx, m, p, s)
-    period = float(params.gait.period)
+    period = float(params.gait.period) if period is None else period
     cfg = sim.SimConfig(control_dt=control_dt, duration=n_periods * period, record_every=0)
     res = sim.rollout(mx, ids, d0, bd.bounding_controller, p, cfg)
+    if displacement:
+        return data_apex(res.data), res.data.qpos[0] - d0.qpos[0]
     return data_apex(res.data)
 
 
-def residual(u: jax.Array, params: bd.BoundingParams, n_periods: int = 1) -> jax.Array:
-    """Scaled periodicity residual ``W (P(s_0(u), a(u)) - s_0(u))`` (5,), Eq. C2."""
+def residual(u: jax.Array, params: bd.BoundingParams, n_periods: int = 1, period: float | None = None) -> jax.Array:
+    """Scaled periodicity residual (6,): ``W (P(s_0(u), a(u)) - s_0(u))`` and the drift ``Delta x / 0.01 m``, Eq. C2."""
     m, mx, ids = _model()
     p = with_cycle(params, u)
     s0 = apex_state(u)
-    s1 = return_map(mx, m, ids, p, s0, n_periods)
-    return (s1 - s0) / jnp.asarray(RESIDUAL_SCALE, s1.dtype)
+    s1, dx = return_map(mx, m, ids, p, s0, n_periods, period=period, displacement=True)
+    return jnp.concatenate([(s1 - s0) / jnp.asarray(RESIDUAL_SCALE, s1.dtype), (dx / DISPLACEMENT_SCALE)[None]])
 
 
 def loss_terms(u, r, z_des, prior_weight):
@@ -165,15 +192,28 @@ def loss_terms(u, r, z_des, prior_weight):
 
 
 def residual_and_jacobian(u: jax.Array, params: bd.BoundingParams):
-    """``(r(u), dr/du)`` with forward mode (``jax.jacfwd``, 7 tangents)."""
-    f = lambda uu: residual(uu, params)  # noqa: E731
-    r, jvp_fn = jax.linearize(f, u)
-    jac = jax.vmap(jvp_fn, in_axes=1, out_axes=1)(jnp.eye(u.shape[0], dtype=u.dtype))
+    """``(r(u), dr/du)`` in forward mode (``jax.jacfwd``: 8 tangents through ``mjx.step``)."""
+    f = lambda uu: (residual(uu, params),) * 2  # noqa: E731
+    jac, r = jax.jacfwd(f, has_aux=True)(u)
     return r, jac
 
 
+@functools.partial(jax.jit, static_argnames=("period",))
+def residual_jvp(params: bd.BoundingParams, u: jax.Array, v: jax.Array, period: float):
+    """Batched ``(r(u_i), dr/du(u_i) v_i)`` (``vmap`` over rows of ``u``, ``v``): one compile serves the
+    forward-mode directional derivatives, the finite-difference points (``v = 0``) and the periodicity check.
+    ``period`` must equal ``params.gait.period`` (static: it sets the number of ticks)."""
+    return jax.vmap(lambda uu, vv: jax.jvp(lambda x: residual(x, params, period=period), (uu,), (vv,)))(u, v)
+
+
+@functools.partial(jax.jit, static_argnames=("period",))
+def batched_residual(params: bd.BoundingParams, u: jax.Array, period: float) -> jax.Array:
+    """``r(u_i)`` for the rows of ``u`` (``vmap``)."""
+    return jax.vmap(lambda uu: residual(uu, params, period=period))(u)
+
+
 class CycleResult(NamedTuple):
-    """Optimisation output (numpy). ``u``: (B, 7) decision vectors; ``residual_norm``: (B,) ``||r||``;
+    """Optimisation output (numpy). ``u``: (B, 8) decision vectors; ``residual_norm``: (B,) ``||r||``;
     ``history``: (iters, B) loss; ``best``: index of the best guess."""
 
     u: np.ndarray
@@ -191,25 +231,26 @@ def initial_guesses(params: bd.BoundingParams, n: int, seed: int = 0, z_des: flo
         raise ValueError(f"n (number of initial guesses) must be an int in [1, 4096], got {n}")
     rng = np.random.default_rng(seed)
     af, ah = bd.impulse_guess(params.gait)
-    u = np.zeros((n, 7))
+    u = np.zeros((n, N_DECISION))
     u[:, 0] = af * rng.uniform(0.9, 1.1, n)
     u[:, 1] = ah * rng.uniform(0.9, 1.1, n)
     u[:, 2:4] = rng.normal(0.0, 20.0, (n, 2))
     u[:, 4] = z_des + rng.uniform(-0.03, 0.03, n)
     u[:, 5] = rng.uniform(-0.1, 0.1, n)
     u[:, 6] = rng.uniform(-3.0, -1.0, n)
-    u[0] = [af, ah, 0.0, 0.0, z_des, 0.0, -2.0]
+    u[:, 7] = rng.uniform(-0.05, 0.05, n)
+    u[0] = [af, ah, 0.0, 0.0, z_des, 0.0, -2.0, 0.0]
     return u
 
 
 def optimise_cycle(params: bd.BoundingParams, u0: np.ndarray, iterations: int = 30, method: str = "lm",
                    learning_rate: float = 0.05, z_des: float = 0.6, prior_weight: float = 1e-2,
                    damping: float = 1e-2, progress: bool = True) -> CycleResult:
-    """Minimise Eq. C2 from every row of ``u0`` at once (``vmap`` over guesses, forward-mode Jacobians).
+    """Minimise Eq. C2 from every row of ``u0`` (B, 8) at once (``vmap`` over guesses, forward-mode Jacobians).
 
     Args:
       method: ``'lm'``: optax SGD (learning rate 1 with a warm-up schedule) applied to the
-        Levenberg-Marquardt step ``-(J^T J + mu I)^{-1} g`` (Gauss-Newton, robust for this 7x5 problem);
+        Levenberg-Marquardt step ``-(J^T J + mu I)^{-1} g`` (Gauss-Newton, robust for this 8x9 problem);
         ``'adam'``: ``optax.adam(learning_rate)`` on the gradient ``g = J^T r + prior``.
       iterations: optimiser steps (each is one batched jacfwd return map).
     """
@@ -218,8 +259,8 @@ def optimise_cycle(params: bd.BoundingParams, u0: np.ndarray, iterations: int = 
     if not (isinstance(iterations, int) and 1 <= iterations <= 10000):
         raise ValueError(f"iterations must be an int in [1, 10000], got {iterations}")
     u0 = np.atleast_2d(np.asarray(u0, np.float64))
-    if u0.shape[1] != 7:
-        raise ValueError(f"u0 must have shape (B, 7), got {u0.shape}")
+    if u0.shape[1] != N_DECISION:
+        raise ValueError(f"u0 must have shape (B, {N_DECISION}), got {u0.shape}")
     scale = jnp.asarray(DECISION_SCALE, jnp.float32)
 
     def value_grad(x):
@@ -227,13 +268,13 @@ def optimise_cycle(params: bd.BoundingParams, u0: np.ndarray, iterations: int = 
         r, jac = residual_and_jacobian(u, params)
         loss, prior = loss_terms(u, r, z_des, prior_weight)
         jx = jac * scale[None, :]
-        jp = jnp.zeros((3, 7), jnp.float32).at[0, 4].set(scale[4] / 0.02).at[1, 2].set(scale[2] / 100.0) \
+        jp = jnp.zeros((3, N_DECISION), jnp.float32).at[0, 4].set(scale[4] / 0.02).at[1, 2].set(scale[2] / 100.0) \
             .at[2, 3].set(scale[3] / 100.0) * jnp.sqrt(prior_weight)
         jall = jnp.concatenate([jx, jp], 0)
         rall = jnp.concatenate([r, jnp.sqrt(prior_weight) * prior])
         g = jall.T @ rall
         if method == "lm":
-            h = jall.T @ jall + damping * jnp.eye(7, dtype=jall.dtype)
+            h = jall.T @ jall + damping * jnp.eye(N_DECISION, dtype=jall.dtype)
             g = jnp.linalg.solve(h, g)
         return loss, r, g
 
@@ -275,32 +316,66 @@ def optimise_cycle(params: bd.BoundingParams, u0: np.ndarray, iterations: int = 
                        residual_history=np.asarray(rhist), best=int(np.argmin(rn)))
 
 
-def return_map_jacobian(params: bd.BoundingParams, s_star, apex_feedback: bool, n_periods: int = 1):
-    """``(P(s*), dP/ds (5, 5))`` at ``s*`` by ``jax.jacfwd``, with the apex feedback on or off."""
+def cycle_vector(params: bd.BoundingParams) -> jax.Array:
+    """``(a_fz, a_hz, a_fx, a_hx)`` of ``params.amplitudes``."""
+    amp = params.amplitudes
+    return jnp.stack([amp[0, 2], amp[2, 2], amp[0, 0], amp[2, 0]])
+
+
+@functools.partial(jax.jit, static_argnames=("period",))
+def linearise(params: bd.BoundingParams, s_star: jax.Array, period: float):
+    """``(P(s*), A = dP/ds (5, 5), B = dP/da (5, 4))`` at ``s*`` by ``jax.jacfwd`` (9 tangents, one compile).
+
+    ``a = (a_fz, a_hz, a_fx, a_hx)``. ``A`` includes the apex feedback when ``params.switches.apex_feedback``
+    is 1 (the feedback reads the apex sample at the start of the period; the estimator starts at the truth).
+    """
     m, mx, ids = _model()
-    p = params.replace(apex_ref=jnp.asarray(s_star, jnp.float32),
-                       switches=dataclasses.replace(params.switches,
-                                                    apex_feedback=jnp.float32(1.0 if apex_feedback else 0.0)))
-    f = lambda s: return_map(mx, m, ids, p, s, n_periods)  # noqa: E731
     s_star = jnp.asarray(s_star, jnp.float32)
-    out, jvp_fn = jax.linearize(f, s_star)
-    jac = jax.vmap(jvp_fn, in_axes=1, out_axes=1)(jnp.eye(5, dtype=jnp.float32))
-    return np.asarray(out), np.asarray(jac)
+    a0 = cycle_vector(params)
+
+    def f(x):
+        s, a = x[:5], x[5:]
+        amp = params.amplitudes.at[0:2, 2].set(a[0]).at[2:4, 2].set(a[1]).at[0:2, 0].set(a[2]) \
+            .at[2:4, 0].set(a[3])
+        out = return_map(mx, m, ids, params.replace(amplitudes=amp), s, period=period)
+        return out, out
+
+    jac, out = jax.jacfwd(f, has_aux=True)(jnp.concatenate([s_star, a0]))
+    return out, jac[:, :5], jac[:, 5:]
 
 
-def amplitude_jacobian(params: bd.BoundingParams, s_star):
-    """``dP/da`` (5, 4) at ``s*`` w.r.t. ``(a_fz, a_hz, a_fx, a_hx)`` (feedback off), for feedback design."""
+def with_feedback(params: bd.BoundingParams, apex: bool, stance: bool | None = None) -> bd.BoundingParams:
+    """``params`` with the apex (Eq. B4) and stance (Eq. B7) feedback switched on / off (stance defaults to apex)."""
+    stance = apex if stance is None else stance
+    sw = dataclasses.replace(params.switches, apex_feedback=jnp.float32(1.0 if apex else 0.0),
+                             stance_feedback=jnp.float32(1.0 if stance else 0.0))
+    return params.replace(switches=sw)
+
+
+def reference_table(params: bd.BoundingParams, s_star, n: int = 40, control_dt: float = 0.002) -> np.ndarray:
+    """Record the open-loop cycle from ``s*`` (feedback off): ``(z, theta, zdot, thetadot)`` at phases ``k / n``.
+
+    This is the reference of the stance feedback (Eq. B7), which therefore vanishes on the cycle.
+    """
+    period = float(params.gait.period)
+    ticks = int(round(period / control_dt))
+    if not (isinstance(n, int) and n >= 2 and ticks % n == 0):
+        raise ValueError(f"n must be an int >= 2 dividing the ticks per period ({ticks}), got {n}")
     m, mx, ids = _model()
-    p = params.replace(switches=dataclasses.replace(params.switches, apex_feedback=jnp.float32(0.0)))
+    p = with_feedback(params, False)
     s_star = jnp.asarray(s_star, jnp.float32)
-    a0 = jnp.stack([p.amplitudes[0, 2], p.amplitudes[2, 2], p.amplitudes[0, 0], p.amplitudes[2, 0]])
 
-    def f(a):
-        amp = p.amplitudes.at[0:2, 2].set(a[0]).at[2:4, 2].set(a[1]).at[0:2, 0].set(a[2]).at[2:4, 0].set(a[3])
-        return return_map(mx, m, ids, p.replace(amplitudes=amp), s_star)
+    @jax.jit
+    def run(p, s):
+        p = p.replace(init_estimate=jnp.stack([s[0], s[2], jnp.zeros((), s.dtype), s[3]]))
+        d0 = apex_data(mx, m, p, s)
+        cfg = sim.SimConfig(control_dt=control_dt, duration=period, record_every=ticks // n)
+        res = sim.rollout(mx, ids, d0, bd.bounding_controller, p, cfg, record=lambda d, o, i: data_apex(d))
+        return res.trace
 
-    _, jvp_fn = jax.linearize(f, a0)
-    return np.asarray(jax.vmap(jvp_fn, in_axes=1, out_axes=1)(jnp.eye(4, dtype=jnp.float32)))
+    tr = np.asarray(run(p, s_star), np.float64)  # phases 1/n ... 1
+    table = np.concatenate([np.asarray(s_star, np.float64)[None], tr[:-1]], 0)
+    return table[:, [0, 1, 3, 4]]
 
 
 def feedback_matrix(params: bd.BoundingParams, gains: dict | None = None) -> np.ndarray:
@@ -337,11 +412,92 @@ def design_feedback(a_mat: np.ndarray, b_mat: np.ndarray, params: bd.BoundingPar
     return best, best_rho
 
 
-def finite_difference_jacobian(u: np.ndarray, params: bd.BoundingParams, eps: np.ndarray):
-    """Central finite differences of :func:`residual` w.r.t. ``u`` (all ``2 * 7`` points in one ``vmap``)."""
+def gradient_check(params: bd.BoundingParams, u, indices=(0, 1), eps=(2.0, 2.0)):
+    """Forward-mode vs central finite differences of the residual w.r.t. ``u[indices]`` (one compiled ``vmap``).
+
+    Returns ``(r(u) (6,), J_fwd (6, k), J_fd (6, k))`` with
+    ``J_fd[:, j] = (r(u + eps_j e_j) - r(u - eps_j e_j)) / 2 eps_j``.
+    """
     u = np.asarray(u, np.float64)
-    eps = np.broadcast_to(np.asarray(eps, np.float64), u.shape)
-    pts = np.concatenate([u + np.diag(eps), u - np.diag(eps)], 0)
-    rs = np.asarray(jax.jit(jax.vmap(lambda uu: residual(uu, params)))(jnp.asarray(pts, jnp.float32)), np.float64)
-    n = u.shape[0]
-    return ((rs[:n] - rs[n:]) / (2 * eps[:, None])).T
+    idx = list(indices)
+    if u.shape != (N_DECISION,):
+        raise ValueError(f"u must have shape ({N_DECISION},), got {u.shape}")
+    if not idx or any(not (0 <= i < N_DECISION) for i in idx):
+        raise ValueError(f"indices must be a non-empty list of ints in [0, {N_DECISION}), got {idx}")
+    eps = np.asarray(eps, np.float64)
+    if eps.ndim > 1 or (eps.ndim == 1 and eps.shape[0] not in (1, len(idx))):
+        raise ValueError(f"eps must be a scalar or have one entry per index, got shape {eps.shape}")
+    eps = np.broadcast_to(eps, (len(idx),))
+    if np.any(eps <= 0):
+        raise ValueError(f"eps must be > 0, got {eps}")
+    k = len(idx)
+    e = np.zeros((k, N_DECISION))
+    e[np.arange(k), idx] = 1.0
+    pts = np.concatenate([np.tile(u, (k, 1)), u + eps[:, None] * e, u - eps[:, None] * e], 0)
+    tans = np.concatenate([e, np.zeros((2 * k, N_DECISION))], 0)
+    r, t = residual_jvp(params, jnp.asarray(pts, jnp.float32), jnp.asarray(tans, jnp.float32),
+                        period=float(params.gait.period))
+    r, t = np.asarray(r, np.float64), np.asarray(t, np.float64)
+    j_fwd = t[:k].T
+    j_fd = ((r[k:2 * k] - r[2 * k:]) / (2 * eps[:, None])).T
+    return r[0], j_fwd, j_fd
+
+
+def defaults_source(u, table, apex_gains: dict, note: str = "") -> str:
+    """Python source of :mod:`hyqjax.bounding_defaults` for a cycle ``u`` (8,), its reference table and apex gains."""
+    u = np.asarray(u, np.float64)
+    s = np.asarray(apex_state(jnp.asarray(u, jnp.float32)), np.float64)
+    s[0], s[2], s[3], s[4] = u[4], u[7], u[5], u[6]
+    fmt = lambda v: "[" + ", ".join(f"{x:.7g}" for x in v) + "]"  # noqa: E731
+    rows = ",\n    ".join(fmt(r) for r in np.asarray(table, np.float64))
+    gains = ", ".join(f"{k}={float(v):.6g}" for k, v in apex_gains.items())
+    return (
+        '"""Generated by ``python -m experiments.bounding_figures --write-defaults``: the default bounding limit cycle.\n\n'
+        "Do not edit by hand. CYCLE_AMPLITUDES = (a_fz, a_hz, a_fx, a_hx) (N per leg);\n"
+        "CYCLE_APEX = (z, theta, xdot, zdot, thetadot) at phase 0; CYCLE_REFERENCE = (z, theta, zdot, thetadot)\n"
+        "at phases k / N (the stance feedback's reference, Eq. B7); APEX_GAINS = the apex feedback gains\n"
+        "(Eqs. B4, B5): candidates designed on the linearised return map, the most robust one in closed-loop\n"
+        "simulation kept (see the README).\n"
+        + (f"\n{note}\n" if note else "") + '"""\n'
+        "import numpy as np\n\n"
+        f"CYCLE_AMPLITUDES = np.array({fmt(u[:4])})\n"
+        f"CYCLE_APEX = np.array({fmt(s)})\n"
+        f"CYCLE_REFERENCE = np.array([\n    {rows}])\n"
+        f"APEX_GAINS = dict({gains})\n")
+
+
+def stored_cycle() -> np.ndarray:
+    """The decision vector ``u*`` (8,) of the stored default cycle (:mod:`hyqjax.bounding_defaults`)."""
+    from hyqjax import bounding_defaults as bdef
+
+    a, s = np.asarray(bdef.CYCLE_AMPLITUDES, np.float64), np.asarray(bdef.CYCLE_APEX, np.float64)
+    return np.array([a[0], a[1], a[2], a[3], s[0], s[3], s[4], s[2]])
+
+
+def augmented_matrix(a_closed: np.ndarray, b_mat: np.ndarray, params: bd.BoundingParams) -> np.ndarray:
+    """Linearised return map with the per-cycle integrators of Eqs. B4-B5 as extra states.
+
+    ``a_closed`` is ``dP/ds`` with the apex feedback on (its proportional terms, the speed term and the
+    placement correction included) and ``b_mat = dP/da``. State ``(s_k - s*, I_{k-1})``:
+    ``I_k = I_{k-1} + C (s_k - s*)``, ``s_{k+1} - s* = A_closed (s_k - s*) + B K_i I_k``. Only integrators with a
+    non-zero gain are states (an integrator with zero gain is a decoupled eigenvalue 1).
+    """
+    g = params.gains
+    af, ah = float(params.amplitudes[0, 2]), float(params.amplitudes[2, 2])
+    rows, cols = [], []
+    if float(g.k_height_int):
+        rows.append([-1.0, 0, 0, 0, 0])  # z* - z
+        cols.append(np.array([af, ah, 0.0, 0.0]) * float(g.k_height_int))
+    if float(g.k_pitch_int):
+        rows.append([0, 1.0, 0, 0, 0])  # theta - theta*
+        cols.append(np.array([af, -ah, 0.0, 0.0]) * float(g.k_pitch_int))
+    if float(g.k_speed_int):
+        rows.append([0, 0, -1.0, 0, 0])  # xdot* - xdot
+        cols.append(np.array([0.0, 0.0, 1.0, 1.0]) * float(g.k_speed_int))
+    if not rows:
+        return np.asarray(a_closed)
+    c = np.asarray(rows)
+    ki = np.stack(cols, 1)
+    top = np.concatenate([a_closed + b_mat @ ki @ c, b_mat @ ki], 1)
+    bot = np.concatenate([c, np.eye(len(rows))], 1)
+    return np.concatenate([top, bot], 0)

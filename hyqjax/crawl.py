@@ -107,7 +107,7 @@ class CrawlParams:
     @staticmethod
     def make(forward_velocity=0.1, heading_velocity=0.0, t_body=0.4, t_swing=0.45, step_height=0.1,
              max_step_length=0.3, body_height=0.56, stability_margin=0.07, touchdown_force=30.0,
-             search_speed=0.15, max_search_depth=0.4, max_leg_extension=0.678, terrain_adaptation=0.5,
+             search_speed=0.15, max_search_depth=0.4, max_leg_extension=0.678, terrain_adaptation=0.3,
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS, foot_sequence="rh-rf-lh-lf", use_reflex=True,
              gains: impedance.ImpedanceGains | None = None,
              reflex_params: reflex.ReflexParams | None = None) -> "CrawlParams":
@@ -312,7 +312,7 @@ def crawl_init(p: CrawlParams, obs: sim.Observation) -> CrawlState:
     return _start_body_phase(p, st, obs)
 
 
-def _plan(p: CrawlParams, st: CrawlState, dt):
+def _plan(p: CrawlParams, st: CrawlState, dt, rp_meas):
     """Desired feet in the trunk frame ``(4, 3)``, swing-down flag, and the trunk rotation ``R_des``."""
     t = st.t_phase
     in_body = st.phase == PHASE_BODY
@@ -331,15 +331,20 @@ def _plan(p: CrawlParams, st: CrawlState, dt):
     search = st.search_depth
     swing_pos = start + s_tan * (st.swing_target - start) + (z_n - search) * n
     is_swing = (~in_body)
-    feet = jnp.where(is_swing & (jnp.arange(4) == leg)[:, None], swing_pos[None, :], feet)
     x_b = jnp.einsum("ji,lj->li", r_des, feet - p_des)
+    # Angular kinematic adjustment of the swing foot: its H0 trajectory is mapped into the trunk frame with
+    # the *measured* roll and pitch, so a trunk rotation (e.g. the reflex's squat) does not drag the foot
+    # along with it in the world.
+    x_sw_b = _rp_rot(rp_meas).T @ (swing_pos - p_des)
+    x_b = jnp.where(is_swing & (jnp.arange(4) == leg)[:, None], x_sw_b[None, :], x_b)
     swing_down = is_swing & (tau >= 0.5)
     return x_b, swing_down, r_des, leg, p_des, v_des, rp_des
 
 
 def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
     """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
-    x_plan, swing_down, r_des, leg, p_des, v_des, rp_des = _plan(p, st, dt)
+    rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
+    x_plan, swing_down, r_des, leg, p_des, v_des, rp_des = _plan(p, st, dt, rp_meas)
     in_swing = st.phase == PHASE_SWING
     # --- height reflex (Fig. 2/3): active in the downward part of the swing.
     up_b = r_des.T @ jnp.array([0.0, 0.0, 1.0], x_plan.dtype)
@@ -352,7 +357,6 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
     q_min, q_max = jnp.asarray(robot.Q_MIN, q_ik.dtype), jnp.asarray(robot.Q_MAX, q_ik.dtype)
     q_cmd = jnp.clip(jnp.where(active, rout.q_r, q_ik), q_min, q_max)
     # --- trunk controller feed-forward on the stance legs.
-    rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
     h_r_b = _rp_rot(rp_meas)
     x_meas_b = kinematics.foot_positions(obs.q)
     com_b = jnp.asarray(COM_OFFSET_B, x_plan.dtype)

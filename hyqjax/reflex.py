@@ -32,6 +32,13 @@ Deviations from the paper (all documented where they occur):
 * The search direction for the mobility ``m`` is the current terrain normal ``n_t`` (Eq. 7 on the
   reflex stance feet), i.e. the normal of the stance plane seen from the (possibly rotated) base.
 * Degenerate / invalid inputs have defined, flagged outcomes (see :func:`reflex_step`).
+
+Behaviour to be aware of (as in the paper): the swing spring (Eq. 2) acts in the base frame, so
+the reflex only ends when the swing foot reaches ``x^d`` *in the base frame* or the swing ends
+(touchdown, end stops). Motion given to the stance legs lowers the trunk and thereby moves the
+swing foot further down in the world than the plan: with a plan that stops at a reachable depth
+the swing foot ends ``x^d`` below the trunk *and* the trunk lower. With the haptic search of
+Section II (stop at touchdown) this is the intended "aid to the searching motion".
 """
 from __future__ import annotations
 
@@ -39,6 +46,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+
 from hyqjax import kinematics, robot
 from hyqjax.reflex_forces import (
     COLLINEAR_TOL,
@@ -53,8 +61,6 @@ from hyqjax.reflex_forces import (
     virtual_spring_force,
 )
 from hyqjax.reflex_geometry import (
-    _select,
-    _usum,
     MOBILITY_FLOOR,
     MOBILITY_RIDGE,
     STANCE_LEGS,
@@ -69,6 +75,7 @@ from hyqjax.reflex_geometry import (
     transmission_ratio,
     velocity_transformation_ratio,
 )
+from hyqjax.reflex_geometry import _select, _usum
 from hyqjax.reflex_params import ReflexParams, params_finite
 
 __all__ = [
@@ -256,9 +263,11 @@ def reflex_step(
     ``tau_kl``) are evaluated at ``IK(x^d)``. Hence the reflex always (re)starts from the plan at
     activation, and when it deactivates (touchdown) the caller takes over from ``x^r``.
 
-    Stability: the explicit integration is stable for roughly
-    ``dt * k_x * |J|^2 / d_sw_min < 2`` (``|J| ~ 0.6`` m/rad for HyQ); with Table I and
-    ``k_x_max`` this allows ``dt`` up to ~2 ms at ``k_x`` = 2e4 (and ~5 ms at 5000).
+    Stability: linearised, the integration ``q_{k+1} = q_k + dt/2 (qd_{k-1} + qd_k)`` with
+    ``qd = -lambda (q - q*)`` is stable iff ``dt * lambda < 2``. The stiffest rate is about
+    ``k_x * sigma_max(J)^2 / d_sw_min`` (``sigma_max ~ 0.59`` m/rad for HyQ) and
+    ``k_kl / d_sw_min`` for the end stops: with Table I, ``dt`` below ~5.9 ms at
+    ``k_x = 5000`` and ~1.5 ms at ``k_x = k_x_max = 2e4``.
 
     Degenerate and invalid inputs (never a silent NaN):
 

@@ -15,8 +15,7 @@ import jax.numpy as jnp
 
 from hyqjax import robot
 from hyqjax.reflex_geometry import (
-    STANCE_PAIRS,
-    _adj3,
+    _cofactors,
     _det3,
     _dot,
     _mv,
@@ -34,6 +33,9 @@ from hyqjax.spatial import skew
 #: ``|x~_1 x x~_2| / max_k |x~_k|^2`` (twice the area over the longest edge squared; about the
 #: smallest angle of the triangle in rad). HyQ's crawl triangles are around 0.8.
 COLLINEAR_TOL = 1e-3
+#: Edge-foot incidence of the stance triangle for the pairs 1-2, 2-3, 3-1 of Eq. 4:
+#: ``x~ = _INCIDENCE @ x_st``.
+_INCIDENCE = ((1.0, -1.0, 0.0), (0.0, 1.0, -1.0), (-1.0, 0.0, 1.0))
 #: Damping schedule shapes accepted by :func:`damping_schedule`.
 SCHEDULE_SHAPES = ("smoothstep", "linear")
 
@@ -49,7 +51,8 @@ def _vec3(x, dtype):
 
 def effective_k_x(params: ReflexParams, dtype=jnp.float32) -> jax.Array:
     """Diagonal of ``K_x`` actually used: ``min(k_x, k_x_max)`` element-wise, shape ``(3,)``."""
-    return jnp.minimum(_vec3(params.k_x, dtype), _vec3(params.k_x_max, dtype))
+    with jax.named_scope("effective_k_x"):
+        return jnp.minimum(_vec3(params.k_x, dtype), _vec3(params.k_x_max, dtype))
 
 
 def virtual_spring_force(x_des_sw: jax.Array, x_r_sw: jax.Array, params: ReflexParams) -> jax.Array:
@@ -174,9 +177,10 @@ def leg_compliances(j_legs: jax.Array, d_diag: jax.Array) -> jax.Array:
     This is the foot-velocity response of the damper model (Eq. 1, 10) to a foot force; the
     stance block of ``J D_r^{-1} J^T``.
     """
-    d_leg = jnp.asarray(d_diag).reshape(jnp.shape(d_diag)[:-1] + (4, 3))
-    jd = j_legs / d_leg[..., None, :]
-    return _usum(jd[..., :, None, :] * j_legs[..., None, :, :], -1)
+    with jax.named_scope("leg_compliances"):
+        d_leg = jnp.asarray(d_diag).reshape(jnp.shape(d_diag)[:-1] + (4, 3))
+        jd = j_legs / d_leg[..., None, :]
+        return _usum(jd[..., :, None, :] * j_legs[..., None, :, :], -1)
 
 
 def eq6_system(
@@ -207,6 +211,11 @@ def eq6_system(
     Returns:
       ``(A, b)`` of shapes ``(9, 9)`` and ``(9,)`` (single instance).
     """
+    with jax.named_scope("eq6_system"):
+        return _eq6_system(x_feet, f_sw, swing_leg, j_legs, d_diag, e_b, params, up, tau_kl)
+
+
+def _eq6_system(x_feet, f_sw, swing_leg, j_legs, d_diag, e_b, params, up, tau_kl):
     from hyqjax.reflex_geometry import relative_distance_jacobian
 
     x_feet = jnp.asarray(x_feet)
@@ -237,8 +246,9 @@ def eq6_system(
 
 
 def _inv3(m):
-    det = _det3(m)
-    return _adj3(m) / det[..., None, None], det
+    cof = _cofactors(m)
+    det = _dot(m[..., 0, :], cof[..., 0, :])
+    return jnp.swapaxes(cof, -1, -2) / det[..., None, None], det
 
 
 def distribute_virtual_forces(
@@ -305,7 +315,7 @@ def distribute_virtual_forces(
         p = stance_selector(swing_leg, dtype)  # (3, 4)
         hot = swing_one_hot(swing_leg, dtype)  # (4,)
         x_st = _select(p, x_feet)
-        x_sw = jnp.sum(hot[:, None] * x_feet, axis=0)
+        x_sw = _usum(hot[:, None] * x_feet, 0)
         e_z = safe_normalize(
             jnp.asarray([0.0, 0.0, 1.0] if up is None else up, dtype), fallback=jnp.asarray([0.0, 0.0, 1.0], dtype)
         )
@@ -339,21 +349,16 @@ def distribute_virtual_forces(
         y = _mv(kinv, moment_c)
         f_p = force / 3.0 + jnp.cross(y[None, :], rho)
 
-        # Internal forces: basis[l] is the (3, 3) stance-force pattern of a unit tension on edge l.
-        basis = []
-        for l_edge, (i, j) in enumerate(STANCE_PAIRS):
-            sel = jnp.zeros((3, 1), dtype).at[i, 0].set(1.0).at[j, 0].set(-1.0)
-            basis.append(sel * edges[l_edge][None, :])
-        basis = jnp.stack(basis, 0)  # (3 patterns, 3 feet, 3)
-
-        def constraint(f_st):
-            # Rates of |x~_k|^2 / 2 (Eq. 4) for stance forces f_st (..., 3 feet, 3).
-            vel = _mv(c_st, f_st)
-            return jnp.stack([_dot(edges[k], vel[..., i, :] - vel[..., j, :]) for k, (i, j) in enumerate(STANCE_PAIRS)], -1)
-
-        u_rate = jnp.stack([_dot(edges[k], u_st[i] - u_st[j]) for k, (i, j) in enumerate(STANCE_PAIRS)])
-        g0 = constraint(f_p) + u_rate
-        h = constraint(basis).T  # h[k, l]: rate k per unit tension l; = J~ D^-1 J~^T (symmetric)
+        # Internal (squeezing) forces: a tension t_l on edge l adds +t_l x~_l to its first foot and
+        # -t_l x~_l to its second, i.e. f_int = INC^T diag(t) X~ with the edge-foot incidence INC.
+        inc = jnp.asarray(_INCIDENCE, dtype)  # (3 edges, 3 feet)
+        # Stance constraint rates (Eq. 4): r_k = x~_k . sum_i INC[k, i] xd_i with xd_i = C_i f_i + u_i.
+        vel_p = _mv(c_st, f_p) + u_st
+        g0 = _dot(edges, _select(inc, vel_p))
+        # H[k, l] = sum_i INC[k, i] INC[l, i] x~_k^T C_i x~_l  (= J~ D^-1 J~^T, symmetric PSD).
+        c_e = _mv(c_st[:, None], edges[None, :])  # (foot i, edge l, 3): C_i x~_l
+        q = _dot(edges[:, None, None, :], c_e[None])  # (edge k, foot i, edge l)
+        h = _usum(inc[:, :, None] * inc.T[None, :, :] * q, 1)
         h = 0.5 * (h + h.T)
         tr = h[0, 0] + h[1, 1] + h[2, 2]
         det = _det3(h)
@@ -363,7 +368,7 @@ def distribute_virtual_forces(
         h = jnp.where(degenerate, jnp.eye(3, dtype=dtype), h)
         hinv, _ = _inv3(h)
         t = -_mv(hinv, g0)
-        f_st = f_p + _usum(t[:, None, None] * basis, 0)
+        f_st = f_p + _select(inc.T, t[:, None] * edges)
         degenerate = degenerate | ~jnp.isfinite(_usum(_usum(f_st, 0), 0))
         f_st = jnp.where(degenerate, 0.0, f_st)
         f_r = _select(p.T, f_st) + hot[:, None] * f_sw[None, :]

@@ -29,18 +29,12 @@ MOBILITY_RIDGE = 1e-10
 MOBILITY_FLOOR = 1e-9
 
 
-# Small dense products are written as unrolled sums of slices rather than ``dot``/``sum``: for the
-# 3x3 and 3x4 shapes of the reflex XLA then fuses them with their neighbours into few kernels,
-# whereas every ``dot`` or reduction is a separate kernel launch, and launches dominate the
-# latency of one reflex tick on CPU.
+# Small dense products (3x3, 3x4) are written as broadcast-multiply-and-sum instead of ``dot``:
+# XLA fuses them with their neighbours, whereas every ``dot`` is a separate kernel launch, and
+# launches dominate the latency of one reflex tick on CPU.
 def _usum(x, axis):
-    """Sum over a short static axis as an unrolled chain of adds (fuses in XLA)."""
-    axis = axis % x.ndim
-    parts = [jax.lax.index_in_dim(x, i, axis, keepdims=False) for i in range(x.shape[axis])]
-    out = parts[0]
-    for part in parts[1:]:
-        out = out + part
-    return out
+    """Sum over a short axis (kept as a named helper so the products below read as algebra)."""
+    return jnp.sum(x, axis=axis)
 
 
 def _dot(a, b):
@@ -195,23 +189,19 @@ def orientation_error(n_t: jax.Array, n_t_des: jax.Array) -> jax.Array:
 # ---------------------------------------------------------------------------------------------
 
 
+def _cofactors(m):
+    """Cofactor matrix of a 3x3 matrix: row ``i`` is ``r_{i+1} x r_{i+2}`` of the rows ``r``."""
+    return jnp.cross(jnp.roll(m, -1, axis=-2), jnp.roll(m, -2, axis=-2))
+
+
 def _det3(m):
-    return (
-        m[..., 0, 0] * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
-        - m[..., 0, 1] * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
-        + m[..., 0, 2] * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0])
-    )
+    """Determinant of a 3x3 matrix, ``r_0 . (r_1 x r_2)``."""
+    return _dot(m[..., 0, :], jnp.cross(m[..., 1, :], m[..., 2, :]))
 
 
 def _adj3(m):
     """Adjugate (transposed cofactor matrix) of a 3x3 matrix: ``m @ adj(m) = det(m) I``."""
-    c = lambda i, j, k, l: m[..., i, j] * m[..., k, l] - m[..., i, l] * m[..., k, j]  # noqa: E731
-    rows = [
-        [c(1, 1, 2, 2), -c(0, 1, 2, 2), c(0, 1, 1, 2)],
-        [-c(1, 0, 2, 2), c(0, 0, 2, 2), -c(0, 0, 1, 2)],
-        [c(1, 0, 2, 1), -c(0, 0, 2, 1), c(0, 0, 1, 1)],
-    ]
-    return jnp.stack([jnp.stack(r, -1) for r in rows], -2)
+    return jnp.swapaxes(_cofactors(m), -1, -2)
 
 
 def _regularised_gram(j_foot):
@@ -226,16 +216,17 @@ def transmission_ratio(j_foot: jax.Array, direction: jax.Array) -> jax.Array:
 
     Cheaper (no SVD); used by :func:`hyqjax.reflex.reflex_step`. Broadcasts.
     """
-    j_foot = jnp.asarray(j_foot)
-    dtype = j_foot.dtype
-    v = safe_normalize(jnp.asarray(direction, dtype), fallback=jnp.asarray([0.0, 0.0, 1.0], dtype))
-    g = _regularised_gram(j_foot)
-    det = jnp.maximum(_det3(g), 0.0)
-    quad = _dot(v, _mv(_adj3(g), v))
-    # v^T G^{-1} v = v^T adj(G) v / det(G)  =>  m^2 = det(G) / (v^T adj(G) v).
-    quad = jnp.maximum(quad, _tiny(dtype))
-    floor = jnp.asarray(MOBILITY_FLOOR, dtype)
-    return jnp.sqrt(det / quad + floor**2)
+    with jax.named_scope("transmission_ratio"):
+        j_foot = jnp.asarray(j_foot)
+        dtype = j_foot.dtype
+        v = safe_normalize(jnp.asarray(direction, dtype), fallback=jnp.asarray([0.0, 0.0, 1.0], dtype))
+        g = _regularised_gram(j_foot)
+        det = jnp.maximum(_det3(g), 0.0)
+        quad = _dot(v, _mv(_adj3(g), v))
+        # v^T G^{-1} v = v^T adj(G) v / det(G)  =>  m^2 = det(G) / (v^T adj(G) v).
+        quad = jnp.maximum(quad, _tiny(dtype))
+        floor = jnp.asarray(MOBILITY_FLOOR, dtype)
+        return jnp.sqrt(det / quad + floor**2)
 
 
 def velocity_transformation_ratio(j_foot: jax.Array, direction: jax.Array):

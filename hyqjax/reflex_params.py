@@ -94,9 +94,10 @@ class ReflexParams:
         vals = {}
         for name in _FIELDS:
             value = getattr(self, name)
-            if isinstance(value, jax.core.Tracer):
-                raise ValueError(f"ReflexParams.validate() must run outside jit; '{name}' is traced")
-            arr = np.asarray(value, dtype=np.float64)
+            try:
+                arr = np.asarray(value, dtype=np.float64)
+            except (TypeError, jax.errors.TracerArrayConversionError, jax.errors.ConcretizationTypeError) as e:
+                raise ValueError(f"ReflexParams.validate() must run outside jit; '{name}' is traced") from e
             allowed = shapes.get(name, ((),))
             if arr.shape not in allowed:
                 raise ValueError(f"ReflexParams.{name} must have shape in {allowed}, got {arr.shape}")

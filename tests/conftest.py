@@ -1,9 +1,12 @@
 """Shared fixtures of the hyqjax test suite (CPU-sized; every test jits what it calls)."""
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import textwrap
 
 import hyqjax  # noqa: F401  (sets the XLA:CPU flags before jax is imported)
@@ -12,6 +15,15 @@ import numpy as np
 import pytest
 
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# A persistent compilation cache for this test session only (fresh each run, removed at exit): the
+# same program compiled twice (hyqjax.sim.batch_rollout jits a new closure on every call) is compiled
+# once. Subprocesses started by run_python/start_python share it. A cache set by the user is kept.
+if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+    _CACHE_DIR = tempfile.mkdtemp(prefix="hyqjax-test-jax-cache-")
+    atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE_DIR
+jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 
 
 @pytest.fixture

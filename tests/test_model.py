@@ -12,10 +12,6 @@ from hyqjax import model as hmodel
 from hyqjax import robot, stand
 
 
-def _body(m, name):
-    return m.body(name)
-
-
 # ---------------------------------------------------------------- the URDF's numbers
 
 
@@ -88,11 +84,15 @@ def test_standing_keyframe(hyq):
     # The feet are the robot's lowest points and touch the ground (to 0.1 mm).
     bottoms = d.site_xpos[list(ids.foot_sites), 2] - robot.FOOT_RADIUS
     assert np.all(np.abs(bottoms) < 1e-4), bottoms
-    robot_geoms = [g for g in range(m.ngeom) if m.geom_bodyid[g] != 0]
-    low = np.full(m.ngeom, np.inf)
-    for g in robot_geoms:
-        low[g] = d.geom_xpos[g, 2] - (m.geom_rbound[g] if g not in ids.foot_geoms else robot.FOOT_RADIUS)
-    assert np.argmin(low) in ids.foot_geoms or np.min(low[list(ids.foot_geoms)]) <= np.min(low) + 1e-9
+    # Only the feet touch: every other robot geom is clear of the floor.
+    for g in range(m.ngeom):
+        if m.geom_bodyid[g] == 0:
+            continue
+        dist = mujoco.mj_geomDistance(m, d, g, ids.floor_geom, 1.0, None)
+        if g in ids.foot_geoms:
+            assert 0.0 <= dist < 1e-4, (m.geom(g).name, dist)
+        else:
+            assert dist > 0.02, (m.geom(g).name, dist)
 
 
 # ---------------------------------------------------------------- contacts
@@ -149,37 +149,42 @@ PAYLOAD_COM = np.array([[0, 0, 0], [0, 0, 0], [0.1, -0.05, 0.05]])
 
 @pytest.fixture(scope="module")
 def batched_platform_run(hyq):
-    """One jitted, vmapped MJX program over 3 instances with different platform heights (and a payload
-    on the last): forward at the start, then 0.5 s of ``mjx.step`` under joint PD + weight feed-forward,
-    HyQ standing on the platform (all feet on it, at x = -1 m)."""
+    """One jitted, vmapped ``lax.scan`` of ``mjx.step`` over 3 instances with different platform heights
+    (and a payload on the last): 0.5 s of HyQ standing on the platform (all feet on it, at x = -1 m,
+    started 0.5 mm into it) under joint PD + weight feed-forward.
+
+    Returns the first step's contacts and whole-robot CoM (``mjx.step`` computes them at the state it
+    starts from, the initial one) and the final data."""
     m, ids = hyq
     mx = mjx.put_model(m)
     terrain = hmodel.InstanceTerrain.make(HEIGHTS, payload_mass=PAYLOAD, payload_com=PAYLOAD_COM)
     mxb = hmodel.batch_model(mx, ids, terrain)
     qpos0 = np.stack([hmodel.standing_qpos(m, base_xy=(-1.0, 0.0), ground_height=h) for h in HEIGHTS])
+    qpos0[:, 2] -= 5e-4
     qadr, vadr = np.asarray(ids.qpos_joints), np.asarray(ids.dof_joints)
-    gains = stand.StandParams.make()
-    kp, kd = gains.gains.per_joint()
+    params = stand.StandParams.make()
+    kp, kd = params.gains.per_joint()
 
     def one(mm, qpos):
         d = mjx.make_data(mm).replace(qpos=qpos)
-        d_first = mjx.forward(mm, d)
 
         def body(dd, _):
             q, qd = dd.qpos[qadr], dd.qvel[vadr]
-            tau = kp * (gains.q_ref - q) - kd * qd + stand.weight_feedforward(q, dd.qpos[3:7])
-            return mjx.step(mm, dd.replace(ctrl=jnp.clip(tau, -150.0, 150.0))), None
+            tau = kp * (params.q_ref - q) - kd * qd + stand.weight_feedforward(q, dd.qpos[3:7])
+            dn = mjx.step(mm, dd.replace(ctrl=jnp.clip(tau, -150.0, 150.0)))
+            return dn, (dn._impl.contact, dn.subtree_com[ids.trunk_body])
 
-        d_last, _ = jax.lax.scan(body, d_first, None, length=250)
-        return d_first, d_last
+        d_last, (contacts, com) = jax.lax.scan(body, d, None, length=250)
+        first = jax.tree_util.tree_map(lambda x: x[0], contacts)
+        return first, com[0], d_last
 
     fn = jax.jit(jax.vmap(one, in_axes=(hmodel.model_in_axes(mxb), 0)))
-    d_first, d_last = jax.block_until_ready(fn(mxb, jnp.asarray(qpos0, jnp.float32)))
-    return m, ids, mxb, qpos0, d_first, d_last
+    first_contact, first_com, d_last = jax.block_until_ready(fn(mxb, jnp.asarray(qpos0, jnp.float32)))
+    return m, ids, mxb, qpos0, first_contact, first_com, d_last
 
 
 def test_batched_model_fields(batched_platform_run):
-    m, ids, mxb, _, _, _ = batched_platform_run
+    m, ids, mxb = batched_platform_run[:3]
     hz = hmodel.PLATFORM_HALF_SIZE[2]
     np.testing.assert_allclose(mxb.geom_pos[:, ids.platform_geom, 2], HEIGHTS - hz, atol=1e-6)
     np.testing.assert_allclose(mxb.geom_size[ids.platform_geom], hmodel.PLATFORM_HALF_SIZE, atol=1e-6)
@@ -188,37 +193,42 @@ def test_batched_model_fields(batched_platform_run):
     assert axes.geom_pos == 0 and axes.body_mass == 0 and axes.geom_size is None
 
 
+def _foot_contacts(c, ids, b, foot, terrain_geom):
+    g1, g2 = np.asarray(c.geom1)[b], np.asarray(c.geom2)[b]
+    return np.flatnonzero(((g1 == terrain_geom) & (g2 == foot)) | ((g2 == terrain_geom) & (g1 == foot)))
+
+
 def test_platform_contact_height_per_instance(batched_platform_run):
-    m, ids, _, _, d_first, d_last = batched_platform_run
-    for d in (d_first, d_last):
-        c = d._impl.contact
-        g1, g2, dist = np.asarray(c.geom1), np.asarray(c.geom2), np.asarray(c.dist)
-        pos = np.asarray(c.pos)
-        for b, h in enumerate(HEIGHTS):
-            for foot in ids.foot_geoms:
-                on_platform = ((g1[b] == ids.platform_geom) & (g2[b] == foot)) | (
-                    (g2[b] == ids.platform_geom) & (g1[b] == foot))
-                on_floor = ((g1[b] == ids.floor_geom) & (g2[b] == foot)) | ((g2[b] == ids.floor_geom) & (g1[b] == foot))
-                assert on_platform.sum() >= 1 and on_floor.sum() == 1
-                # The foot touches the platform top at z = h (within a millimetre of penetration).
-                k = np.flatnonzero(on_platform)[np.argmin(dist[b][on_platform])]
-                assert abs(dist[b, k]) < 1e-3, (h, dist[b, k])
-                assert abs(pos[b, k, 2] - h) < 1e-3, (h, pos[b, k])
-                # ... and is h above the floor.
-                assert np.min(dist[b][on_floor]) == pytest.approx(h, abs=1e-3)
+    m, ids, _, _, c, _, d_last = batched_platform_run
+    dist, pos = np.asarray(c.dist), np.asarray(c.pos)
+    for b, h in enumerate(HEIGHTS):
+        for foot in ids.foot_geoms:
+            on_platform = _foot_contacts(c, ids, b, foot, ids.platform_geom)
+            on_floor = _foot_contacts(c, ids, b, foot, ids.floor_geom)
+            assert len(on_platform) == 1 and len(on_floor) == 1
+            # The foot touches the platform top at z = h (0.5 mm into it) ...
+            k = on_platform[0]
+            assert dist[b, k] == pytest.approx(-5e-4, abs=1e-4), (h, dist[b, k])
+            assert pos[b, k, 2] == pytest.approx(h, abs=5e-4), (h, pos[b, k])
+            # ... and is h above the floor (the floor plane's contact reports its distance).
+            assert dist[b, on_floor[0]] == pytest.approx(h - 5e-4, abs=1e-4)
     # After 0.5 s of standing the feet rest on each instance's platform and the trunk is 0.5957 m above it.
     sites = np.asarray(d_last.site_xpos)[:, list(ids.foot_sites), 2]
-    np.testing.assert_allclose(sites, HEIGHTS[:, None] + robot.FOOT_RADIUS, atol=1.5e-3)
+    np.testing.assert_allclose(sites, np.broadcast_to(HEIGHTS[:, None] + robot.FOOT_RADIUS, sites.shape), atol=1.5e-3)
     np.testing.assert_allclose(np.asarray(d_last.qpos)[:, 2], HEIGHTS + robot.STANDING_BASE_Z, atol=0.01)
     assert np.all(np.isfinite(np.asarray(d_last.qpos)))
+    c_last = d_last._impl.contact
+    for b in range(len(HEIGHTS)):
+        k = _foot_contacts(c_last, ids, b, ids.foot_geoms[0], ids.platform_geom)[0]
+        assert -2e-3 < float(c_last.dist[b, k]) < 0.0  # in contact, still with the platform
 
 
 def test_payload_shifts_mass_and_com(batched_platform_run):
-    m, ids, mxb, qpos0, d_first, _ = batched_platform_run
+    m, ids, mxb, qpos0, _, com_mjx, _ = batched_platform_run
+    com_mjx = np.asarray(com_mjx)
     # Total mass per instance.
     np.testing.assert_allclose(np.asarray(mxb.body_mass).sum(1), robot.TOTAL_MASS + np.asarray(PAYLOAD), atol=1e-4)
-    # Whole-robot CoM from MJX (subtree of the trunk) against the bare robot's from C MuJoCo.
-    com_mjx = np.asarray(d_first.subtree_com)[:, ids.trunk_body]
+    # Whole-robot CoM from MJX (subtree of the trunk) against the bare robot's from C MuJoCo plus the payload.
     for b in range(len(HEIGHTS)):
         d = mujoco.MjData(m)
         d.qpos[:] = qpos0[b]

@@ -26,12 +26,19 @@ def x64():
         yield
 
 
+# Small helpers are jitted too: run eagerly, every primitive would be compiled on its own.
+@functools.partial(jax.jit, static_argnames=("dtype",))
 def standing_feet(dtype=jnp.float64):
     return kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, dtype))
 
 
-def constant_inputs(x_des, swing_leg, active=True):
-    return R.ReflexInputs.make(x_des, swing_leg, active)
+@jax.jit
+def constant_inputs(x_des, swing_leg):
+    """Active inputs for ``swing_leg`` with the plan ``x_des`` and ``n_t^d`` from the plan."""
+    return R.ReflexInputs.make(x_des, jnp.asarray(swing_leg, jnp.int32), True)
+
+
+init = jax.jit(R.reflex_init)
 
 
 def search_inputs(x0, swing_leg, depth, speed, n_steps, dt=DT):
@@ -49,20 +56,28 @@ def search_inputs(x0, swing_leg, depth, speed, n_steps, dt=DT):
     )
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps",))
-def rollout_const(state, inputs, params, n_steps):
-    return R.reflex_rollout(state, inputs, params, DT, n_steps=n_steps)
+@jax.jit
+def step(state, inputs, params):
+    return R.reflex_step(state, inputs, params, DT)
 
 
 @jax.jit
 def rollout_seq(state, inputs, params):
+    """Rollout over per-tick inputs (leading time axis)."""
     return R.reflex_rollout(state, inputs, params, DT)
 
 
-@functools.partial(jax.jit, static_argnames=("depth", "speed", "n_steps"))
-def search_rollout(params, depth=0.2, speed=0.1, n_steps=5000):
+def rollout_const(state, inputs, params, n_steps):
+    """Rollout with constant inputs (tiled in time, so it shares ``rollout_seq``'s compilation)."""
+    seq = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_steps,) + jnp.shape(a)), inputs)
+    return rollout_seq(state, seq, params)
+
+
+@jax.jit
+def search_rollout(params):
+    """5 s downward search of the RF foot at 0.1 m/s to 20 cm below standing (Section II)."""
     x0 = standing_feet(jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-    return rollout_seq(R.reflex_init(x0), search_inputs(x0, RF, depth, speed, n_steps), params)
+    return rollout_seq(R.reflex_init(x0), search_inputs(x0, RF, depth=0.2, speed=0.1, n_steps=5000), params)
 
 
 def stance_distances(x_feet, swing_leg):
@@ -106,6 +121,8 @@ def test_table1_defaults_and_pytree():
     assert len(jax.tree.leaves(p)) == 11
     with pytest.raises(ValueError, match="unknown"):
         R.ReflexParams.make(k_z=1.0)
+    with pytest.raises(ValueError, match="outside jit"):
+        jax.jit(lambda k: R.ReflexParams(k_x=k).validate())(1.0)
     # vmap over a batch of parameter sets.
     batch = jax.tree.map(lambda a: jnp.full((3,), a), p).replace(k_base=jnp.asarray([100.0, 1500.0, 3000.0]))
     d = jax.jit(jax.vmap(lambda pp: R.damping_schedule(0.2, pp)[0]))(batch)
@@ -133,7 +150,7 @@ def test_eq3_static_equilibrium_random_layouts(x64):
     params = R.ReflexParams(k_base=jnp.asarray([100.0, 1500.0, 800.0]))
 
     @jax.jit
-    def solve(swing):
+    def solve(swing):  # swing is traced: one compilation for the four swing legs
         f = jax.vmap(
             lambda x, j, d, fs, e, t, u: R.distribute_virtual_forces(
                 x, fs, swing, j, d, e, params, up=u, tau_kl=t, return_degenerate=True
@@ -144,7 +161,7 @@ def test_eq3_static_equilibrium_random_layouts(x64):
         return f(*args), a_b(*args)
 
     for swing in range(4):
-        (f_r, degenerate), (a, b) = solve(swing)
+        (f_r, degenerate), (a, b) = solve(jnp.asarray(swing))
         assert not np.any(degenerate)
         f_r, xf = np.asarray(f_r), np.asarray(x_feet)
         st = R.STANCE_LEGS[swing]
@@ -171,7 +188,7 @@ def test_eq3_static_equilibrium_random_layouts(x64):
 def test_eq4_stance_distances_constant_along_trajectory(x64):
     x0 = standing_feet()
     inputs = constant_inputs(x0.at[RF, 2].add(-0.3), RF)  # target far below the workspace
-    _, out = rollout_const(R.reflex_init(x0), inputs, R.ReflexParams(), 300)
+    _, out = rollout_const(init(x0), inputs, R.ReflexParams(), 300)
     x_r = np.asarray(out.x_r)
     d = stance_distances(np.concatenate([np.asarray(x0)[None], x_r]), RF)
     step = np.linalg.norm(np.diff(x_r[:, R.STANCE_LEGS[RF]], axis=0), axis=-1).max()
@@ -189,7 +206,7 @@ def test_motion_sharing_depends_on_mobility(x64):
     x0 = standing_feet()
     params = R.ReflexParams()
     # (a) High mobility (m > m_max at the standing pose): nearly all motion in the swing leg.
-    _, out = rollout_const(R.reflex_init(x0), constant_inputs(x0.at[RF, 2].add(-0.01), RF), params, 300)
+    _, out = rollout_const(init(x0), constant_inputs(x0.at[RF, 2].add(-0.01), RF), params, 300)
     assert out.mobility[0, RF] > params.m_max
     move = np.linalg.norm(np.asarray(out.x_r[-1] - x0), axis=-1)
     assert move[RF] > 0.0095
@@ -200,8 +217,8 @@ def test_motion_sharing_depends_on_mobility(x64):
     # until the base spring has built up its moment (the Fig. 6 effect, tested below).
     q_str = jnp.asarray(robot.Q_STANDING).at[3 * RF + 1].set(0.5).at[3 * RF + 2].set(-0.9)
     x_str = kinematics.foot_positions(q_str)
-    state = R.reflex_init(x_str)
-    _, out = rollout_const(state, constant_inputs(x_str.at[RF, 2].add(-0.05), RF), params, 200)
+    state = init(x_str)
+    _, out = rollout_const(state, constant_inputs(x_str.at[RF, 2].add(-0.05), RF), params, 300)
     assert out.mobility[0, RF] < params.m_min
     dz = np.asarray(out.x_r[-1, :, 2] - x_str[:, 2])
     assert dz[R.STANCE_LEGS[RF]].mean() > 0.01
@@ -236,7 +253,7 @@ def test_end_stop_torques_band_and_sign(x64):
 def test_end_stop_stops_joint_before_limit():
     # Downward search of the RF foot at 0.1 m/s to 20 cm: the trunk squats until a stance knee
     # reaches its end-stop band (Fig. 10 situation).
-    _, out = search_rollout(R.ReflexParams(), depth=0.2)
+    _, out = search_rollout(R.ReflexParams())
     q = np.asarray(out.q_r)
     margin = np.minimum(q - robot.Q_MIN, robot.Q_MAX - q)
     entered = np.where(margin.min(0) < 0.05)[0]
@@ -246,7 +263,7 @@ def test_end_stop_stops_joint_before_limit():
     assert abs(float(out.qd_r[-1, j])) < 5e-3  # and it came to rest (near-zero velocity)
     assert abs(float(out.qd_r[-1, j])) < 0.02 * np.abs(np.asarray(out.qd_r[:, j])).max()
     # Without the end-stop springs the same plan drives joints through their limits.
-    _, free = search_rollout(R.ReflexParams(k_kl=0.0), depth=0.2)
+    _, free = search_rollout(R.ReflexParams(k_kl=0.0))
     qf = np.asarray(free.q_r)
     assert np.minimum(qf - robot.Q_MIN, robot.Q_MAX - qf).min() < -0.1
 
@@ -260,7 +277,7 @@ def test_fig6_base_spring_lh_extends_or_retracts():
     x0 = np.asarray(standing_feet(jnp.float32))
     res = {}
     for k_base in (100.0, 1500.0):
-        _, out = search_rollout(R.ReflexParams(k_base=k_base), depth=0.2)
+        _, out = search_rollout(R.ReflexParams(k_base=k_base))
         dz_lh = np.asarray(out.x_r[:, LH, 2]) - x0[LH, 2]
         res[k_base] = dz_lh, np.linalg.norm(np.asarray(out.e_b), axis=-1), np.asarray(out.f_r[:, LH, 2])
     t_end_ramp = 2000  # the plan reaches its 20 cm depth at t = 2 s
@@ -297,17 +314,25 @@ def test_orientation_error_and_normal_reference_and_gradients(x64):
     for _ in range(20):
         a = rng.normal(size=3) + np.array([0, 0, 2.0])
         b = rng.normal(size=3) + np.array([0, 0, 2.0])
-        np.testing.assert_allclose(np.asarray(err(jnp.asarray(a), jnp.asarray(b))), _np_orientation_error(a, b), atol=1e-12)
+        e = np.asarray(err(jnp.asarray(a), jnp.asarray(b)))
+        np.testing.assert_allclose(e, _np_orientation_error(a, b), atol=1e-12)
     # Tiny angles (acos is inaccurate there; the reference uses the exact small rotation).
     th = 1e-7
     e = np.asarray(err(jnp.asarray([np.sin(th), 0.0, np.cos(th)]), jnp.asarray([0.0, 0.0, 1.0])))
     np.testing.assert_allclose(e, [0.0, -th, 0.0], rtol=1e-6, atol=1e-20)  # a x b = -sin(th) y
     # delta = 0: value and gradient finite (and the Jacobian is the small-angle one).
     n = jnp.asarray([0.1, -0.2, 1.0]) / np.linalg.norm([0.1, -0.2, 1.0])
-    assert np.all(np.asarray(err(n, n)) == 0.0)
+    assert np.abs(np.asarray(err(n, n))).max() < 1e-15
     jac = np.asarray(jax.jit(jax.jacobian(R.orientation_error))(n, n))
-    assert np.all(np.isfinite(jac))
-    g = np.asarray(jax.jit(jax.grad(lambda a, b: jnp.sum(R.orientation_error(a, b) ** 2 + R.orientation_error(a, b))))(n, n))
+    nn = np.asarray(n)
+    skew_n = np.array([[0, -nn[2], nn[1]], [nn[2], 0, -nn[0]], [-nn[1], nn[0], 0]])
+    np.testing.assert_allclose(jac, -skew_n, atol=1e-12)  # d(n x n_des)/dn at n = n_des
+
+    def loss(a, b):
+        e_t = R.orientation_error(a, b)
+        return jnp.sum(e_t**2 + e_t)
+
+    g = np.asarray(jax.jit(jax.grad(loss, argnums=(0, 1)))(n, n))
     assert np.all(np.isfinite(g))
     # Terrain normal (Eq. 7) against NumPy, oriented up, independent of the feet order.
     tn = jax.jit(R.terrain_normal)
@@ -343,7 +368,7 @@ def test_velocity_transformation_ratio_reference_and_extension(x64):
         sv = np.linalg.svd(j, compute_uv=False)
         # rtol: the 1e-10 relative ridge shifts m by ~1e-10 * tr(JJ^T) / lambda_min(JJ^T).
         np.testing.assert_allclose(m, (vn @ np.linalg.inv(j @ j.T) @ vn) ** -0.5, rtol=1e-6)
-        np.testing.assert_allclose(w, np.sqrt(np.linalg.det(j @ j.T)), rtol=1e-8)
+        np.testing.assert_allclose(w, np.sqrt(np.linalg.det(j @ j.T)), rtol=1e-6)
         np.testing.assert_allclose(k, sv[-1] / sv[0], rtol=1e-10)
     # Decreasing along the terrain normal as the RF leg extends toward the straight leg.
     kfe = np.linspace(-2.0, -0.05, 40)
@@ -351,17 +376,22 @@ def test_velocity_transformation_ratio_reference_and_extension(x64):
     q[:, 3 * RF + 2] = kfe
     q[:, 3 * RF + 1] = -kfe / 2  # keep the foot roughly under the hip
     j_rf = kinematics.foot_jacobians(jnp.asarray(q))[:, RF]
-    m, w, k = (np.asarray(a) for a in jax.jit(jax.vmap(R.velocity_transformation_ratio, (0, None)))(j_rf, jnp.asarray([0, 0, 1.0])))
+    vtr_batch = jax.jit(jax.vmap(R.velocity_transformation_ratio, (0, None)))
+    m, w, k = (np.asarray(a) for a in vtr_batch(j_rf, jnp.asarray([0, 0, 1.0])))
     ext = np.asarray(kinematics.leg_extension(jnp.asarray(q))[:, RF])
     assert np.all(np.diff(ext) > 0)
-    assert np.all(np.diff(m) < 0) and np.all(np.diff(w) < 0) and np.all(np.diff(k[20:]) < 0)
+    assert np.all(np.diff(m) < 0)  # m along the normal decreases monotonically (Fig. 8)
+    # w and kappa^-1 peak at a bent knee and decrease only over the stretched half.
+    assert np.all(np.diff(w[20:]) < 0) and np.all(np.diff(k[20:]) < 0)
     # At an exactly straight leg: finite, tiny, with finite gradients.
     q_straight = jnp.asarray(robot.Q_STANDING).at[3 * RF + 1].set(0.0).at[3 * RF + 2].set(0.0)
     j_s = kinematics.foot_jacobians(q_straight)[RF]
     m_s, w_s, k_s = vtr(j_s, jnp.asarray([0, 0, 1.0]))
     assert 0 < float(m_s) < 1e-4 and float(k_s) < 1e-6
-    g = jax.jit(jax.grad(lambda jj: sum(jnp.sum(a) for a in R.velocity_transformation_ratio(jj, jnp.asarray([0.0, 0.1, 1.0])))))(j_s)
-    assert np.all(np.isfinite(np.asarray(g)))
+    def total(jj):
+        return sum(jnp.sum(a) for a in R.velocity_transformation_ratio(jj, jnp.asarray([0.0, 0.1, 1.0])))
+
+    assert np.all(np.isfinite(np.asarray(jax.jit(jax.grad(total))(j_s))))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -383,7 +413,8 @@ def test_damping_schedule_endpoints_continuity_gradient(x64, shape):
     grad = jax.jit(jax.vmap(jax.grad(lambda mm: R.damping_schedule(mm, p, shape)[1])))
     g = np.asarray(grad(jnp.asarray([0.195, 0.2, 0.205])))
     h = 1e-7
-    fd = (np.asarray(sched(jnp.asarray([0.195, 0.2, 0.205]) + h)[1]) - np.asarray(sched(jnp.asarray([0.195, 0.2, 0.205]) - h)[1])) / (2 * h)
+    m0 = jnp.asarray([0.195, 0.2, 0.205])
+    fd = (np.asarray(sched(m0 + h)[1]) - np.asarray(sched(m0 - h)[1])) / (2 * h)
     np.testing.assert_allclose(g, fd, rtol=1e-6)
     assert np.all(g > 0)
     if shape == "smoothstep":  # C^1: zero slope at the thresholds
@@ -402,6 +433,7 @@ def test_damping_schedule_endpoints_continuity_gradient(x64, shape):
 # ---------------------------------------------------------------------------------------------
 
 
+@jax.jit
 def _grad_scenario():
     """Stance joint inside its end-stop band, swing leg in the damping transition region."""
     q = jnp.asarray(robot.Q_STANDING, jnp.float64)
@@ -409,7 +441,8 @@ def _grad_scenario():
     q = q.at[3 * RF + 1].set(0.68).at[3 * RF + 2].set(-1.36)  # RF mobility ~ 0.2 (m_min..m_max)
     x0 = kinematics.foot_positions(q)
     state = R.ReflexState(q_r=q, qd_r=jnp.zeros(12))
-    inputs = R.ReflexInputs.make(x0.at[RF, 2].add(-0.04).at[RF, 0].add(0.02), RF, n_t_des=jnp.asarray([0.05, -0.03, 1.0]))
+    x_des = x0.at[RF, 2].add(-0.04).at[RF, 0].add(0.02)
+    inputs = R.ReflexInputs.make(x_des, RF, n_t_des=jnp.asarray([0.05, -0.03, 1.0]))  # e_b != 0
     return state, inputs
 
 
@@ -418,35 +451,41 @@ def test_gradients_wrt_every_param_match_finite_differences(x64):
     w_q = jnp.asarray(np.random.default_rng(3).normal(size=12))
     w_x = jnp.asarray(np.random.default_rng(4).normal(size=(4, 3)))
 
-    @jax.jit
-    def outcome(params):
+    def outcome_and_aux(params):
         s, out = R.reflex_rollout(state, inputs, params, DT, n_steps=40)
-        return jnp.sum(w_q * s.q_r) + jnp.sum(w_x * out.x_r[-1]) + 0.1 * jnp.sum(out.x_r[:, :, 2])
+        value = jnp.sum(w_q * s.q_r) + jnp.sum(w_x * out.x_r[-1]) + 0.1 * jnp.sum(out.x_r[:, :, 2])
+        return value, (out.mobility[:, RF], out.tau_kl[:, 0])
 
-    grad = jax.jit(jax.grad(outcome))
-    # Check the scenario exercises every field: mobility in the transition, a joint in its band.
-    _, out = jax.jit(lambda p: R.reflex_rollout(state, inputs, p, DT, n_steps=40))(R.ReflexParams())
-    assert np.any((np.asarray(out.mobility[:, RF]) > 0.19) & (np.asarray(out.mobility[:, RF]) < 0.21))
-    assert np.all(np.asarray(out.tau_kl[:, 0]) != 0.0)
+    # One compilation serves both the reverse-mode gradient and the finite differences.
+    value_and_grad = jax.jit(jax.value_and_grad(outcome_and_aux, has_aux=True))
+
+    def outcome(params):
+        return value_and_grad(params)[0][0]
 
     base = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), R.ReflexParams())
-    clipped = base.replace(k_x=jnp.asarray(2.5e4), k_x_max=jnp.asarray(1.2e4))  # k_x above its bound
+    # k_x above its bound (non-weak float64 leaves, so the same compilation is reused).
+    clipped = base.replace(k_x=jnp.asarray(2.5e4, jnp.float64), k_x_max=jnp.asarray(1.2e4, jnp.float64))
     names = [f.name for f in R.ReflexParams.__dataclass_fields__.values()]
     for params, zero_field in ((base, "k_x_max"), (clipped, "k_x")):
-        g = grad(params)
+        (_, (mobility, tau_lf_haa)), g = value_and_grad(params)
+        # The scenario exercises every field: swing mobility inside (m_min, m_max) for some ticks
+        # (schedule fields), a stance joint inside its end-stop band (k_kl, delta), e_b != 0 (k_base).
+        assert np.any((np.asarray(mobility) > 0.19) & (np.asarray(mobility) < 0.21))
+        assert np.all(np.asarray(tau_lf_haa) != 0.0)
         for name in names:
             gv = float(getattr(g, name))
             assert np.isfinite(gv), name
             v = float(getattr(params, name))
             h = 1e-5 * abs(v)
-            fp = float(outcome(params.replace(**{name: jnp.asarray(v + h)})))
-            fm = float(outcome(params.replace(**{name: jnp.asarray(v - h)})))
+            fp = float(outcome(params.replace(**{name: jnp.asarray(v + h, jnp.float64)})))
+            fm = float(outcome(params.replace(**{name: jnp.asarray(v - h, jnp.float64)})))
             fd = (fp - fm) / (2 * h)
             if name == zero_field:  # the clip min(k_x, k_x_max) makes it inactive here
                 assert gv == 0.0 and fd == 0.0, name
             else:
                 assert gv != 0.0, name
-                np.testing.assert_allclose(gv, fd, rtol=2e-4, atol=1e-11 * max(1.0, abs(fp)) / h, err_msg=name)
+                atol = 1e-11 * max(1.0, abs(fp)) / h  # round-off of the central difference
+                np.testing.assert_allclose(gv, fd, rtol=2e-4, atol=atol, err_msg=name)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -454,43 +493,53 @@ def test_gradients_wrt_every_param_match_finite_differences(x64):
 # ---------------------------------------------------------------------------------------------
 
 
-def test_collinear_stance_feet_flagged_fallback(x64):
-    x = np.array(standing_feet())
-    x[robot.RH] = 0.5 * (x[robot.LF] + x[robot.LH])  # LF, LH, RH collinear (RF swings)
+def test_collinear_stance_feet_flagged_fallback():
+    # Stance feet LF, LH, RH on one line (RF swings): LH on the LF-RH diagonal, all at z = -0.5.
+    x = np.array(standing_feet(jnp.float32))
+    x[:, 2] = -0.5
+    d = (x[robot.RH, :2] - x[robot.LF, :2]) / np.linalg.norm(x[robot.RH, :2] - x[robot.LF, :2])
+    x[LH, :2] = x[robot.LF, :2] + ((robot.B_P_HIP[LH, :2] - x[robot.LF, :2]) @ d) * d
     x = jnp.asarray(x)
     q = kinematics.inverse_kinematics(x).reshape(12)
     x = kinematics.foot_positions(q)
     j = kinematics.foot_jacobians(q)
     f_sw = jnp.asarray([0.0, 0.0, -200.0])
-    f, deg = jax.jit(lambda: R.distribute_virtual_forces(x, f_sw, RF, j, jnp.full(12, 100.0), jnp.zeros(3), R.ReflexParams(), return_degenerate=True))()
+    d_diag = jnp.full(12, 100.0, jnp.float32)
+
+    @jax.jit
+    def distribute(xx, fs):
+        e_b = jnp.zeros(3, jnp.float32)
+        return R.distribute_virtual_forces(xx, fs, RF, j, d_diag, e_b, R.ReflexParams(), return_degenerate=True)
+
+    f, deg = distribute(x, f_sw)
     assert bool(deg)
     np.testing.assert_array_equal(np.asarray(f)[R.STANCE_LEGS[RF]], 0.0)
     np.testing.assert_array_equal(np.asarray(f)[RF], np.asarray(f_sw))
     # In reflex_step: flagged, stance feet stay put, swing foot moves, no NaN, finite gradients.
-    state = R.ReflexState(q_r=q, qd_r=jnp.zeros(12))
-    inputs = R.ReflexInputs.make(x.at[RF, 2].add(-0.05), RF)
-    step = jax.jit(lambda s, i, p: R.reflex_step(s, i, p, DT))
-    s1, out = step(state, inputs, R.ReflexParams())
+    # (End stops off: the LH HAA of this layout is past its limit and its spring would move it.)
+    state = jax.device_put(R.ReflexState(q_r=q, qd_r=jnp.zeros(12, jnp.float32)))
+    inputs = constant_inputs(x.at[RF, 2].add(-0.05), RF)
+    s1, out = step(state, inputs, R.ReflexParams(k_kl=0.0))
     assert bool(out.degenerate) and bool(out.active)
     leaves = jax.tree.leaves(out)
     assert all(np.all(np.isfinite(np.asarray(a))) for a in leaves if np.asarray(a).dtype.kind == "f")
-    np.testing.assert_allclose(np.asarray(out.x_r)[R.STANCE_LEGS[RF]], np.asarray(x)[R.STANCE_LEGS[RF]], atol=1e-12)
+    np.testing.assert_allclose(np.asarray(out.x_r)[R.STANCE_LEGS[RF]], np.asarray(x)[R.STANCE_LEGS[RF]], atol=1e-6)
     assert float(out.x_r[RF, 2]) < float(x[RF, 2])
-    g = jax.jit(jax.grad(lambda p: jnp.sum(R.reflex_step(state, inputs, p, DT)[0].q_r)))(R.ReflexParams())
-    assert all(np.isfinite(float(a)) for a in jax.tree.leaves(g))
+    # Gradients through the degenerate branch are finite (double-where, no NaN leaks).
+    g = jax.jit(jax.grad(lambda xx, fs: jnp.sum(distribute(xx, fs)[0] ** 2), argnums=(0, 1)))(x, f_sw)
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
 
 
 def test_nan_inputs_flagged_and_state_held():
     x0 = standing_feet(jnp.float32)
-    state = R.reflex_init(x0)
+    state = init(x0)
     params = R.ReflexParams()
-    step = jax.jit(lambda s, i, p: R.reflex_step(s, i, p, DT))
-    good = R.ReflexInputs.make(x0.at[RF, 2].add(-0.05), RF)
+    good = constant_inputs(x0.at[RF, 2].add(-0.05), RF)
     s1, _ = step(state, good, params)
     s1, _ = step(s1, good, params)
     bad_cases = [
         dataclasses.replace(good, x_des=good.x_des.at[0, 0].set(jnp.nan)),
-        dataclasses.replace(good, n_t_des=jnp.full(3, jnp.nan)),
+        dataclasses.replace(good, n_t_des=jnp.full(3, jnp.nan, jnp.float32)),
         dataclasses.replace(good, up=jnp.asarray([0.0, jnp.inf, 1.0])),
     ]
     for bad in bad_cases:
@@ -510,7 +559,8 @@ def test_nan_inputs_flagged_and_state_held():
     nan_state = R.ReflexState(q_r=jnp.full(12, jnp.nan, jnp.float32), qd_r=jnp.zeros(12, jnp.float32))
     s3, out = step(nan_state, good, params)
     assert not bool(out.input_ok)
-    np.testing.assert_allclose(np.asarray(s3.q_r), np.asarray(kinematics.inverse_kinematics(good.x_des).reshape(12)), atol=1e-6)
+    q_plan = np.asarray(kinematics.inverse_kinematics(good.x_des).reshape(12))
+    np.testing.assert_allclose(np.asarray(s3.q_r), q_plan, atol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -520,36 +570,42 @@ def test_nan_inputs_flagged_and_state_held():
 
 def test_inactive_tracks_plan_and_activation_starts_from_plan(x64):
     x0 = standing_feet()
-    n = 60
-    x_des = jnp.repeat(x0[None], n, 0).at[:, RF, 2].add(-jnp.linspace(0.0, 0.06, n))
-    active = jnp.arange(n) >= 30
+    n, k_on = 300, 150
+    x_des = jnp.repeat(x0[None], n, 0).at[:, RF, 2].add(-jnp.linspace(0.0, 0.3, n))
+    active = jnp.arange(n) >= k_on
     inputs = R.ReflexInputs(
         x_des=x_des,
-        swing_leg=jnp.full(n, RF),
+        swing_leg=jnp.full(n, RF, jnp.int32),
         active=active,
         n_t_des=jnp.tile(R.planned_terrain_normal(x0, RF), (n, 1)),
         up=jnp.tile(jnp.asarray([0.0, 0.0, 1.0]), (n, 1)),
     )
-    _, out = rollout_seq(R.reflex_init(x0), inputs, R.ReflexParams())
-    np.testing.assert_array_equal(np.asarray(out.x_r[:30]), np.asarray(x_des[:30]))
-    np.testing.assert_allclose(np.asarray(out.q_r[:30]), np.asarray(kinematics.inverse_kinematics(x_des[:30]).reshape(30, 12)), atol=1e-12)
-    assert np.all(np.asarray(out.f_r[:30]) == 0.0) and np.all(np.asarray(out.qd_r[:30]) == 0.0)
+    _, out = rollout_seq(init(x0), inputs, R.ReflexParams())
+    # Inactive: the plan passes through, q^r = IK(x^d), no virtual forces, no velocity.
+    np.testing.assert_array_equal(np.asarray(out.x_r[:k_on]), np.asarray(x_des[:k_on]))
+    q_plan = np.asarray(kinematics.inverse_kinematics(x_des[:k_on]).reshape(k_on, 12))
+    np.testing.assert_allclose(np.asarray(out.q_r[:k_on]), q_plan, atol=1e-12)
+    assert np.all(np.asarray(out.f_r[:k_on]) == 0.0) and np.all(np.asarray(out.qd_r[:k_on]) == 0.0)
+    assert not np.any(np.asarray(out.active[:k_on]))
     # First active tick continues smoothly from the plan of the previous tick.
-    assert np.abs(np.asarray(out.x_r[30] - x_des[29])).max() < 2e-3
-    assert np.all(np.asarray(out.active[30:]))
+    assert np.abs(np.asarray(out.x_r[k_on] - x_des[k_on - 1])).max() < 2e-3
+    assert np.all(np.asarray(out.active[k_on:]))
+    # Once active, the stance feet are replanned (they no longer equal the plan).
+    assert np.abs(np.asarray(out.x_r[-1] - x_des[-1]))[R.STANCE_LEGS[RF]].max() > 1e-3
 
 
 def test_vmap_batch_matches_single(x64):
     x0 = standing_feet()
     swing = jnp.asarray([0, 1, 2, 3, 1])
     drops = jnp.asarray([0.02, 0.1, 0.05, 0.2, 0.0])
-    inputs = jax.vmap(lambda s, d: R.ReflexInputs.make(x0.at[s, 2].add(-d), s))(swing, drops)
-    states = jax.vmap(lambda _: R.reflex_init(x0))(swing)
-    batched = jax.jit(jax.vmap(lambda s, i: R.reflex_rollout(s, i, R.ReflexParams(), DT, n_steps=50)))
+    inputs = jax.jit(jax.vmap(lambda s, d: R.ReflexInputs.make(x0.at[s, 2].add(-d), s)))(swing, drops)
+    states = jax.jit(jax.vmap(lambda _: R.reflex_init(x0)))(swing)
+    batched = jax.jit(jax.vmap(lambda s, i: R.reflex_rollout(s, i, R.ReflexParams(), DT, n_steps=300)))
     fs, out = batched(states, inputs)
     for b in (1, 3):
-        fs1, _ = rollout_const(R.reflex_init(x0), R.ReflexInputs.make(x0.at[int(swing[b]), 2].add(-float(drops[b])), int(swing[b])), R.ReflexParams(), 50)
-        np.testing.assert_allclose(np.asarray(fs.q_r[b]), np.asarray(fs1.q_r), atol=1e-12)
+        single = constant_inputs(x0.at[int(swing[b]), 2].add(-float(drops[b])), int(swing[b]))
+        fs1, _ = rollout_const(init(x0), single, R.ReflexParams(), 300)
+        np.testing.assert_allclose(np.asarray(fs.q_r[b]), np.asarray(fs1.q_r), atol=1e-10)
     # Each swing leg moves its own foot down the most.
     for b in range(4):
         dz = np.asarray(out.x_r[b, -1, :, 2] - x0[:, 2])
@@ -557,11 +613,12 @@ def test_vmap_batch_matches_single(x64):
 
 
 def test_float32_matches_float64_trajectory():
+    # The 5 s downward search of the end-stop test (squat of ~25 cm, end stops engaged).
     with jax.enable_x64(True):
-        _, out64 = search_rollout(R.ReflexParams(), depth=0.15, speed=0.15, n_steps=1200)
+        _, out64 = search_rollout(R.ReflexParams())
         x64_ = np.asarray(out64.x_r)
-    _, out32 = search_rollout(R.ReflexParams(), depth=0.15, speed=0.15, n_steps=1200)
-    assert out32.x_r.dtype == jnp.float32
+    _, out32 = search_rollout(R.ReflexParams())
+    assert out64.x_r.dtype == jnp.float64 and out32.x_r.dtype == jnp.float32
     x32 = np.asarray(out32.x_r)
-    assert np.abs(x64_[-1] - x64_[0]).max() > 0.08  # a substantial squat happened
-    assert np.abs(x32 - x64_).max() < 1e-3
+    assert np.abs(x64_[-1] - x64_[0]).max() > 0.15  # a substantial squat happened
+    assert np.abs(x32 - x64_).max() < 1e-3  # float32 stays within 1 mm of float64 over 5000 ticks

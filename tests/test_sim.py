@@ -1,0 +1,337 @@
+"""Closed-loop batched simulation (hyqjax.sim) with the standing controller, in float32 MJX.
+
+One 10 s scenario (:func:`run_scenario`, batch 4 on flat ground) serves most tests: instances 0-2
+stand under joint PD (``hyqjax.stand``) on three friction values; instance 3 gets a 1 MN push at
+t = 0.5 s and must be flagged as diverged. The same scenario runs sharded over a 1-device mesh
+here and over a 2-device mesh in a subprocess (``--xla_force_host_platform_device_count=2``).
+The CPU deadlock regression runs in a subprocess with a timeout so a hang fails instead of blocking CI.
+"""
+from __future__ import annotations
+
+import copy
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from conftest import start_python
+from mujoco import mjx
+
+from hyqjax import model as hmodel
+from hyqjax import robot, sim, spatial, stand
+
+BATCH = 4
+PUSHED = 3
+PUSH_T0 = 0.5
+FRICTION = (0.8, 0.6, 1.0, 0.8)
+WEIGHT = robot.TOTAL_MASS * robot.GRAVITY
+SUBPROCESS_TIMEOUT = 300.0
+
+
+# ---------------------------------------------------------------- the shared scenario
+
+
+def scenario(m, ids, duration=10.0):
+    """Batched model, initial data, pushes and config of the standing scenario."""
+    terrain = hmodel.InstanceTerrain.make(np.zeros(BATCH), friction=FRICTION)
+    mxb = hmodel.batch_model(mjx.put_model(m), ids, terrain)
+    # x = 1 m: all four feet on the floor, clear of the platform (its front edge is at x = 0).
+    d0 = sim.initial_data(mxb, hmodel.standing_qpos(m, base_xy=(1.0, 0.0)), batch=BATCH)
+    force = np.zeros((BATCH, 3), np.float32)
+    force[PUSHED] = (1e6, 0.0, 0.0)
+    push = sim.Push(jnp.asarray(force), jnp.full((BATCH,), PUSH_T0, jnp.float32), jnp.full((BATCH,), 0.1, jnp.float32))
+    cfg = sim.SimConfig(duration=duration, record_every=50)
+    return mxb, d0, push, cfg
+
+
+def height_metrics() -> sim.Metrics:
+    """Largest deviation of the trunk height from its start, and the largest |qvel|, over all ticks."""
+    def init(d):
+        return dict(z0=d.qpos[2], max_dz=jnp.zeros((), d.qpos.dtype), max_qvel=jnp.zeros((), d.qpos.dtype))
+
+    def update(ms, d, obs, info):
+        return dict(z0=ms["z0"], max_dz=jnp.maximum(ms["max_dz"], jnp.abs(d.qpos[2] - ms["z0"])),
+                    max_qvel=jnp.maximum(ms["max_qvel"], jnp.max(jnp.abs(d.qvel))))
+
+    return sim.Metrics(init, update)
+
+
+def record(d, obs, info):
+    return dict(qpos=d.qpos, foot_force=obs.foot_force, quat=obs.quat, tau=obs.tau)
+
+
+def run_scenario(m, ids, mesh=None, duration=10.0) -> dict:
+    """Run the scenario; returns numpy arrays."""
+    mxb, d0, push, cfg = scenario(m, ids, duration)
+    res = sim.batch_rollout(mxb, ids, d0, stand.stand_controller, stand.StandParams.make(), cfg,
+                            metrics=height_metrics(), record=record, params_axes=None, mesh=mesh, push=push)
+    res = jax.block_until_ready(res)
+    out = dict(qpos=res.data.qpos, qvel=res.data.qvel, qfrc_bias=res.data.qfrc_bias, diverged=res.diverged, diverged_tick=res.diverged_tick,
+               max_dz=res.metrics["max_dz"], max_qvel=res.metrics["max_qvel"],
+               **{f"trace_{k}": v for k, v in res.trace.items()})
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+_TWO_DEVICE_CODE = """
+import sys, time
+import numpy as np
+sys.path.insert(0, "tests")
+import hyqjax, jax
+from hyqjax import model as hmodel, sim
+from test_sim import run_scenario
+assert jax.device_count() == 2, jax.devices()
+m = hmodel.load_model(); ids = hmodel.model_ids(m)
+mesh = sim.batch_mesh()
+outs = []
+for call in range(2):  # twice in a row: the second call must work too
+    t = time.time()
+    outs.append(run_scenario(m, ids, mesh=mesh))
+    print(f"call {call}: {time.time() - t:.1f} s", flush=True)
+for k in outs[0]:
+    assert np.array_equal(outs[0][k], outs[1][k]), k
+np.savez(sys.argv[1] if len(sys.argv) > 1 else "{out}", **outs[0])
+print("OK")
+"""
+
+_DEADLOCK_CODE = """
+import os, time
+import hyqjax  # sets the XLA:CPU flags before jax is imported
+import jax, numpy as np
+from mujoco import mjx
+from hyqjax import model as hmodel, sim
+print("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""), flush=True)
+m = hmodel.load_model()
+mx = mjx.put_model(m)
+# Committed to the device, so that both calls run the same executable (uncommitted inputs recompile
+# on the second call).
+d = jax.device_put(sim.initial_data(mx, hmodel.standing_qpos(m, base_xy=(1.0, 0.0)), batch=512), jax.devices()[0])
+step = jax.jit(jax.vmap(mjx.step, in_axes=(None, 0)))
+for call in range(2):
+    t = time.time()
+    d = jax.block_until_ready(step(mx, d))
+    print(f"call {call}: {time.time() - t:.1f} s", flush=True)
+assert np.all(np.isfinite(np.asarray(d.qpos))), "non-finite state"
+print("OK")
+"""
+
+
+@pytest.fixture(scope="module")
+def two_device_job(tmp_path_factory):
+    """The scenario sharded over a 2-device CPU mesh, twice, in a background subprocess."""
+    out = str(tmp_path_factory.mktemp("two_device") / "result.npz")
+    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    proc = start_python(_TWO_DEVICE_CODE.replace("{out}", out), env=env)
+    yield proc, out
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def deadlock_job():
+    """``jax.jit(jax.vmap(mjx.step))`` at batch 512, called twice, in a background subprocess."""
+    proc = start_python(_DEADLOCK_CODE)
+    yield proc
+    if proc.poll() is None:
+        proc.kill()
+        proc.communicate()
+
+
+@pytest.fixture(scope="module")
+def standing_run(hyq, deadlock_job, two_device_job):
+    """The scenario, unsharded (the subprocesses are started first so that they overlap with it)."""
+    m, ids = hyq
+    return run_scenario(m, ids)
+
+
+# ---------------------------------------------------------------- standing
+
+
+STANDING = [i for i in range(BATCH) if i != PUSHED]
+
+
+@pytest.mark.slow
+def test_stands_for_10_s(standing_run):
+    r = standing_run
+    assert r["qpos"].dtype == np.float32
+    assert not r["diverged"][STANDING].any()
+    assert np.all(np.isfinite(r["qpos"])) and np.all(np.isfinite(r["qvel"]))
+    assert np.all(np.isfinite(r["trace_qpos"]))
+    # Trunk height within 1 cm of its start over all 5000 ticks, and at the end.
+    assert np.all(r["max_dz"][STANDING] < 0.01), r["max_dz"]
+    z0 = robot.STANDING_BASE_Z
+    assert np.all(np.abs(r["qpos"][STANDING, 2] - z0) < 0.01)
+    # Upright, in place, and at rest after 10 s.
+    rpy = np.asarray(spatial.rot_to_rpy(spatial.quat_to_rot(jnp.asarray(r["qpos"][STANDING, 3:7]))))
+    assert np.all(np.abs(rpy) < 0.02), rpy
+    assert np.all(np.abs(r["qpos"][STANDING, :2] - (1.0, 0.0)) < 0.01)
+    assert np.all(np.abs(r["qvel"][STANDING]) < 0.01)
+    np.testing.assert_allclose(r["qpos"][STANDING, 7:], np.broadcast_to(robot.Q_STANDING, (3, 12)), atol=0.05)
+
+
+@pytest.mark.slow
+def test_estimated_foot_forces_sum_to_the_weight(standing_run):
+    r = standing_run
+    for b in STANDING:
+        f_b = r["trace_foot_force"][b, -1]  # (4, 3) in the trunk frame, the last recorded tick
+        w_r_b = np.asarray(spatial.quat_to_rot(jnp.asarray(r["trace_quat"][b, -1])))
+        f_w = f_b @ w_r_b.T
+        total = f_w.sum(0)
+        assert total[2] == pytest.approx(WEIGHT, rel=0.05), total
+        assert np.all(np.abs(total[:2]) < 0.02 * WEIGHT), total
+        assert np.all((f_w[:, 2] > 0.15 * WEIGHT) & (f_w[:, 2] < 0.35 * WEIGHT)), f_w  # each foot ~ 1/4
+
+
+FORCE_TOL = 2.0  # N per component, 1 % of a foot's ~208 N load
+
+
+@pytest.mark.slow
+def test_estimated_foot_forces_match_mujoco_contact_forces(hyq, standing_run):
+    """``Observation.foot_force`` (J_f^-T (h - tau), from the final MJX data) against C MuJoCo's contact
+    forces (``mj_contactForce``, float64) on the same state with the same (controller) torques."""
+    m, ids = hyq
+    r = standing_run
+    d0 = mjx.make_data(mjx.put_model(m))
+    params = stand.StandParams.make()
+
+    @jax.jit
+    def estimate(d):
+        obs = sim.observe(ids, d, jnp.zeros(12, d.qpos.dtype))
+        _, tau, _ = stand.stand_controller.step(params, (), obs)
+        tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        return tau, sim.observe(ids, d, tau).foot_force
+
+    for b in STANDING:
+        # The final MJX data of instance b (its bias forces are those of its last step, as the controller sees them).
+        dd = d0.replace(qpos=r["qpos"][b], qvel=r["qvel"][b], qfrc_bias=r["qfrc_bias"][b])
+        tau, f_est = (np.asarray(x, np.float64) for x in estimate(dd))
+        mc = copy.deepcopy(m)
+        mc.geom_friction[[ids.floor_geom, ids.platform_geom], 0] = FRICTION[b]
+        d = mujoco.MjData(mc)
+        d.qpos[:] = r["qpos"][b]
+        d.qvel[:] = r["qvel"][b]
+        d.ctrl[:] = tau
+        mujoco.mj_forward(mc, d)
+        f_c = _contact_forces_trunk_frame(mc, ids, d)
+        err = np.abs(f_est - f_c)
+        assert err.max() < FORCE_TOL, f"instance {b}: estimated\n{f_est}\nMuJoCo\n{f_c}"
+        assert f_c[:, 2].sum() == pytest.approx(WEIGHT, rel=0.01)
+
+
+def _contact_forces_trunk_frame(m, ids, d) -> np.ndarray:
+    """Sum of the terrain's contact forces on each foot (``mj_contactForce``), in the trunk frame, (4, 3)."""
+    w_r_b = d.xmat[ids.trunk_body].reshape(3, 3)
+    out = np.zeros((4, 3))
+    f6 = np.zeros(6)
+    for i in range(d.ncon):
+        c = d.contact[i]
+        mujoco.mj_contactForce(m, d, i, f6)
+        f_w = c.frame.reshape(3, 3).T @ f6[:3]  # force of geom1 on geom2, world frame
+        if c.geom2 in ids.foot_geoms:
+            out[ids.foot_geoms.index(c.geom2)] += f_w
+        elif c.geom1 in ids.foot_geoms:
+            out[ids.foot_geoms.index(c.geom1)] -= f_w
+        else:
+            raise AssertionError(f"unexpected contact {m.geom(c.geom1).name} - {m.geom(c.geom2).name}")
+    return out @ w_r_b
+
+
+# ---------------------------------------------------------------- divergence
+
+
+@pytest.mark.slow
+def test_divergence_is_flagged_and_frozen(standing_run):
+    r = standing_run
+    expected = np.zeros(BATCH, bool)
+    expected[PUSHED] = True
+    np.testing.assert_array_equal(r["diverged"], expected)
+    t0 = int(round(PUSH_T0 / 0.002))
+    tick = int(r["diverged_tick"][PUSHED])
+    assert t0 <= tick < t0 + 50, tick
+    assert np.all(r["diverged_tick"][STANDING] == -1)
+    # Frozen at the last finite state: finite, and every trace sample after the flag is that state.
+    assert np.all(np.isfinite(r["qpos"][PUSHED])) and np.all(np.isfinite(r["qvel"][PUSHED]))
+    assert np.max(np.abs(r["qvel"][PUSHED])) < sim.SimConfig().max_speed
+    after = (np.arange(r["trace_qpos"].shape[1]) + 1) * 50 - 1 > tick
+    np.testing.assert_array_equal(r["trace_qpos"][PUSHED, after], np.broadcast_to(r["qpos"][PUSHED], (after.sum(), 19)))
+    assert r["max_qvel"][PUSHED] < sim.SimConfig().max_speed
+
+
+# ---------------------------------------------------------------- config validation
+
+
+@pytest.mark.parametrize(
+    "kwargs, name",
+    [
+        (dict(control_dt=0.0), "control_dt"),
+        (dict(control_dt=0.05), "control_dt"),
+        (dict(substeps=0), "substeps"),
+        (dict(substeps=2.0), "substeps"),
+        (dict(substeps=101), "substeps"),
+        (dict(duration=0.0), "duration"),
+        (dict(duration=601.0), "duration"),
+        (dict(record_every=-1), "record_every"),
+        (dict(record_every=1.5), "record_every"),
+        (dict(duration=1.0, record_every=7), "record_every"),
+    ],
+)
+def test_simconfig_rejects_bad_inputs(kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        sim.SimConfig(**kwargs)
+
+
+def test_simconfig_derived_values():
+    cfg = sim.SimConfig(control_dt=0.002, substeps=4, duration=1.0, record_every=10)
+    assert cfg.physics_dt == pytest.approx(0.0005)
+    assert cfg.n_ticks == 500
+    assert sim.pad_batch(5, 4) == 8 and sim.pad_batch(8, 4) == 8
+
+
+# ---------------------------------------------------------------- sharding and the CPU traps
+
+
+@pytest.mark.slow
+def test_sharded_one_device_mesh_matches_unsharded(hyq, standing_run):
+    m, ids = hyq
+    mesh = sim.batch_mesh(jax.local_devices()[:1])
+    assert mesh.axis_names == ("batch",) and mesh.devices.size == 1
+    r = run_scenario(m, ids, mesh=mesh)
+    _assert_same_result(r, standing_run, atol=1e-6)
+
+
+@pytest.mark.slow
+def test_sharded_two_device_mesh_matches_and_runs_twice(standing_run, two_device_job):
+    proc, out = two_device_job
+    stdout, stderr = proc.communicate(timeout=2 * SUBPROCESS_TIMEOUT)
+    assert proc.returncode == 0 and "OK" in stdout, f"stdout:\n{stdout}\nstderr:\n{stderr[-4000:]}"
+    with np.load(out) as f:
+        r2 = {k: f[k] for k in f.files}
+    _assert_same_result(r2, standing_run, atol=1e-4)
+
+
+def _assert_same_result(a, b, atol):
+    np.testing.assert_array_equal(a["diverged"], b["diverged"])
+    np.testing.assert_array_equal(a["diverged_tick"], b["diverged_tick"])
+    for k in ("qpos", "qvel", "trace_qpos", "max_dz"):
+        np.testing.assert_allclose(a[k][STANDING], b[k][STANDING], atol=atol, rtol=0, err_msg=k)
+    # Forces (~200 N) amplify float32 differences: relative.
+    np.testing.assert_allclose(a["trace_foot_force"][STANDING], b["trace_foot_force"][STANDING],
+                               atol=100 * atol, rtol=10 * atol, err_msg="trace_foot_force")
+    assert np.all(np.isfinite(a["qpos"]))
+
+
+@pytest.mark.slow
+def test_cpu_batch_512_step_twice_does_not_deadlock(deadlock_job):
+    """Regression: jaxlib 0.10.x on CPU hung in ``jax.jit(jax.vmap(mjx.step))`` at batch >= 256 on the
+    second call; hyqjax pins jax 0.9.2 and switches the XLA:CPU features involved off at import."""
+    try:
+        stdout, stderr = deadlock_job.communicate(timeout=SUBPROCESS_TIMEOUT)
+    except Exception:
+        deadlock_job.kill()
+        deadlock_job.communicate()
+        pytest.fail(f"jit(vmap(mjx.step)) at batch 512 did not return within {SUBPROCESS_TIMEOUT} s (deadlock?)")
+    assert deadlock_job.returncode == 0 and "OK" in stdout, f"stdout:\n{stdout}\nstderr:\n{stderr[-4000:]}"
+    assert "call 1" in stdout
+    flags = next(line for line in stdout.splitlines() if line.startswith("XLA_FLAGS"))
+    assert "concurrency_optimized_scheduler" in flags, flags  # hyqjax's workaround is in place
