@@ -1,7 +1,9 @@
 """Step-down comparison (Focchi et al. 2017, Section IV): HyQ crawls off a platform with the height reflex
 on and off, batched over instances with per-instance height, friction, payload, start position and seed.
 Prints the paper's table and writes DIR/results.json (one row per instance plus a summary per height and
-reflex setting) and the figures success.png, fig9_reflex.png, fig10_end_stop.png, fig11_pitch.png."""
+reflex setting) and the figures success.png, fig9_reflex.png, fig10_end_stop.png, fig11_pitch.png, and the
+traces of the --record-instances every --record-every ticks to DIR/traces.npz (format: hyqjax/recording.py;
+`hyqjax render DIR` makes a video of one)."""
 from __future__ import annotations
 
 import argparse
@@ -23,20 +25,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, default=18.0, help="simulated seconds per instance")
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
+    p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
+                   help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
+    p.add_argument("--record-instances", default="all", metavar="SPEC",
+                   help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
+                        "results.json); the file format is in hyqjax/recording.py")
     p.add_argument("--out", default="out/stepdown", help="output directory")
 
 
 def run(args) -> int:
-    from hyqjax import crawl, io, stepdown, stepdown_figures
+    from hyqjax import crawl, io, recording, stepdown, stepdown_figures
 
     if not args.heights or any(not (0.0 <= h <= 0.45) for h in args.heights):
         raise SystemExit(f"--heights must be in [0, 0.45] m, got {args.heights}")
     if args.instances < 1 or args.instances > 100000:
         raise SystemExit(f"--instances must be in [1, 100000], got {args.instances}")
+    recorded = _recorded_instances(args)
     params = crawl.CrawlParams.make(forward_velocity=args.speed)
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
-    record_every = 0 if args.no_figures else 10
+    record_every = 0 if args.no_figures else args.record_every
     cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every)
     n = scenario.batch_size
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
@@ -54,8 +62,24 @@ def run(args) -> int:
     io.write_json(os.path.join(args.out, "results.json"), dict(
         provenance=io.provenance(seed=args.seed), config=dict(vars(args), _run=None), summary=rows,
         instances=instances, figures=figs, wall_time_s=wall))
-    if trace is not None:
-        np.savez_compressed(os.path.join(args.out, "traces.npz"), **{k: v for k, v in trace.items()},
-                            **{f"input_{k}": v for k, v in table.items()})
+    traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    if trace is not None and len(recorded):
+        recording.save(traces_path, trace, table, recorded, record_every, cfg.control_dt)
+    elif os.path.exists(traces_path):
+        os.remove(traces_path)  # a previous run's traces would not match this results.json
     print(f"wrote {args.out}/results.json and figures")
     return 0
+
+
+def _recorded_instances(args) -> np.ndarray:
+    """Rows to write to traces.npz, checked (with --record-every) before anything is compiled."""
+    from hyqjax import recording
+
+    n_ticks = int(round(args.duration / 0.002))
+    if not args.no_figures and not (1 <= args.record_every <= n_ticks and n_ticks % args.record_every == 0):
+        raise SystemExit(f"--record-every must divide the number of ticks ({n_ticks} for --duration {args.duration}) "
+                         f"and be in [1, {n_ticks}], got {args.record_every}")
+    try:
+        return recording.parse_instances(args.record_instances, len(args.heights) * len(args.reflex) * args.instances)
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
