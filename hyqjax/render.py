@@ -306,7 +306,8 @@ def with_border(frame: np.ndarray, rgb: np.ndarray, px: int) -> np.ndarray:
     return out
 
 
-def sample_indices(time: np.ndarray, stride: int = 1, start: float | None = None, end: float | None = None) -> np.ndarray:
+def sample_indices(time: np.ndarray, stride: int = 1, start: float | None = None,
+                   end: float | None = None) -> np.ndarray:
     """Sample indices to draw: every ``stride``-th sample with ``start <= t <= end``."""
     t = np.asarray(time)
     keep = np.ones(t.shape, bool)

@@ -132,7 +132,8 @@ def stepdown_html(res: dict) -> str:
         ci = r.get("success_ci95") or [None, None]
         rate = r.get("success_rate")
         rows.append([fmt(r.get("height"), "{:.2f}"), fmt(r.get("reflex")),
-                     f"{r.get('successes', '?')}/{r.get('n', '?')}" + (f" ({rate:.0%})" if isinstance(rate, float) else ""),
+                     f"{r.get('successes', '?')}/{r.get('n', '?')}"
+                     + (f" ({rate:.0%})" if isinstance(rate, float) else ""),
                      f"[{fmt(ci[0], '{:.2f}')}, {fmt(ci[1], '{:.2f}')}]", fmt(r.get("all_feet_down"), "{:.0%}"),
                      fmt(r.get("lost_footholds"), "{:.2f}"), fmt(r.get("joint_range_crossed"), "{:.0%}"),
                      fmt(r.get("min_swing_mobility")), fmt(r.get("mean_mobility")), fmt(r.get("peak_pitch")),
@@ -167,13 +168,15 @@ def bounding_html(res: dict) -> str:
         a = g.get("aggregate") or {}
         rows.append([esc(name), fmt(g.get("kinematic_adjustment")), fmt(g.get("centrifugal")), fmt(a.get("n")),
                      fmt(a.get("falls")), esc(", ".join(a.get("fail_reasons") or [])) or "-",
-                     f"{fmt(a.get('yaw_error_max_deg_mean'), '{:.2f}')} / {fmt(a.get('yaw_error_max_deg_worst'), '{:.2f}')}",
+                     f"{fmt(a.get('yaw_error_max_deg_mean'), '{:.2f}')} / "
+                     f"{fmt(a.get('yaw_error_max_deg_worst'), '{:.2f}')}",
                      fmt(a.get("yaw_error_rms_deg_mean"), "{:.2f}"),
                      f"{fmt(a.get('speed_error_rms_mean'))} / {fmt(a.get('speed_error_rms_worst'))}",
                      fmt(a.get("yaw_rate_error_rms_mean")), fmt(a.get("periodicity_residual_mean"), "{:.2f}")])
     out = "<h3>Bounding results</h3>" + table(
-        ["configuration", "kinematic adj.", "centrifugal", "n", "falls", "fail reasons", "yaw err max [deg] mean / worst",
-         "yaw err rms [deg]", "speed err rms [m/s] mean / worst", "yaw-rate err rms [rad/s]", "periodicity"], rows, left=1)
+        ["configuration", "kinematic adj.", "centrifugal", "n", "falls", "fail reasons",
+         "yaw err max [deg] mean / worst", "yaw err rms [deg]", "speed err rms [m/s] mean / worst",
+         "yaw-rate err rms [rad/s]", "periodicity"], rows, left=1)
     out += "<p>Means and worst values over surviving instances; periodicity: median apex-to-apex residual (Eq. C2).</p>"
     contrib = res.get("contributions") or {}
     if contrib:
@@ -196,7 +199,8 @@ def other_html(res: dict) -> str:
 
 
 def figure(path: str, caption: str) -> str:
-    return f'<figure><img src="{data_uri(path)}" alt="{esc(os.path.basename(path))}"><figcaption>{esc(caption)}</figcaption></figure>'
+    return (f'<figure><img src="{data_uri(path)}" alt="{esc(os.path.basename(path))}">'
+            f"<figcaption>{esc(caption)}</figcaption></figure>")
 
 
 def figures_html(directory: str) -> str:
@@ -259,7 +263,8 @@ def build_report(root: str, out_path: str | None = None, title: str | None = Non
         raise FileNotFoundError(f"{root} is not a directory")
     dirs = find_result_dirs(root)
     if not dirs:
-        raise FileNotFoundError(f"no {RESULTS_FILE} in {root} or its subdirectories (run an experiment with --out {root})")
+        raise FileNotFoundError(f"no {RESULTS_FILE} in {root} or its subdirectories "
+                                f"(run an experiment with --out {root})")
     out_path = out_path or os.path.join(root, "report.html")
     title = title or f"hyqjax results: {os.path.basename(os.path.abspath(root))}"
     stamp = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")

@@ -48,8 +48,9 @@ def results_json(n: int) -> dict:
                     success_ci95=[0.0, 1.0], all_feet_down=1.0, lost_footholds=float(not r["success"]),
                     joint_range_crossed=0.0, min_swing_mobility=0.2, mean_mobility=0.8, peak_pitch=0.1,
                     time_all_down=float("nan"), diverged=0) for r in inst]
-    prov = dict(command="hyqjax stepdown --heights 0.2 0.3 --reflex on --out X", seed=7, date="2026-01-01T00:00:00+00:00",
-                hyqjax="0.1.0", jax="0.9.2", mujoco="4.0.0", mujoco_mjx="3.17.0", python="3.11", devices=["cpu"])
+    prov = dict(command="hyqjax stepdown --heights 0.2 0.3 --reflex on --out X", seed=7,
+                date="2026-01-01T00:00:00+00:00", hyqjax="0.1.0", jax="0.9.2", mujoco="4.0.0",
+                mujoco_mjx="3.17.0", python="3.11", devices=["cpu"])
     return dict(provenance=prov, config=dict(heights=[0.2, 0.3], seed=7), summary=summary, instances=inst,
                 figures={}, wall_time_s=1.5)
 

@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=1.0, help="playback speed (1: real time), in (0, 100]")
     p.add_argument("--start", type=float, default=None, help="first simulated time to draw (s)")
     p.add_argument("--end", type=float, default=None, help="last simulated time to draw (s)")
-    p.add_argument("--camera", type=float, nargs=3, default=(2.4, 120.0, -15.0), metavar=("DIST", "AZIMUTH", "ELEVATION"),
+    p.add_argument("--camera", type=float, nargs=3, default=(2.4, 120.0, -15.0),
+                   metavar=("DIST", "AZIMUTH", "ELEVATION"),
                    help="tracking camera distance (m), azimuth and elevation (deg); azimuth 90 = side view")
     p.add_argument("--force-scale", type=float, default=0.0006, help="foot force bar length per newton (m/N)")
     p.add_argument("--no-forces", action="store_true", help="do not draw the foot forces")
