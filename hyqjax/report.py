@@ -1,7 +1,8 @@
 """A results report people can read: one self-contained HTML page built from experiment output directories.
 
-:func:`build_report` looks for ``results.json`` in a directory and in its subdirectories (a sweep
-keeps one experiment per subdirectory) and writes one section per experiment it finds:
+:func:`build_report` looks for ``results.json`` (``hyqjax stepdown`` / ``bound``) and ``summary.json``
+(``hyqjax sweep``) in a directory and in its subdirectories, and writes one section per experiment
+it finds:
 
 * the exact command, seed, date, versions and devices (``results.json["provenance"]``) and the
   experiment's options (``config`` / ``args``);
@@ -9,6 +10,8 @@ keeps one experiment per subdirectory) and writes one section per experiment it 
   setting with its Wilson 95% interval, and the failed instances with their reasons;
 * bounding (``groups``): tracking, fall and periodicity numbers per configuration and, for an
   ablation, each part's contribution;
+* sweep (``summary.json``): instances run and planned, success per reflex setting with the largest
+  safe height (``h95``), the success-versus-height curves and the failure reasons;
 * every PNG figure of the directory (success maps, the paper's figures, bounding tracking plots),
   and the stills and videos ``hyqjax render`` wrote to ``DIR/render/``.
 
@@ -27,6 +30,7 @@ import os
 from typing import Any, Iterable
 
 RESULTS_FILE = "results.json"
+SWEEP_FILE = "summary.json"
 RENDER_DIR = "render"
 #: Captions of the figures hyqjax writes (others are shown with their file name).
 CAPTIONS = {
@@ -36,6 +40,8 @@ CAPTIONS = {
     "fig11_pitch.png": "Trunk pitch while stepping down, per height and reflex setting (cf. Fig. 11).",
     "yaw_tracking.png": "Bounding: desired vs. actual heading (cf. Orsolino et al., Fig. 4).",
     "speed_tracking.png": "Bounding: desired vs. actual forward speed.",
+    "success_maps.png": "Sweep: success probability maps per reflex setting.",
+    "success_height.png": "Sweep: success probability vs. step height with 95% Wilson intervals.",
 }
 MIME = {".png": "image/png", ".gif": "image/gif", ".mp4": "video/mp4"}
 STYLE = """
@@ -51,7 +57,8 @@ flex:1 1 300px}.fail{color:#b00}.ok{color:#070}
 
 
 def find_result_dirs(root: str, max_depth: int = 3) -> list[str]:
-    """``root`` (if it holds results.json) and every subdirectory down to ``max_depth`` that does, sorted."""
+    """``root`` (if it holds results.json or a sweep's summary.json) and every subdirectory down to ``max_depth``
+    that does, sorted."""
     found = []
     root = os.path.abspath(root)
     for dirpath, dirnames, filenames in os.walk(root):
@@ -59,14 +66,19 @@ def find_result_dirs(root: str, max_depth: int = 3) -> list[str]:
         if depth >= max_depth:
             dirnames[:] = []
         dirnames.sort()
-        if RESULTS_FILE in filenames:
+        if RESULTS_FILE in filenames or SWEEP_FILE in filenames:
             found.append(dirpath)
     return sorted(found, key=lambda p: (p != root, p))
 
 
 def load_results(directory: str) -> dict[str, Any]:
-    with open(os.path.join(directory, RESULTS_FILE)) as f:
-        return json.load(f)
+    """results.json of ``directory``, else its sweep summary.json (marked with ``_sweep``)."""
+    path = os.path.join(directory, RESULTS_FILE)
+    if os.path.isfile(path):
+        with open(path) as f:
+            return json.load(f)
+    with open(os.path.join(directory, SWEEP_FILE)) as f:
+        return {**json.load(f), "_sweep": True}
 
 
 def esc(x: Any) -> str:
@@ -191,9 +203,43 @@ def bounding_html(res: dict) -> str:
     return out
 
 
+def ci(interval, spec: str = "{:.3f}") -> str:
+    lo, hi = (list(interval or []) + [None, None])[:2]
+    return f"[{fmt(lo, spec)}, {fmt(hi, spec)}]"
+
+
+def sweep_html(res: dict) -> str:
+    """A sweep's summary: counts, success and largest safe height per reflex setting, success vs. height."""
+    out = (f"<h3>Sweep results</h3><p>{fmt(res.get('n_instances'))} of {fmt(res.get('n_planned'))} planned instances"
+           f" ({'complete' if res.get('complete') else 'incomplete'}), {fmt(res.get('successes'))} successes, "
+           f"{fmt(res.get('diverged'))} diverged.</p>")
+    by = res.get("by_reflex") or {}
+    if by:
+        rows = [[esc(name), fmt(r.get("n")), fmt(r.get("successes")), fmt(r.get("rate"), "{:.1%}"), ci(r.get("ci95")),
+                 fmt(r.get("mean_mobility")), fmt(r.get("h95_wilson"), "{:.3f}"), fmt(r.get("h95_logistic"), "{:.3f}")]
+                for name, r in by.items()]
+        out += table(["reflex", "n", "successes", "rate", "95% CI", "mean mobility", "h95 Wilson [m]",
+                      "h95 logistic [m]"], rows, left=1)
+        out += ("<p>h95 Wilson: the largest height with the Wilson 95% lower bound of success >= 0.95 at it and every "
+                "lower level; h95 logistic: where a logistic fit of success vs. height crosses 0.95.</p>")
+        for name, r in by.items():
+            curve = r.get("height_curve") or []
+            if curve:
+                out += f"<h4>Success vs. height, reflex {esc(name)}</h4>" + table(
+                    ["height [m]", "n", "successes", "rate", "95% CI"],
+                    [[fmt(c.get("height"), "{:.3f}"), fmt(c.get("n")), fmt(c.get("successes")),
+                      fmt(c.get("rate"), "{:.1%}"), ci(c.get("ci95"))] for c in curve])
+    reasons = res.get("failure_reasons") or {}
+    if isinstance(reasons, dict) and reasons:
+        out += "<h4>Failure reasons</h4>" + table(["reason", "instances"],
+                                                   [[esc(k), fmt(v)] for k, v in reasons.items()], left=1)
+    return out
+
+
 def other_html(res: dict) -> str:
     known = {"provenance", "config", "args", "summary", "instances", "groups", "contributions", "figures",
-             "wall_time_s", "env_steps_per_s"}
+             "wall_time_s", "env_steps_per_s", "_sweep", "n_instances", "n_planned", "spec_hash", "successes",
+             "diverged", "failure_reasons", "by_reflex", "maps", "complete"}
     rest = sorted(k for k in res if k not in known)
     return f"<p>Other entries of results.json: {', '.join(f'<code>{esc(k)}</code>' for k in rest)}</p>" if rest else ""
 
@@ -243,12 +289,15 @@ def section(directory: str, root: str, max_embed_bytes: int) -> str:
     res = load_results(directory)
     rel = os.path.relpath(directory, root)
     title = os.path.basename(os.path.abspath(directory)) if rel == "." else rel
-    kind = "step-down" if "summary" in res and "instances" in res else "bounding" if "groups" in res else "experiment"
+    kind = ("sweep" if res.get("_sweep") else "step-down" if "summary" in res and "instances" in res
+            else "bounding" if "groups" in res else "experiment")
     out = f"<h2>{esc(title)} <small>({kind})</small></h2>" + provenance_html(res) + options_html(res)
     if kind == "step-down":
         out += stepdown_html(res)
     elif kind == "bounding":
         out += bounding_html(res)
+    elif kind == "sweep":
+        out += sweep_html(res)
     out += other_html(res) + figures_html(directory) + renders_html(directory, max_embed_bytes)
     return out
 
@@ -263,7 +312,7 @@ def build_report(root: str, out_path: str | None = None, title: str | None = Non
         raise FileNotFoundError(f"{root} is not a directory")
     dirs = find_result_dirs(root)
     if not dirs:
-        raise FileNotFoundError(f"no {RESULTS_FILE} in {root} or its subdirectories "
+        raise FileNotFoundError(f"no {RESULTS_FILE} or {SWEEP_FILE} in {root} or its subdirectories "
                                 f"(run an experiment with --out {root})")
     out_path = out_path or os.path.join(root, "report.html")
     title = title or f"hyqjax results: {os.path.basename(os.path.abspath(root))}"

@@ -209,7 +209,7 @@ def test_report_from_stepdown_dir(recorded_dir, tmp_path):
 
 
 def test_report_of_a_sweep_and_bad_dir(tmp_path):
-    for name in ("a", "b"):
+    for name in ("a", "b", "c"):
         (tmp_path / name).mkdir()
     with open(tmp_path / "a" / "results.json", "w") as f:
         json.dump(results_json(1), f)
@@ -218,10 +218,18 @@ def test_report_of_a_sweep_and_bad_dir(tmp_path):
                                       aggregate=dict(n=2, falls=0, yaw_error_max_deg_mean=1.5), instances=[])))
     with open(tmp_path / "b" / "results.json", "w") as f:
         json.dump(bound, f)
+    curve = [dict(height=0.2, n=10, successes=9, rate=0.9, ci95=[0.6, 0.98])]
+    sweep = dict(n_instances=10, n_planned=20, successes=9, diverged=0, failure_reasons={"tilt": 1}, complete=False,
+                 by_reflex=dict(on=dict(n=10, successes=9, rate=0.9, ci95=[0.6, 0.98], mean_mobility=0.8,
+                                        height_curve=curve, h95_wilson=None, h95_logistic=0.181)),
+                 provenance=dict(command="hyqjax sweep --out c", seed=3))
+    with open(tmp_path / "c" / "summary.json", "w") as f:
+        json.dump(sweep, f)
     out = tmp_path / "r.html"
     assert cli.main(["report", str(tmp_path), "--out", str(out)]) == 0
     page = out.read_text()
     assert "Step-down results" in page and "Bounding results" in page and "hyqjax bound --out b" in page
+    assert "Sweep results" in page and "10 of 20 planned instances (incomplete)" in page and "0.181" in page
     with pytest.raises(SystemExit, match="is not a directory"):
         cli.main(["report", str(tmp_path / "missing")])
     empty = tmp_path / "empty"

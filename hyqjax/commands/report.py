@@ -1,8 +1,10 @@
 """Build one self-contained HTML report from an experiment's output directory (or a sweep of them).
 
-Reads DIR/results.json (and every results.json in DIR's subdirectories, for a sweep) and writes
+Reads DIR/results.json (and every results.json, or sweep summary.json, in DIR and its
+subdirectories) and writes
 DIR/report.html: the exact command, seed and versions; the step-down table and failed instances,
-or the bounding tracking table and ablation contributions; every PNG figure in the directory; and
+the bounding tracking table and ablation contributions, or a sweep's success per reflex setting and
+largest safe height; every PNG figure in the directory; and
 the stills and videos that ``hyqjax render --stills N`` wrote to DIR/render/. Images are embedded,
 so the page is a single file. Run ``hyqjax render DIR --stills 4`` first to include frames.
 """
