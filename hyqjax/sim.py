@@ -127,22 +127,31 @@ def no_metrics() -> Metrics:
     return Metrics(lambda d: (), lambda m, d, o, i: ())
 
 
-def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array) -> Observation:
-    """Build an :class:`Observation` from MJX data (the sensors HyQ has)."""
+def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | None = None) -> Observation:
+    """Build an :class:`Observation` from MJX data (the sensors HyQ has).
+
+    Foot forces come from the joint-space dynamics of each leg, ``tau = M_l qdd + h_l - J_f^T f``:
+    ``f = J_f^{-T} (M_l qdd + h_l - tau)`` with ``h_l`` the leg rows of the bias forces (gravity,
+    Coriolis) and, when ``mx`` is given, ``M_l qdd`` the leg rows of the mass matrix times the
+    accelerations of the last physics step (what a robot gets by differentiating its encoder
+    velocities, one tick late). Without the inertial term a fast swing leg reads tens of newtons of
+    phantom contact force, enough to trigger a haptic touchdown in mid-air.
+    """
     qadr = np.asarray(ids.qpos_joints)
     vadr = np.asarray(ids.dof_joints)
     q = d.qpos[qadr]
     qd = d.qvel[vadr]
     quat = d.qpos[3:7]
-    w_r_b = spatial.quat_to_rot(quat)
     gyro = d.qvel[3:6]  # MuJoCo's free-joint angular velocity is in the body frame.
-    bias = d.qfrc_bias[vadr].reshape(4, 3)
+    gen = d.qfrc_bias
+    if mx is not None:
+        gen = gen + mjx.mul_m(mx, d, d.qacc)
+    bias = gen[vadr].reshape(4, 3)
     jac = kinematics.foot_jacobians(q)
     rhs = (bias - tau.reshape(4, 3))[..., None]
     reg = 1e-6 * jnp.eye(3, dtype=q.dtype)
     jt = jnp.swapaxes(jac, -1, -2)
     force = jnp.linalg.solve(jt + reg, rhs)[..., 0]
-    del w_r_b
     return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
 
 
@@ -183,13 +192,13 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
     ``cfg.record_every`` ticks). ``push`` optionally applies an external force to the trunk.
     """
     tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
-    obs0 = observe(ids, d0, tau0)
+    obs0 = observe(ids, d0, tau0, mx)
     cs0 = controller.init(params, obs0)
     ms0 = metrics.init(d0)
 
     def tick(carry, _):
         d, cs, ms, tau_prev, div, div_tick, k = carry
-        obs = observe(ids, d, tau_prev)
+        obs = observe(ids, d, tau_prev, mx)
         cs_new, tau, info = controller.step(params, cs, obs)
         tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
         d_new = _physics(mx, d, tau, ids, cfg.substeps, push)
@@ -244,6 +253,23 @@ def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, con
       push: optional per-instance :class:`Push` (leading batch axis).
       mesh: a 1-D ``jax.sharding.Mesh`` with axis ``"batch"`` (see :func:`batch_mesh`); the batch must be
         divisible by its size (:func:`pad_batch`). ``None`` runs on the default device.
+
+    Every call jits a new function, hence compiles again; to run the same batch shape repeatedly, build it
+    once with :func:`batch_rollout_fn`.
+    """
+    fn, args = batch_rollout_fn(mx_batched, ids, d0, controller, params, cfg, metrics, record, params_axes, mesh,
+                                push)
+    return fn(*args)
+
+
+def batch_rollout_fn(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller,
+                     params: Any, cfg: SimConfig, metrics: Metrics = no_metrics(), record=None,
+                     params_axes: Any = 0, mesh: Mesh | None = None, push: Push | None = None):
+    """The jitted function and its arguments that :func:`batch_rollout` calls: ``fn(*args)`` is its result.
+
+    Same arguments as :func:`batch_rollout`. With ``mesh``, ``args`` are already placed on the mesh. The
+    function can be compiled ahead (``fn.lower(*args).compile()``) and called again with arguments of the
+    same shapes (and placement) without recompiling.
     """
     m_axes = hmodel.model_in_axes(mx_batched)
     if push is None:
@@ -251,7 +277,7 @@ def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, con
     fn = jax.vmap(lambda mm, dd, pp, pu: rollout(mm, ids, dd, controller, pp, cfg, metrics, record, pu),
                   in_axes=(m_axes, 0, params_axes, 0))
     if mesh is None:
-        return jax.jit(fn)(mx_batched, d0, params, push)
+        return jax.jit(fn), (mx_batched, d0, params, push)
     shard = NamedSharding(mesh, PartitionSpec("batch"))
     repl = NamedSharding(mesh, PartitionSpec())
     m_shard = jax.tree_util.tree_map(lambda ax: shard if ax == 0 else repl, m_axes,
@@ -262,8 +288,9 @@ def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, con
     out_shard = jax.tree_util.tree_map(lambda _: shard, out_shape)
     jf = jax.jit(fn, in_shardings=(m_shard, d_shard, p_shard, jax.tree_util.tree_map(lambda _: shard, push)),
                  out_shardings=out_shard)
-    return jf(*jax.device_put((mx_batched, d0, params, push),  # committed (single-device) inputs move onto the mesh
-                              (m_shard, d_shard, p_shard, jax.tree_util.tree_map(lambda _: shard, push))))
+    args = jax.device_put((mx_batched, d0, params, push),  # committed (single-device) inputs move onto the mesh
+                          (m_shard, d_shard, p_shard, jax.tree_util.tree_map(lambda _: shard, push)))
+    return jf, args
 
 
 def batch_mesh(devices=None) -> Mesh:
