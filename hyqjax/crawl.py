@@ -391,7 +391,10 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
     lo = jax.lax.dynamic_slice(q_min, (3 * leg,), (3,))
     hi = jax.lax.dynamic_slice(q_max, (3 * leg,), (3,))
     at_end_stop = jnp.any((q_leg - lo < 0.01) | (hi - q_leg < 0.01))
-    limit = in_swing & nominal_done & ((ext > p.max_leg_extension) | at_end_stop | (search_depth > p.max_search_depth))
+    # While the reflex is active its end-stop springs (Eq. 9) keep the swing joints off their limits and hand
+    # the motion to the stance legs, so the search goes on; without it, an end stop ends the swing (Section IV).
+    limit = in_swing & nominal_done & ((ext > p.max_leg_extension) | (at_end_stop & ~active)
+                                       | (search_depth > p.max_search_depth))
     swing_end = touchdown | limit
     body_end = (~in_swing) & (t_new >= p.t_body)
 

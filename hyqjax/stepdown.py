@@ -4,7 +4,8 @@ HyQ starts on a platform of height ``h`` (front feet ``start_distance`` before t
 forward; the experiment runs the same batch with the height reflex on and off. Per instance it reports
 (:class:`StepdownMetrics`, accumulated on the device, so a sweep keeps only these):
 
-* ``success``: all four feet on the lower ground at the end, no trunk or shin strike, ``|roll|`` and
+* ``success``: all four feet reached the lower ground and stay past the edge, no trunk or shin strike
+  (a contact pressing harder than ``strike_force``), ``|roll|`` and
   ``|pitch|`` below ``max_tilt``, forward progress, no lost foothold (a swing that ended by a limit
   with the foot off the ground) and no divergence;
 * ``joint_range_crossed``: a measured joint went past its range by more than 0.01 rad;
@@ -18,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -39,14 +40,16 @@ class StepdownConfig:
       record_every: trace decimation in ticks (0: no traces).
       max_tilt: success bound on |roll| and |pitch| (rad).
       min_progress: success needs the trunk to advance at least this far (m).
+      strike_force: a shin or trunk contact pressing on the terrain harder than this (N) is a strike.
       layout: terrain structure (rough blocks).
     """
 
-    duration: float = 18.0
+    duration: float = 24.0
     control_dt: float = 0.002
     record_every: int = 0
     max_tilt: float = 0.4
     min_progress: float = 0.5
+    strike_force: float = 100.0
     layout: hmodel.TerrainLayout = hmodel.TerrainLayout()
 
     def sim_config(self) -> sim.SimConfig:
@@ -86,6 +89,9 @@ class StepdownMetrics:
     peak_pitch: jax.Array
     trunk_strike: jax.Array
     shin_strike: jax.Array
+    shin_contact: jax.Array
+    peak_shin_force: jax.Array
+    peak_trunk_force: jax.Array
     joint_range_crossed: jax.Array
     min_swing_mobility: jax.Array
     mobility_sum: jax.Array
@@ -95,17 +101,46 @@ class StepdownMetrics:
     x_start: jax.Array
 
 
-def _contact_slots(m: mujoco.MjModel, mx: mjx.Model, ids: hmodel.ModelIds):
+class ContactSlots(NamedTuple):
+    """MJX contact slots (static indices) that pair a shin, the trunk or each foot with terrain."""
+
+    shin: np.ndarray
+    trunk: np.ndarray
+    feet: list
+
+
+def _contact_slots(m: mujoco.MjModel, mx: mjx.Model, ids: hmodel.ModelIds) -> ContactSlots:
     """Indices of MJX contact slots that pair a shin, the trunk or a foot with terrain."""
     d = jax.jit(mjx.forward)(mx, mjx.make_data(mx))
     geom = np.asarray(d._impl.contact.geom)
     shin = np.isin(geom, ids.shin_geoms).any(1)
     trunk = np.isin(geom, [ids.trunk_geom]).any(1)
     feet = np.stack([np.isin(geom, [g]).any(1) for g in ids.foot_geoms])
-    return np.nonzero(shin)[0], np.nonzero(trunk)[0], [np.nonzero(f)[0] for f in feet]
+    return ContactSlots(np.nonzero(shin)[0], np.nonzero(trunk)[0], [np.nonzero(f)[0] for f in feet])
 
 
-def make_metrics(ids: hmodel.ModelIds, slots, cfg: StepdownConfig) -> sim.Metrics:
+def contact_normal_forces(d: mjx.Data, slots: np.ndarray) -> jax.Array:
+    """Normal force (N) of each contact slot in ``slots`` (0 where the pair is not touching).
+
+    MuJoCo's default pyramidal friction cone stores ``2 (condim - 1)`` edge forces per contact; the
+    normal force is their sum (every edge carries the normal direction with weight 1). hyqjax's
+    terrain contacts have ``condim = 3``: four edges.
+    """
+    if len(slots) == 0:
+        return jnp.zeros((0,), d.qpos.dtype)
+    c = d._impl.contact
+    adr = c.efc_address[slots]
+    edges = d._impl.efc_force[jnp.maximum(adr, 0)[:, None] + jnp.arange(4)]
+    return jnp.where(adr >= 0, jnp.sum(edges, -1), 0.0)
+
+
+def make_metrics(ids: hmodel.ModelIds, slots: ContactSlots, cfg: StepdownConfig) -> sim.Metrics:
+    """Step-down metrics accumulated on the device (see :class:`StepdownMetrics`).
+
+    A *strike* is a shin or trunk contact with the terrain whose normal force exceeds
+    ``cfg.strike_force``: a shin resting lightly on the platform edge while its foot stands below
+    is recorded (``shin_contact``, ``peak_shin_force``) but is not a strike.
+    """
     shin_slots, trunk_slots, foot_slots = slots
     sites = np.asarray(ids.foot_sites)
     qadr = np.asarray(ids.qpos_joints)
@@ -113,6 +148,7 @@ def make_metrics(ids: hmodel.ModelIds, slots, cfg: StepdownConfig) -> sim.Metric
     def init(d):
         f = jnp.asarray(0.0, d.qpos.dtype)
         return StepdownMetrics(peak_roll=f, peak_pitch=f, trunk_strike=jnp.array(False), shin_strike=jnp.array(False),
+                               shin_contact=jnp.array(False), peak_shin_force=f, peak_trunk_force=f,
                                joint_range_crossed=jnp.array(False), min_swing_mobility=f + 10.0, mobility_sum=f,
                                swing_down_ticks=jnp.asarray(0), lost_footholds=jnp.asarray(0),
                                time_all_down=f - 1.0, x_start=d.qpos[0])
@@ -120,8 +156,9 @@ def make_metrics(ids: hmodel.ModelIds, slots, cfg: StepdownConfig) -> sim.Metric
     def update(ms: StepdownMetrics, d, obs, info: crawl.CrawlInfo):
         rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[3:7]))
         dist = d._impl.contact.dist
-        shin = jnp.any(dist[shin_slots] < 0.0) if len(shin_slots) else jnp.array(False)
-        trunk = jnp.any(dist[trunk_slots] < 0.0) if len(trunk_slots) else jnp.array(False)
+        shin_touch = jnp.any(dist[shin_slots] < 0.0) if len(shin_slots) else jnp.array(False)
+        f_shin = jnp.max(contact_normal_forces(d, shin_slots), initial=0.0)
+        f_trunk = jnp.max(contact_normal_forces(d, trunk_slots), initial=0.0)
         foot_contact = jnp.stack([jnp.any(dist[s] < 0.005) for s in foot_slots])
         q = d.qpos[qadr]
         crossed = jnp.any((q < robot.Q_MIN - 0.01) | (q > robot.Q_MAX + 0.01))
@@ -134,8 +171,11 @@ def make_metrics(ids: hmodel.ModelIds, slots, cfg: StepdownConfig) -> sim.Metric
         return StepdownMetrics(
             peak_roll=jnp.maximum(ms.peak_roll, jnp.abs(rpy[0])),
             peak_pitch=jnp.maximum(ms.peak_pitch, jnp.abs(rpy[1])),
-            trunk_strike=ms.trunk_strike | trunk,
-            shin_strike=ms.shin_strike | shin,
+            trunk_strike=ms.trunk_strike | (f_trunk > cfg.strike_force),
+            shin_strike=ms.shin_strike | (f_shin > cfg.strike_force),
+            shin_contact=ms.shin_contact | shin_touch,
+            peak_shin_force=jnp.maximum(ms.peak_shin_force, f_shin),
+            peak_trunk_force=jnp.maximum(ms.peak_trunk_force, f_trunk),
             joint_range_crossed=ms.joint_range_crossed | crossed,
             min_swing_mobility=jnp.where(sd, jnp.minimum(ms.min_swing_mobility, m_sw), ms.min_swing_mobility),
             mobility_sum=ms.mobility_sum + jnp.where(sd, jnp.sum(info.mobility), 0.0),
@@ -202,7 +242,9 @@ def summarize_instances(res: sim.RolloutResult, scenario: Scenario, cfg: Stepdow
     cs = res.ctrl_state
     d = res.data
     feet = np.asarray(d.site_xpos[:, np.asarray(ids.foot_sites)])
-    all_down = np.all((feet[..., 0] > 0.02) & (feet[..., 2] < 0.06), axis=1)
+    # All four feet reached the lower ground (at one instant) and none is back on the platform at the end
+    # (the last instant may fall in a swing, so the final check is on x only).
+    all_down = (ms.time_all_down >= 0) & np.all(feet[..., 0] > 0.02, axis=1)
     progress = np.asarray(d.qpos[:, 0]) - ms.x_start
     diverged = np.asarray(res.diverged)
     tilt_ok = (ms.peak_roll < cfg.max_tilt) & (ms.peak_pitch < cfg.max_tilt)
@@ -217,7 +259,8 @@ def summarize_instances(res: sim.RolloutResult, scenario: Scenario, cfg: Stepdow
     return dict(
         success=success, failure_reason=reason, all_feet_down=all_down, diverged=diverged,
         diverged_tick=np.asarray(res.diverged_tick),
-        trunk_strike=ms.trunk_strike, shin_strike=ms.shin_strike, joint_range_crossed=ms.joint_range_crossed,
+        trunk_strike=ms.trunk_strike, shin_strike=ms.shin_strike, shin_contact=ms.shin_contact,
+        peak_shin_force=ms.peak_shin_force, peak_trunk_force=ms.peak_trunk_force, joint_range_crossed=ms.joint_range_crossed,
         lost_footholds=ms.lost_footholds, peak_roll=ms.peak_roll, peak_pitch=ms.peak_pitch,
         min_swing_mobility=np.where(ms.swing_down_ticks > 0, ms.min_swing_mobility, np.nan),
         mean_mobility=ms.mobility_sum / sd, mobility_sum=ms.mobility_sum, swing_down_ticks=ms.swing_down_ticks,

@@ -22,7 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--reflex", nargs="+", choices=["on", "off"], default=["off", "on"], help="reflex settings")
     p.add_argument("--instances", type=int, default=1, help="randomised instances per height and reflex setting")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
-    p.add_argument("--duration", type=float, default=18.0, help="simulated seconds per instance")
+    p.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
