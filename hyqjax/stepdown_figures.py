@@ -16,15 +16,18 @@ JOINT_LABELS = [f"{leg}_{j}".upper() for leg in ("lf", "rf", "lh", "rh") for j i
 
 
 def _first_reflex_window(tr, k, pad=0.3):
+    """Ticks around the longest reflex activation of instance ``k`` (the swing stepping off the platform:
+    the haptic search past the edge is the longest downward swing)."""
     t = tr["time"][k]
     act = tr["reflex_active"][k].astype(bool)
     if not act.any():
-        sd = tr["swing_down"][k].astype(bool)
-        act = sd
+        act = tr["swing_down"][k].astype(bool)
     if not act.any():
         return 0, len(t)
-    i0 = int(np.argmax(act))
-    i1 = i0 + int(np.argmax(~act[i0:])) if (~act[i0:]).any() else len(t)
+    edges = np.diff(np.concatenate([[0], act.astype(np.int8), [0]]))
+    starts, ends = np.nonzero(edges == 1)[0], np.nonzero(edges == -1)[0]
+    j = int(np.argmax(ends - starts))
+    i0, i1 = int(starts[j]), int(ends[j])
     dt = t[1] - t[0]
     n = int(pad / dt)
     return max(0, i0 - n), min(len(t), i1 + n)
@@ -110,21 +113,42 @@ def fig10_end_stop(tr, k, path, title=""):
 def fig11_pitch(traces, path, title=""):
     """Fig. 11: trunk pitch over the whole experiment, one line per (height, reflex) trace."""
     fig, ax = plt.subplots(figsize=(8, 3.5))
+    _draw_pitch(ax, traces, title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _draw_pitch(ax, traces, title=""):
     for label, (tr, k) in traces.items():
         ax.plot(tr["time"][k], np.degrees(tr["rpy"][k][:, 1]), label=label)
     ax.set_xlabel("time [s]")
     ax.set_ylabel("pitch [deg] (nose down > 0)")
     ax.legend(fontsize=8)
     ax.set_title(title or "Trunk pitch while stepping down (cf. Fig. 11)")
+
+
+def success_bars(rows, path):
+    """Success rate with 95% intervals per height, reflex on vs off."""
+    fig, ax = plt.subplots(figsize=(6, 3.5))
+    _draw_success(ax, rows)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
-def success_bars(rows, path):
-    """Success rate with 95% intervals per height, reflex on vs off."""
+def overview(rows, traces, path):
+    """Success bars beside the pitch traces: the picture of the experiment at a glance."""
+    fig, (a, b) = plt.subplots(1, 2, figsize=(13, 3.8), gridspec_kw=dict(width_ratios=[1, 1.7]))
+    _draw_success(a, rows)
+    _draw_pitch(b, traces)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _draw_success(ax, rows):
     heights = sorted({r["height"] for r in rows})
-    fig, ax = plt.subplots(figsize=(6, 3.5))
     w = 0.35
     for off, reflex, color in [(-w / 2, False, "tab:gray"), (w / 2, True, "tab:blue")]:
         xs, ys, lo, hi = [], [], [], []
@@ -143,9 +167,6 @@ def success_bars(rows, path):
     ax.set_ylabel("success rate")
     ax.legend()
     ax.set_title("Step-down success (95% Wilson intervals)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def all_figures(out_dir, table, out, rows, trace):
@@ -170,5 +191,6 @@ def all_figures(out_dir, table, out, rows, trace):
             if len(idx):
                 lines[f"{hh * 100:.0f} cm, reflex {'on' if rr else 'off'}"] = (trace, idx[0])
     fig11_pitch(lines, os.path.join(out_dir, "fig11_pitch.png"))
+    overview(rows, lines, os.path.join(out_dir, "overview.png"))
     del off
     return figs
