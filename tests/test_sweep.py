@@ -1,0 +1,226 @@
+"""Robustness sweeps (hyqjax.sweep): spec validation, results store, resume, determinism, outcome counting.
+
+One tiny step-down sweep (8 instances, 0.3 s each, chunks of 4) is compiled once per module and run
+twice: uninterrupted, and interrupted after its first chunk then resumed.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hyqjax import sim, sweep
+
+SPEC = dict(seed=3, samples=2, duration=0.3,
+            grid=dict(height=[0.16, 0.24], reflex=[False, True]),
+            random=dict(friction=[0.6, 1.0], payload_mass=[0.0, 8.0]),
+            maps=[["height", "friction"], ["height", "payload_mass"]], bins=2)
+
+
+def _sha(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory):
+    spec = sweep.SweepSpec.from_dict(SPEC)
+    full = str(tmp_path_factory.mktemp("full"))
+    part = str(tmp_path_factory.mktemp("part"))
+    sweep.run_sweep(spec, full, chunk_size=4, progress=False)
+    store = sweep.run_sweep(spec, part, chunk_size=4, max_chunks=1, progress=False)
+    assert store.done() == {0}
+    c0 = store.chunk_file(0)
+    before = dict(sha=_sha(c0), mtime=os.stat(c0).st_mtime_ns, ino=os.stat(c0).st_ino,
+                  entry=dict(store.manifest["chunks"]["0"]))
+    sweep.run_sweep(spec, part, chunk_size=4, progress=False)
+    return spec, full, part, before
+
+
+def test_store_schema(swept):
+    spec, full, _, _ = swept
+    with open(os.path.join(full, "manifest.json")) as f:
+        man = json.load(f)
+    assert man["schema"] == sweep.SCHEMA
+    assert man["spec_hash"] == spec.spec_hash
+    assert man["spec"] == spec.to_dict()
+    assert man["n_instances"] == 8 and man["chunk_size"] == 4 and man["n_chunks"] == 2
+    assert sorted(man["chunks"]) == ["0", "1"]
+    assert [man["chunks"][c]["start"] for c in ("0", "1")] == [0, 4]
+    for col in ("index", "height", "reflex", "friction", "payload_mass", "reflex_k_base", "success",
+                "failure_reason", "diverged", "mean_mobility", "peak_pitch", "progress"):
+        assert col in man["columns"], col
+    rows = sweep.SweepStore(full, spec).load()
+    assert rows["index"].tolist() == list(range(8))
+    assert all(v.shape[0] == 8 for v in rows.values())
+    assert not [f for f in os.listdir(full) if ".tmp" in f]
+    assert not [f for f in os.listdir(os.path.join(full, "chunks")) if ".tmp" in f]
+
+
+def test_resume_equals_uninterrupted_without_recompute(swept):
+    spec, full, part, before = swept
+    a = sweep.SweepStore(full, spec).load()
+    b_store = sweep.SweepStore(part, spec)
+    b = b_store.load()
+    assert sorted(a) == sorted(b)
+    for k in a:
+        if a[k].dtype.kind == "f":
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert (a[k] == b[k]).all(), k
+    c0 = b_store.chunk_file(0)
+    assert _sha(c0) == before["sha"]
+    assert os.stat(c0).st_mtime_ns == before["mtime"] and os.stat(c0).st_ino == before["ino"]
+    assert b_store.manifest["chunks"]["0"] == before["entry"]
+    # Running again has nothing to do and touches nothing.
+    sweep.run_sweep(spec, part, chunk_size=4, progress=False)
+    assert os.stat(c0).st_mtime_ns == before["mtime"]
+
+
+def test_same_seed_same_inputs_independent_of_chunking():
+    spec = sweep.SweepSpec.from_dict(SPEC)
+    again = sweep.SweepSpec.from_dict(json.loads(json.dumps(SPEC)))
+    assert spec.spec_hash == again.spec_hash
+    whole = spec.instance_inputs(0, 8)
+    parts = [again.instance_inputs(a, b) for a, b in ((0, 3), (3, 5), (5, 8))]
+    for k in whole:
+        np.testing.assert_array_equal(whole[k], np.concatenate([p[k] for p in parts]), err_msg=k)
+    # Paired draws: every grid point sees the same random inputs.
+    assert len(set(whole["friction"].tolist())) == 2
+    other = sweep.SweepSpec.from_dict({**SPEC, "seed": 4}).instance_inputs(0, 8)
+    assert not np.array_equal(other["friction"], whole["friction"])
+    unpaired = sweep.SweepSpec.from_dict({**SPEC, "paired": False}).instance_inputs(0, 8)
+    assert len(set(unpaired["friction"].tolist())) == 8
+
+
+def test_different_spec_refused(swept):
+    _, full, _, _ = swept
+    other = sweep.SweepSpec.from_dict({**SPEC, "seed": 99})
+    with pytest.raises(sweep.StoreMismatch, match="different sweep"):
+        sweep.SweepStore(full, other)
+
+
+def test_diverged_and_nan_instances_are_failures_with_reason():
+    out = dict(success=np.array([True, True, True, False]),
+               failure_reason=np.array(["", "", "", "tilt"], dtype=object),
+               diverged=np.array([False, True, False, False]),
+               peak_roll=np.array([0.1, 0.1, 0.1, 0.5]), peak_pitch=np.array([0.1, 0.2, np.nan, 0.1]),
+               progress=np.array([1.0, 1.0, 1.0, 1.0]), mean_mobility=np.array([1.0, 1.0, 1.0, 1.0]))
+    c = sweep.count_outcomes(out)
+    assert c["success"].tolist() == [True, False, False, False]
+    assert c["failure_reason"].tolist() == ["", "diverged", "non-finite metrics", "tilt"]
+    spec = sweep.SweepSpec.from_dict(dict(grid=dict(height=[0.2], reflex=[True]), samples=4))
+    rows = {**spec.instance_inputs(0, 4), **c}
+    s = sweep.summarize_sweep(spec, rows)
+    assert s["successes"] == 1 and s["diverged"] == 1
+    assert s["failure_reasons"] == {"diverged": 1, "non-finite metrics": 1, "tilt": 1}
+    assert s["by_reflex"]["on"]["n"] == 4 and s["by_reflex"]["on"]["successes"] == 1
+
+
+def test_summary_maps_and_outputs(swept):
+    spec, full, _, _ = swept
+    store = sweep.SweepStore(full, spec)
+    s = sweep.write_outputs(store)
+    assert s["complete"] and s["n_instances"] == 8
+    assert {(m["x"], m["y"], m["reflex"]) for m in s["maps"]} == {
+        ("height", "friction", False), ("height", "friction", True),
+        ("height", "payload_mass", False), ("height", "payload_mass", True)}
+    for m in s["maps"]:
+        n = np.asarray(m["n"])
+        assert n.sum() == 4
+        lo, hi = np.asarray(m["ci95_lo"]), np.asarray(m["ci95_hi"])
+        assert np.all(lo[n > 0] <= hi[n > 0]) and np.all(np.isnan(lo[n == 0]))
+    for name in ("summary.json", "instances.csv", "success_maps.png", "success_height.png"):
+        assert os.path.exists(os.path.join(full, name)), name
+    with open(os.path.join(full, "instances.csv")) as f:
+        assert len(f.read().strip().splitlines()) == 9
+
+
+def test_h95_definitions():
+    spec = sweep.SweepSpec.from_dict(dict(grid=dict(height=[0.1, 0.2, 0.3], reflex=[True]), samples=80))
+    rows = spec.instance_inputs(0, spec.n_instances)
+    h = rows["height"]
+    succ = (h < 0.25) | (rows["sample"] < 10)
+    n = h.size
+    rows.update(success=succ, failure_reason=np.where(succ, "", "tilt"), diverged=np.zeros(n, bool),
+                mean_mobility=np.ones(n))
+    r = sweep.summarize_sweep(spec, rows)["by_reflex"]["on"]
+    assert r["h95_wilson"] == pytest.approx(0.2)
+    assert 0.2 < r["h95_logistic"] < 0.3
+
+
+@pytest.mark.parametrize("bad, match", [
+    (dict(grid=dict(height=[0.6])), r"height=0.6 out of range: must be in \[0.0, 0.45\] m"),
+    (dict(grid=dict(hieght=[0.1])), "unknown axis 'hieght'"),
+    (dict(random=dict(friction=[1.0, 0.5])), "lo=1.0 must be <= hi=0.5"),
+    (dict(random=dict(reflex=[0, 1])), "bool axis cannot be random"),
+    (dict(grid=dict(friction=[0.8]), fixed=dict(friction=0.9)), "appears in both"),
+    (dict(fixed=dict(reflex_m_min=0.3)), "reflex_m_min must be < reflex_m_max"),
+    (dict(fixed=dict(foot_sequence="lf-lf-rh-rf")), "foot_sequence must be one of"),
+    (dict(samples=0), r"samples=0 out of range: must be in \[1, "),
+    (dict(random=dict(roughness=[0.0, 0.05])), "roughness > 0 needs rough-terrain blocks"),
+    (dict(fixed=dict(latency=0.5)), "latency=0.5 out of range"),
+    (dict(duration=-1), "duration=-1 out of range"),
+    (dict(chunks=3), "unknown sweep spec key"),
+    (dict(grid=dict(height=[])), "non-empty list"),
+])
+def test_spec_validation_errors(bad, match):
+    with pytest.raises(sweep.SpecError, match=match):
+        sweep.SweepSpec.from_dict(bad)
+
+
+def test_spec_files(tmp_path):
+    p = tmp_path / "s.toml"
+    p.write_text('seed = 1\nsamples = 2\n[grid]\nheight = [0.16, 0.21]\nreflex = ["off", "on"]\n'
+                 '[random]\nfriction = [0.5, 1.0]\n')
+    s = sweep.load_spec(str(p))
+    assert s.n_instances == 8 and dict(s.grid)["reflex"] == (False, True)
+    q = tmp_path / "s.json"
+    q.write_text(json.dumps(s.to_dict()))
+    assert sweep.load_spec(str(q)).spec_hash == s.spec_hash
+    bad = tmp_path / "b.toml"
+    bad.write_text("[grid\n")
+    with pytest.raises(sweep.SpecError, match="invalid TOML"):
+        sweep.load_spec(str(bad))
+
+
+def test_cli_validation_before_compile(capsys):
+    from hyqjax import cli
+
+    with pytest.raises(SystemExit, match="height=0.5 out of range"):
+        cli.main(["sweep", "--grid", "height=0.5", "--dry-run"])
+    assert cli.main(["sweep", "--grid", "height=0.1,0.2", "--random", "friction=0.5,1", "--samples", "3",
+                     "--dry-run"]) == 0
+    assert "6 instances" in capsys.readouterr().out
+
+
+def test_sensed_controller_delay_and_noise():
+    """Latency hands the controller the observation of ``delay`` ticks ago; zero noise changes nothing."""
+    inner = sim.Controller(lambda p, o: jnp.zeros(()), lambda p, s, o: (s, o.q, dict(seen=o.q[0])))
+    ctrl = sweep.sensed_controller(inner, max_delay=3)
+    zero = jnp.asarray(0.0)
+
+    def obs(t):
+        q = jnp.full(12, t)
+        return sim.Observation(q=q, qd=q, tau=q, quat=jnp.array([1.0, 0, 0, 0]), gyro=jnp.zeros(3),
+                               foot_force=jnp.zeros((4, 3)), time=t)
+
+    def seen(delay, noise):
+        sp = sweep.SensorParams(noise, zero, zero, zero, zero, jnp.asarray(delay), jax.random.PRNGKey(0))
+        p = sweep.SensedParams(crawl=None, sensor=sp)
+        s = ctrl.init(p, obs(0.0))
+        out = []
+        for t in range(1, 7):
+            s, tau, info = ctrl.step(p, s, obs(float(t)))
+            out.append(float(info["seen"]))
+        return out
+
+    assert seen(0, zero) == [1, 2, 3, 4, 5, 6]
+    assert seen(2, zero) == [0, 0, 1, 2, 3, 4]
+    noisy = np.asarray(seen(0, jnp.asarray(0.01))) - np.arange(1, 7)
+    assert np.all(np.abs(noisy) > 0) and np.all(np.abs(noisy) < 0.1)
