@@ -3,12 +3,14 @@
     python -m experiments.bounding_figures --out DIR [--quick] [--write-defaults]
 
 1. Cycle optimisation (Eq. C2) from ``--guesses`` initial guesses at once (vmap, forward-mode Jacobians,
-   Levenberg-Marquardt through optax): convergence figure, best residual.
+   Levenberg-Marquardt through optax): convergence figure, best residual. Forward-mode Jacobian of the
+   residual vs central finite differences at the stored cycle.
 2. Linearised apex return map of the stored cycle: eigenvalues without feedback, with the stance
    feedback (Eq. B7), with stance + apex feedback (Eqs. B4, B5, B8), and with the per-cycle integrators.
 3. Closed loop, one compiled batch: turning at speed with all four kinematic-adjustment /
-   centrifugal on-off combinations (ablation), a speed sweep, and a robustness set (lateral pushes,
-   low friction, payload).
+   centrifugal on-off combinations (ablation), the linear / angular adjustment off one at a time, the
+   paper's rate-only yaw law, a speed sweep (0 = in place), and a robustness set (lateral pushes, low
+   friction, payload).
 Writes DIR/results.json, DIR/tables.md and the PNG figures. ``--write-defaults`` replaces
 ``hyqjax/bounding_defaults.py`` by the newly optimised cycle (its reference table and the current apex gains).
 CPU time with the defaults: about 15-20 minutes on 2 cores (most of it XLA compiles); ``--quick`` ~8 minutes.
@@ -51,6 +53,25 @@ def optimisation(args, out: dict, figs: dict):
         best=dict(u=dict(zip(bc.DECISION_NAMES, map(float, res.u[best]))), residual=res.residual[best].tolist(),
                   residual_norm=float(res.residual_norm[best])))
     return params, res
+
+
+def gradient_check(args, out: dict):
+    """Forward-mode Jacobian of the residual vs central finite differences at the stored cycle (one vmap of jvp)."""
+    from hyqjax import bounding as bd, bounding_cycle as bc
+
+    params = bd.default_params(apex_feedback=False, stance_feedback=False)
+    u = bc.stored_cycle()
+    idx = (0, 1, 2, 3, 4, 6)
+    eps = (2.0, 2.0, 2.0, 2.0, 0.002, 0.02)
+    t0 = time.time()
+    r0, j_fwd, j_fd = bc.gradient_check(params, u, indices=idx, eps=eps)
+    wall = time.time() - t0
+    rel = [float(np.linalg.norm(j_fwd[:, k] - j_fd[:, k]) / max(np.linalg.norm(j_fd[:, k]), 1e-12))
+           for k in range(len(idx))]
+    out["gradient_check"] = dict(
+        at="stored cycle (feedback off)", residual=r0.tolist(), residual_norm=float(np.linalg.norm(r0)),
+        variables=[bc.DECISION_NAMES[i] for i in idx], eps=list(eps), wall_time_s=wall,
+        jacobian_forward=j_fwd.tolist(), jacobian_central_differences=j_fd.tolist(), relative_error=rel)
 
 
 def linear_analysis(args, out: dict, figs: dict):
@@ -120,6 +141,12 @@ def closed_loop(args, out: dict, figs: dict):
         for sgn in (1, -1):
             add(f"turn{'L' if sgn > 0 else 'R'}_{name}",
                 [bd.default_params(speed=v_turn, yaw_rate=sgn * w_turn, kinematic_adjustment=kin, centrifugal=cf)] * n)
+    # Linear (Eq. 1) and angular (Eq. 2) kinematic adjustment switched off one at a time (centrifugal on).
+    for name, lin, ang in (("no_kinematic_linear", False, True), ("no_kinematic_angular", True, False)):
+        for sgn in (1, -1):
+            p = bd.default_params(speed=v_turn, yaw_rate=sgn * w_turn)
+            p = p.replace(switches=bd.Switches.make(kinematic_linear=lin, kinematic_angular=ang))
+            add(f"turn{'L' if sgn > 0 else 'R'}_{name}", [p] * n)
     # The paper's turning law uses the yaw-rate term only (K_p,psi = 0).
     for sgn in (1, -1):
         add(f"turn{'L' if sgn > 0 else 'R'}_rate_only_paper",
@@ -142,10 +169,12 @@ def closed_loop(args, out: dict, figs: dict):
     # Ablation over both turn directions.
     abl_groups = {name: dict(aggregate=bx.aggregate([inst[i] for s in "LR" for i in groups[f"turn{s}_{name}"]]))
                   for name, _, _ in abl}
+    split = {name: bx.aggregate([inst[i] for s in "LR" for i in groups[f"turn{s}_{name}"]])
+             for name in ("no_kinematic_linear", "no_kinematic_angular", "rate_only_paper")}
     out["closed_loop"] = dict(
         duration=args.duration, instances_per_group=n, wall_time_s=wall,
         env_steps_per_s=len(inst) * args.duration / 0.002 / wall, turn=dict(speed=v_turn, yaw_rate=w_turn),
-        groups=agg, ablation=dict(groups={k: v["aggregate"] for k, v in abl_groups.items()},
+        groups=agg, ablation=dict(groups={k: v["aggregate"] for k, v in abl_groups.items()} | split,
                                   contributions=bx.contributions(abl_groups)),
         instances={g: [inst[i] for i in idx] for g, idx in groups.items()})
     os.makedirs(args.out, exist_ok=True)
@@ -187,6 +216,12 @@ def tables_md(out: dict) -> str:
                   f"{o['converged_below_0_01']} reached ||r|| < 0.01; best ||r|| = {o['best']['residual_norm']:.2e}", "",
                   "| " + " | ".join(o["best"]["u"]) + " |", "|" + "---|" * len(o["best"]["u"]),
                   "| " + " | ".join(f"{v:.4g}" for v in o["best"]["u"].values()) + " |", ""]
+    if "gradient_check" in out:
+        gc = out["gradient_check"]
+        lines += ["## Forward-mode Jacobian vs central differences (stored cycle)", "",
+                  f"||r(u*)|| = {gc['residual_norm']:.2e}", "", "| variable | eps | relative error |", "|---|---|---|"]
+        lines += [f"| {v} | {e:g} | {x:.1e} |" for v, e, x in zip(gc["variables"], gc["eps"], gc["relative_error"])]
+        lines.append("")
     if "return_map" in out:
         r = out["return_map"]
         lines += ["## Linearised apex return map (stored cycle)", "", "| feedback | spectral radius | eigenvalues |",
@@ -220,6 +255,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--quick", action="store_true", help="4 guesses x 6 iterations, 2 instances per group")
     ap.add_argument("--skip-optimisation", action="store_true")
+    ap.add_argument("--skip-gradient-check", action="store_true")
     ap.add_argument("--write-defaults", action="store_true",
                     help="write the optimised cycle to hyqjax/bounding_defaults.py")
     args = ap.parse_args(argv)
@@ -237,6 +273,8 @@ def main(argv=None) -> int:
         params, res = optimisation(args, out, figs)
         if args.write_defaults:
             write_defaults(args, params, res, out)
+    if not args.skip_gradient_check:
+        gradient_check(args, out)
     linear_analysis(args, out, figs)
     closed_loop(args, out, figs)
     out["figures"] = figs

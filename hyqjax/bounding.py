@@ -399,7 +399,7 @@ def impulse_guess(gait: GaitParams, mass: float = robot.TOTAL_MASS, com_x: float
     return np.array([af, ah])
 
 
-#: Default gains that are not part of the generated cycle data (hand-tuned; see the README).
+#: Default gains that are not part of the generated cycle data (hand-tuned; see docs/bounding.md).
 DEFAULT_GAINS = dict(k_foot=0.05, k_lateral=150.0, k_yaw_rate=100.0, k_yaw=200.0, k_roll=600.0, k_roll_rate=60.0,
                      k_stance_z=8000.0, k_stance_zdot=300.0, k_stance_pitch=3000.0, k_stance_pitch_rate=300.0)
 

@@ -457,7 +457,7 @@ def defaults_source(u, table, apex_gains: dict, note: str = "") -> str:
         "CYCLE_APEX = (z, theta, xdot, zdot, thetadot) at phase 0; CYCLE_REFERENCE = (z, theta, zdot, thetadot)\n"
         "at phases k / N (the stance feedback's reference, Eq. B7); APEX_GAINS = the apex feedback gains\n"
         "(Eqs. B4, B5): candidates designed on the linearised return map, the most robust one in closed-loop\n"
-        "simulation kept (see the README).\n"
+        "simulation kept (see docs/bounding.md).\n"
         + (f"\n{note}\n" if note else "") + '"""\n'
         "import numpy as np\n\n"
         f"CYCLE_AMPLITUDES = np.array({fmt(u[:4])})\n"

@@ -4,7 +4,7 @@ Do not edit by hand. CYCLE_AMPLITUDES = (a_fz, a_hz, a_fx, a_hx) (N per leg);
 CYCLE_APEX = (z, theta, xdot, zdot, thetadot) at phase 0; CYCLE_REFERENCE = (z, theta, zdot, thetadot)
 at phases k / N (the stance feedback's reference, Eq. B7); APEX_GAINS = the apex feedback gains
 (Eqs. B4, B5): candidates designed on the linearised return map, the most robust one in closed-loop
-simulation kept (see the README).
+simulation kept (see docs/bounding.md).
 """
 import numpy as np
 

@@ -92,7 +92,10 @@ def test_cli_validation_names_the_option():
     p = argparse.ArgumentParser()
     bound.add_arguments(p)
     for argv, name in ((["--duration", "1.3"], "--duration"), (["--instances", "0"], "--instances"),
-                       (["--friction", "0.9", "0.5"], "--friction"), (["--payload", "-1"], "--payload")):
+                       (["--friction", "0.9", "0.5"], "--friction"), (["--payload", "-1"], "--payload"),
+                       (["--speed", "9"], "--speed"), (["--yaw-rate", "-2"], "--yaw-rate"),
+                       (["--lateral-speed", "nan"], "--lateral-speed"), (["--ramp-time", "-1"], "--ramp-time"),
+                       (["--push", "1e5"], "--push"), (["--push-duration", "11"], "--push-duration")):
         with pytest.raises(ValueError, match=name):
             bound._validate(p.parse_args(argv))
     with pytest.raises(ValueError, match="speed"):

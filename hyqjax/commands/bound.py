@@ -75,6 +75,14 @@ def busy(desc: str):
 
 
 def _validate(args) -> None:
+    import math
+
+    for opt, v, lo, hi in (("--speed", args.speed, -1.5, 1.5), ("--yaw-rate", args.yaw_rate, -1.5, 1.5),
+                           ("--lateral-speed", args.lateral_speed, -0.5, 0.5), ("--ramp-time", args.ramp_time, 0.0, 10.0),
+                           ("--push", args.push, -5000.0, 5000.0), ("--push-time", args.push_time, 0.0, 600.0),
+                           ("--push-duration", args.push_duration, 0.0, 10.0)):
+        if not (math.isfinite(v) and lo <= v <= hi):
+            raise ValueError(f"{opt} must be in [{lo:g}, {hi:g}], got {v}")
     if not (1 <= args.instances <= 4096):
         raise ValueError(f"--instances must be in [1, 4096], got {args.instances}")
     if not (0.4 <= args.duration <= 600.0):
