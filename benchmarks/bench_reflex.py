@@ -86,6 +86,14 @@ def bench_latency(device, n_calls: int = 5000) -> dict:
 
     floor = _time(jax.jit(same_signature), state, inputs, params, dt, repeats=n_calls)
 
+    # The packed real-time entry point: one (44,) vector in, one (67,) out, parameters closed over.
+    from hyqjax import reflex_realtime as RT
+
+    with jax.default_device(device):
+        packed_step = RT.make_realtime_reflex(R.ReflexParams(), DT)
+        v = jax.device_put(RT.pack_inputs(state, inputs), device)
+        packed = _time(packed_step, v, repeats=n_calls)
+
     scan = jax.jit(lambda s, i, p: R.reflex_rollout(s, i, p, DT, n_steps=1000)[0])
     scan_times = _time(scan, state, inputs, params, repeats=max(20, n_calls // 250))
     return {
@@ -94,6 +102,9 @@ def bench_latency(device, n_calls: int = 5000) -> dict:
         "p90_us": float(np.percentile(times, 90) * 1e6),
         "scan_per_tick_us": statistics.median(scan_times) / 1000 * 1e6,
         "dispatch_floor_us": statistics.median(floor) * 1e6,
+        "packed_median_us": statistics.median(packed) * 1e6,
+        "packed_p10_us": float(np.percentile(packed, 10) * 1e6),
+        "packed_p90_us": float(np.percentile(packed, 90) * 1e6),
         "n_calls": n_calls,
     }
 
@@ -159,6 +170,8 @@ def run(devices, batches, cpu_target_ticks, gpu_target_ticks, n_calls, date) -> 
             f"{lat['median_us']:.1f} us ({lat['p10_us']:.1f}-{lat['p90_us']:.1f}) |",
             "| dispatch floor: jitted no-op with the same 19 inputs / 15 outputs | "
             f"{lat['dispatch_floor_us']:.1f} us |",
+            f"| `reflex_realtime.make_realtime_reflex` (one packed vector in and out), median (p10-p90) | "
+            f"{lat['packed_median_us']:.1f} us ({lat['packed_p10_us']:.1f}-{lat['packed_p90_us']:.1f}) |",
             f"| per tick inside a jitted `lax.scan` of 1000 ticks | {lat['scan_per_tick_us']:.2f} us |",
             "",
             "| batch (robots) | ticks per call | time per call | robot-ticks/s | ns per robot-tick |",

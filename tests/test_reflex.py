@@ -622,3 +622,26 @@ def test_float32_matches_float64_trajectory():
     x32 = np.asarray(out32.x_r)
     assert np.abs(x64_[-1] - x64_[0]).max() > 0.15  # a substantial squat happened
     assert np.abs(x32 - x64_).max() < 1e-3  # float32 stays within 1 mm of float64 over 5000 ticks
+
+
+def test_realtime_packed_step_equals_reflex_step():
+    """The flat-vector real-time entry point computes exactly reflex_step, and its state feeds back."""
+    from hyqjax import reflex_realtime as RT
+
+    x0 = kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, jnp.float32))
+    inputs = R.ReflexInputs.make(x0.at[robot.RF, 2].add(-0.12), robot.RF)
+    params = R.ReflexParams.table1()
+    step = RT.make_realtime_reflex(params, 1e-3)
+    state = R.reflex_init(inputs.x_des)
+    v = RT.pack_inputs(state, inputs)
+    p32 = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32), params)
+    for _ in range(5):
+        out_v = step(v)
+        state, out = R.reflex_step(state, inputs, p32, 1e-3)
+        np.testing.assert_allclose(out_v[RT.OUT_X_R], out.x_r.reshape(12), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(out_v[RT.OUT_STATE], jnp.concatenate([state.q_r, state.qd_r]), rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(out_v[RT.OUT_D_DIAG], out.d_diag, rtol=1e-6)
+        assert out_v[RT.OUT_FLAGS][0] == 1.0  # active
+        v = v.at[:24].set(out_v[RT.OUT_STATE])
+    with pytest.raises(ValueError, match="dt"):
+        RT.make_realtime_reflex(params, 0.5)
