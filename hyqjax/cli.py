@@ -27,7 +27,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="hyqjax",
         description="HyQ's height reflex, crawl and bounding gaits on MuJoCo MJX. "
-        "Each subcommand runs a batched experiment, prints a summary and writes results.json plus PNG figures.",
+        "stepdown, sweep, tune and bound run batched experiments: each prints a summary and writes results.json "
+        "plus PNG figures; render, view and report show what an experiment recorded.",
     )
     parser.add_argument("--version", action="version", version=f"hyqjax {hyqjax.__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

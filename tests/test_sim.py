@@ -315,9 +315,11 @@ def _assert_same_result(a, b, atol):
     np.testing.assert_array_equal(a["diverged_tick"], b["diverged_tick"])
     for k in ("qpos", "qvel", "trace_qpos", "max_dz"):
         np.testing.assert_allclose(a[k][STANDING], b[k][STANDING], atol=atol, rtol=0, err_msg=k)
-    # Forces (~200 N) amplify float32 differences: relative.
+    # Forces (~200 N) amplify float32 differences, and their inertial term M qdd carries the contact
+    # solver's rounding: relative, with an absolute floor of 500 x atol (0.05 N for two devices, far below
+    # the 30 N touchdown threshold).
     np.testing.assert_allclose(a["trace_foot_force"][STANDING], b["trace_foot_force"][STANDING],
-                               atol=100 * atol, rtol=10 * atol, err_msg="trace_foot_force")
+                               atol=500 * atol, rtol=10 * atol, err_msg="trace_foot_force")
     assert np.all(np.isfinite(a["qpos"]))
 
 
