@@ -273,6 +273,43 @@ def _start_body_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> C
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
 
+#: Step fractions tried, longest first, when the full step leaves the leg's workspace.
+_STEP_FRACTIONS = np.array([1.0, 0.85, 0.7, 0.55, 0.4, 0.25, 0.1])
+#: Joint-limit margin (rad) a planned foothold and swing apex must keep.
+_REACH_MARGIN = 0.08
+
+
+def _reachable_foothold(p: CrawlParams, leg, lift, target, n, rp):
+    """Shorten the step so the foothold and the swing apex stay inside the leg's workspace.
+
+    The trunk holds still during a swing (Section II), so the swing foot's path is fixed in the trunk
+    frame at planning time. The step ``lift -> target`` is scaled by the largest fraction in
+    ``_STEP_FRACTIONS`` for which the foothold and the apex (mid-step, ``step_height`` along ``n``) have
+    IK solutions within the joint ranges minus ``_REACH_MARGIN`` and within ``max_leg_extension``.
+    A hind leg folded under a trunk that has lowered over the step cannot reach a full step forward
+    (its HFE hits the end stop); without this the swing would stop at the end stop in mid-air.
+    """
+    r_b = _rp_rot(rp).T
+    q_min = jnp.asarray(robot.Q_MIN, lift.dtype).reshape(4, 3)[leg]
+    q_max = jnp.asarray(robot.Q_MAX, lift.dtype).reshape(4, 3)[leg]
+    hip = kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, lift.dtype))
+
+    def ok(frac):
+        foot = lift + frac * (target - lift)
+        apex = 0.5 * (lift + foot) + p.step_height * n
+        pts = jnp.stack([foot, apex]) @ r_b.T  # (2, 3) in the trunk frame
+        x = jnp.broadcast_to(hip, (2, 4, 3)).at[:, leg].set(pts)
+        q = kinematics.inverse_kinematics(x)[:, leg]
+        inside = jnp.all((q > q_min + _REACH_MARGIN) & (q < q_max - _REACH_MARGIN))
+        ext = kinematics.leg_extension(q.reshape(2, 1, 3).repeat(4, 1).reshape(2, 12))[:, leg]
+        return inside & jnp.all(ext < p.max_leg_extension)
+
+    fracs = jnp.asarray(_STEP_FRACTIONS, lift.dtype)
+    feasible = jax.vmap(ok)(fracs)
+    frac = jnp.where(jnp.any(feasible), fracs[jnp.argmax(feasible)], fracs[-1])
+    return lift + frac * (target - lift)
+
+
 def _start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
     feet, rp = _feet_h(obs)
     leg = p.foot_sequence[st.seq_index]
@@ -292,6 +329,7 @@ def _start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> 
     c, s_ = jnp.cos(yaw), jnp.sin(yaw)
     target = jnp.stack([c * target[0] - s_ * target[1], s_ * target[0] + c * target[1], target[2]])
     target = target - jnp.dot(target - lift, n) * n
+    target = _reachable_foothold(p, leg, lift, target, n, rp)
     stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
