@@ -208,7 +208,7 @@ def test_sensed_controller_delay_and_noise():
     def obs(t):
         q = jnp.full(12, t)
         return sim.Observation(q=q, qd=q, tau=q, quat=jnp.array([1.0, 0, 0, 0]), gyro=jnp.zeros(3),
-                               foot_force=jnp.zeros((4, 3)), time=t)
+                               foot_force=jnp.zeros((4, 3)), time=jnp.asarray(t))
 
     def seen(delay, noise):
         sp = sweep.SensorParams(noise, zero, zero, zero, zero, jnp.asarray(delay), jax.random.PRNGKey(0))
