@@ -267,6 +267,7 @@ def main(argv=None) -> int:
     from hyqjax import io
 
     out: dict = dict(provenance=io.provenance(argv=sys.argv[1:], seed=args.seed), args=vars(args))
+    out["provenance"]["command"] = " ".join(["python -m experiments.bounding_figures", *sys.argv[1:]])
     figs: dict = {}
     t0 = time.time()
     if not args.skip_optimisation:

@@ -13,6 +13,7 @@ Metrics (:func:`summarise`), all on the ground truth of the simulation:
   (displacement over one period / T) minus the commanded speed; mean |error| and RMS over the
   cycles after ``settle`` seconds;
 * **yaw-rate error**: per cycle mean yaw rate minus the command;
+* **side slip**: ``|mean lateral speed|`` in the heading frame over the settled cycles (outward drift in a turn);
 * **periodicity residual**: ``||W (s_{k+1} - s_k)||`` of consecutive apex states (Eq. C2's scaling),
   median over the settled cycles;
 * **falls**: an instance fails if the trunk goes below ``FALL_HEIGHT``, ``|roll|`` or ``|pitch|``
@@ -280,6 +281,10 @@ def aggregate(per: list[dict]) -> dict:
         v = vals(key)
         out[key + "_mean"] = float(np.mean(v)) if v.size else None
         out[key + "_worst"] = float(np.max(v)) if v.size else None
+    # Side slip: |mean lateral speed| in the heading frame (the outward drift the centrifugal compensation removes).
+    v = np.abs(vals("lateral_speed_mean"))
+    out["side_slip_mean"] = float(np.mean(v)) if v.size else None
+    out["side_slip_worst"] = float(np.max(v)) if v.size else None
     return out
 
 
@@ -295,7 +300,7 @@ def contributions(groups: dict) -> dict:
     for part, pp in pairs.items():
         d = {}
         for key in ("yaw_error_max_deg_mean", "yaw_error_rms_deg_mean", "speed_error_rms_mean",
-                    "yaw_rate_error_rms_mean", "falls"):
+                    "yaw_rate_error_rms_mean", "side_slip_mean", "falls"):
             diffs = [metric(off, key) - metric(on, key) for on, off in pp
                      if metric(on, key) is not None and metric(off, key) is not None]
             d[key + "_increase_when_off"] = float(np.mean(diffs)) if diffs else None
@@ -310,7 +315,7 @@ def _fmt(v, f="{:.2f}"):
 def format_table(groups: dict) -> str:
     """A plain-text summary table, one row per configuration."""
     head = (f"{'configuration':26s} {'n':>3s} {'falls':>5s} {'yaw err max [deg]':>18s} {'yaw err rms':>11s} "
-            f"{'speed err rms [m/s]':>19s} {'yaw-rate err rms':>16s} {'periodicity':>11s}")
+            f"{'speed err rms [m/s]':>19s} {'yaw-rate err rms':>16s} {'side slip':>9s} {'periodicity':>11s}")
     lines = [head, "-" * len(head)]
     for name, g in groups.items():
         a = g["aggregate"]
@@ -318,8 +323,10 @@ def format_table(groups: dict) -> str:
                      f"{_fmt(a['yaw_error_max_deg_mean']) + ' / ' + _fmt(a['yaw_error_max_deg_worst']):>18s} "
                      f"{_fmt(a['yaw_error_rms_deg_mean']):>11s} "
                      f"{_fmt(a['speed_error_rms_mean'], '{:.3f}') + ' / ' + _fmt(a['speed_error_rms_worst'], '{:.3f}'):>19s} "
-                     f"{_fmt(a['yaw_rate_error_rms_mean'], '{:.3f}'):>16s} {_fmt(a['periodicity_residual_mean']):>11s}")
-    lines.append("(x / y = mean / worst over surviving instances; periodicity = median apex-to-apex residual, Eq. C2 units)")
+                     f"{_fmt(a['yaw_rate_error_rms_mean'], '{:.3f}'):>16s} {_fmt(a.get('side_slip_mean'), '{:.3f}'):>9s} "
+                     f"{_fmt(a['periodicity_residual_mean']):>11s}")
+    lines.append("(x / y = mean / worst over surviving instances; side slip = |mean lateral speed| [m/s]; periodicity = "
+                 "median apex-to-apex residual, Eq. C2 units)")
     return "\n".join(lines)
 
 
@@ -329,6 +336,7 @@ def format_contributions(c: dict) -> str:
         lines.append(f"  {part:22s} yaw err max {_fmt(d['yaw_error_max_deg_mean_increase_when_off'])} deg, "
                      f"speed err rms {_fmt(d['speed_error_rms_mean_increase_when_off'], '{:+.3f}')} m/s, "
                      f"yaw-rate err rms {_fmt(d['yaw_rate_error_rms_mean_increase_when_off'], '{:+.3f}')} rad/s, "
+                     f"side slip {_fmt(d['side_slip_mean_increase_when_off'], '{:+.3f}')} m/s, "
                      f"falls {_fmt(d['falls_increase_when_off'], '{:+.1f}')}")
     return "\n".join(lines)
 

@@ -86,6 +86,25 @@ def test_input_validation_names_the_parameter():
             fn()
 
 
+def test_aggregate_and_contributions_keep_failures_and_measure_side_slip():
+    def inst(result, yaw, slip):
+        return dict(result=result, yaw_error_max_deg=yaw, yaw_error_rms_deg=yaw / 2, speed_error_mean_abs=0.01,
+                    speed_error_rms=0.02, yaw_rate_error_rms=0.001, periodicity_residual=0.5, lateral_speed_mean=slip)
+
+    full = bx.aggregate([inst("ok", 1.0, 0.01), inst("ok", 2.0, -0.03), inst("pitch", 9.0, 0.5)])
+    assert full["n"] == 3 and full["falls"] == 1 and full["fail_reasons"] == ["pitch"]
+    # Tracking errors over the surviving instances only; the fall is counted, not averaged in.
+    assert full["yaw_error_max_deg_mean"] == pytest.approx(1.5) and full["yaw_error_max_deg_worst"] == 2.0
+    assert full["side_slip_mean"] == pytest.approx(0.02) and full["side_slip_worst"] == pytest.approx(0.03)
+    off = bx.aggregate([inst("ok", 1.0, 0.25), inst("ok", 2.0, -0.25), inst("ok", 3.0, 0.25)])
+    groups = {k: dict(aggregate=v) for k, v in
+              dict(full=full, no_kinematic_adjustment=full, no_centrifugal=off, neither=off).items()}
+    c = bx.contributions(groups)
+    assert c["centrifugal"]["side_slip_mean_increase_when_off"] == pytest.approx(0.23)
+    assert c["centrifugal"]["falls_increase_when_off"] == pytest.approx(-1.0)
+    assert c["kinematic_adjustment"]["side_slip_mean_increase_when_off"] == pytest.approx(0.0)
+
+
 def test_cli_validation_names_the_option():
     from hyqjax.commands import bound
 
