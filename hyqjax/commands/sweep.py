@@ -142,7 +142,8 @@ def run(args) -> int:
     print(f"chunks of {store.chunk_size}: {done}/{store.n_chunks} done"
           + (", resuming" if done else "") + " (the first chunk compiles, 30-90 s on CPU)", flush=True)
     t0 = time.time()
-    sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress)
+    # The store run_sweep returns holds the chunks this run added (``store`` above is the state before it).
+    store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress)
     wall = time.time() - t0
     summary = sweep.write_outputs(store)
     summary["provenance"] = io.provenance(seed=spec.seed)
