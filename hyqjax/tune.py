@@ -35,7 +35,8 @@ there) and ``shortfall = relu(h - max_k d_k)`` (m), both penalised, and a stabil
 
 **Parameters** (:class:`TuneParams`, unconstrained ``theta``; always inside ``ReflexParams.validate``'s
 ranges): ``k_base = exp(a)``; ``d_sw_min = exp(b)``, ``d_sw_max = d_sw_min + exp(c)`` (ordered), the same
-for ``d_st``; ``m_min = exp(e)``, ``m_max = m_min + exp(f)``; optionally ``k_x = k_x_max sigmoid(g)``,
+for ``d_st``; ``m_max = M_NOMINAL sigmoid(e)``, ``m_min = m_max sigmoid(f)`` (below the standing pose's
+mobility, see :data:`M_NOMINAL`); optionally ``k_x = k_x_max sigmoid(g)``,
 ``k_kl = exp(i)``, ``delta = 0.5 sigmoid(j)``. Adam (optax) with global-norm clipping; non-finite
 updates are skipped (``optax.apply_if_finite``).
 
@@ -66,7 +67,7 @@ from hyqjax import kinematics, reflex as hreflex, robot
 GROUPS = {
     "k_base": ("log_k_base",),
     "damping": ("log_d_sw_min", "log_d_sw_gap", "log_d_st_min", "log_d_st_gap"),
-    "mobility": ("log_m_min", "log_m_gap"),
+    "mobility": ("logit_m_max", "logit_m_ratio"),
     "k_x": ("logit_k_x",),
     "k_kl": ("log_k_kl",),
     "delta": ("logit_delta",),
@@ -74,6 +75,11 @@ GROUPS = {
 DEFAULT_GROUPS = ("k_base", "damping", "mobility")
 #: Largest singular value of a HyQ foot Jacobian (m/rad), for the stability bound (reflex_step docstring).
 SIGMA_MAX = 0.59
+#: Mobility m(e_z) (Eq. 12) of every leg in the SRDF standing pose (m/rad). The damping schedule reacts
+#: to a *loss* of mobility: thresholds above this would make every swing on flat ground squat the trunk
+#: (Table I's m_max = 0.21 sits just below it), which a step-down search alone cannot penalise. The
+#: tuner keeps ``m_max < M_NOMINAL``.
+M_NOMINAL = 0.2149
 
 
 def _logit(p):
@@ -86,7 +92,8 @@ def theta_from_reflex(p: hreflex.ReflexParams, groups=DEFAULT_GROUPS) -> dict[st
     full = dict(log_k_base=math.log(max(v["k_base"], 1e-6)),
                 log_d_sw_min=math.log(v["d_sw_min"]), log_d_sw_gap=math.log(v["d_sw_max"] - v["d_sw_min"]),
                 log_d_st_min=math.log(v["d_st_min"]), log_d_st_gap=math.log(v["d_st_max"] - v["d_st_min"]),
-                log_m_min=math.log(v["m_min"]), log_m_gap=math.log(v["m_max"] - v["m_min"]),
+                logit_m_max=_logit(min(v["m_max"] / M_NOMINAL, 1 - 1e-6)),
+                logit_m_ratio=_logit(min(v["m_min"] / v["m_max"], 1 - 1e-6)),
                 logit_k_x=_logit(min(max(v["k_x"] / v["k_x_max"], 1e-6), 1 - 1e-6)),
                 log_k_kl=math.log(max(v["k_kl"], 1e-6)), logit_delta=_logit(v["delta"] / 0.5))
     keys = [k for g in groups for k in GROUPS[g]]
@@ -102,9 +109,9 @@ def reflex_from_theta(theta: dict, base: hreflex.ReflexParams = hreflex.ReflexPa
         if f"log_d_{leg}_min" in theta:
             lo = jnp.exp(theta[f"log_d_{leg}_min"])
             kw[f"d_{leg}_min"], kw[f"d_{leg}_max"] = lo, lo + jnp.exp(theta[f"log_d_{leg}_gap"])
-    if "log_m_min" in theta:
-        kw["m_min"] = jnp.exp(theta["log_m_min"])
-        kw["m_max"] = kw["m_min"] + jnp.exp(theta["log_m_gap"])
+    if "logit_m_max" in theta:
+        kw["m_max"] = M_NOMINAL * jax.nn.sigmoid(theta["logit_m_max"])
+        kw["m_min"] = kw["m_max"] * jax.nn.sigmoid(theta["logit_m_ratio"])
     if "logit_k_x" in theta:
         kw["k_x"] = jnp.asarray(base.k_x_max) * jax.nn.sigmoid(theta["logit_k_x"])
     if "log_k_kl" in theta:

@@ -25,7 +25,7 @@ def test_gradient_matches_central_differences(x64):
     theta = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64),
                                    tune.theta_from_reflex(hreflex.ReflexParams.table1(), groups))
     # Start off Table I, inside the schedule's transition band, so every parameter matters.
-    theta = {**theta, "log_m_min": theta["log_m_min"] + 0.3}
+    theta = {**theta, "logit_m_max": theta["logit_m_max"] - 0.3}
     f = jax.jit(lambda th: tune.loss_fn(th, sc, SMALL_OBJ)[0])
     g = jax.jit(jax.grad(lambda th: tune.loss_fn(th, sc, SMALL_OBJ)[0]))(theta)
     assert all(np.isfinite(float(v)) for v in g.values())
