@@ -162,7 +162,8 @@ def _record(d, obs, info):
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[3:7]))
     return dict(t=d.time, pos=d.qpos[:3], vel=d.qvel[:3], rpy=rpy, omega=d.qvel[3:6], apex=bc.data_apex(d),
                 yaw_des=info["yaw_des"], v_des=info["v_des"], yaw_rate_des=info["yaw_rate_des"],
-                est_vel_h=info["vel_h"], est_z=info["est_pos"][2], roll_des=info["roll_des"])
+                est_vel_h=info["vel_h"], est_z=info["est_pos"][2], roll_des=info["roll_des"],
+                qpos=d.qpos, foot_force=obs.foot_force)
 
 
 def initial_data(batch: Batch, m, mx) -> "jax.Array":

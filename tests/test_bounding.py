@@ -209,3 +209,11 @@ def test_turning_follows_yaw_rate_sign_and_magnitude(closed_loop):
     # Straight bounding does not turn.
     for i in range(5):
         assert abs(summary["instances"][i]["yaw_rate_mean"]) < 0.05
+
+
+@pytest.mark.slow
+def test_trace_records_the_state_render_needs(closed_loop):
+    """The bounding trace carries the full qpos (what `hyqjax render` replays) consistent with the trunk trace."""
+    _, trace, _ = closed_loop
+    assert trace["qpos"].shape[-1] == 19 and trace["foot_force"].shape[-2:] == (4, 3)
+    np.testing.assert_allclose(trace["qpos"][..., :3], trace["pos"], atol=1e-6)

@@ -20,6 +20,8 @@ import os
 import threading
 import time
 
+import numpy as np
+
 
 NAME = "bound"
 HELP = "bounding gait: in place, forward, turning; yaw / speed tracking, falls, ablation"
@@ -137,6 +139,13 @@ def run(args) -> int:
 
         idx = {name: list(range(g * n, (g + 1) * n)) for g, (name, _, _) in enumerate(configs)}
         out["figures"] = bp.tracking_figures(trace, idx, args.out)
+    # Traces of every instance in hyqjax.recording's format, for `hyqjax render` / `hyqjax view`.
+    from hyqjax import recording
+
+    inputs = dict(friction=np.asarray(batch.terrain.friction), payload_mass=np.asarray(batch.terrain.payload_mass),
+                  group=np.repeat(np.arange(len(configs)), n))
+    recording.save(os.path.join(args.out, "traces.npz"), trace, inputs, np.arange(len(plist)), record_every=10,
+                   control_dt=0.002)
     io.write_json(os.path.join(args.out, "results.json"), out)
     print(bx.format_table(groups))
     if args.ablation:
