@@ -43,6 +43,17 @@ def _default(o):
     return str(o)
 
 
+def atomic_write(path: str, write) -> None:
+    """Write a file so that a reader (or a resumed run after a kill) sees the old or the new one, never a part:
+    ``write(f)`` fills a temporary binary file beside ``path``, which is synced and renamed over it."""
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "wb") as f:
+        write(f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
 def write_json(path: str, obj) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".tmp"

@@ -59,6 +59,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax import crawl, impedance, model as hmodel, reflex as hreflex, sim, stepdown
+from hyqjax.io import atomic_write
 
 SCHEMA = "hyqjax.sweep/1"
 
@@ -634,19 +635,10 @@ def count_outcomes(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
 # ------------------------------------------------------------------------------------------------
 
 
-def _atomic_write_bytes(path: str, write) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def _write_json(path: str, obj) -> None:
     from hyqjax import io
 
-    _atomic_write_bytes(path, lambda f: f.write(json.dumps(obj, indent=1, default=io._default).encode()))
+    atomic_write(path, lambda f: f.write(json.dumps(obj, indent=1, default=io._default).encode()))
 
 
 def default_chunk_size(devices=None) -> int:
@@ -704,7 +696,7 @@ class SweepStore:
         return {int(c) for c in self.manifest["chunks"] if os.path.exists(self.chunk_file(int(c)))}
 
     def write_chunk(self, c: int, rows: dict[str, np.ndarray], wall_s: float) -> None:
-        _atomic_write_bytes(self.chunk_file(c), lambda f: np.savez(f, **rows))
+        atomic_write(self.chunk_file(c), lambda f: np.savez(f, **rows))
         start, stop = self.chunk_range(c)
         self.manifest["chunks"][str(c)] = dict(file=os.path.relpath(self.chunk_file(c), self.dir), start=start,
                                                stop=stop, wall_s=round(wall_s, 3),

@@ -62,6 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax import kinematics, reflex as hreflex, robot
+from hyqjax.io import atomic_write
 
 #: Tunable groups: name -> unconstrained keys.
 GROUPS = {
@@ -362,15 +363,6 @@ def _step_fn(cfg: TuneConfig):
     return _STEP_FNS[key]
 
 
-def _atomic(path: str, write) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "wb") as f:
-        write(f)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
 def save_checkpoint(path: str, step: int, theta: dict, opt_state, cfg: TuneConfig) -> None:
     """Atomic ``.npz`` of the step, ``theta`` and the optimiser state leaves."""
     leaves = jax.tree_util.tree_leaves(opt_state)
@@ -378,7 +370,7 @@ def save_checkpoint(path: str, step: int, theta: dict, opt_state, cfg: TuneConfi
     arrays.update({f"opt/{i:04d}": np.asarray(v) for i, v in enumerate(leaves)})
     arrays["step"] = np.asarray(step)
     arrays["config_hash"] = np.asarray(cfg.hash)
-    _atomic(path, lambda f: np.savez(f, **arrays))
+    atomic_write(path, lambda f: np.savez(f, **arrays))
 
 
 def load_checkpoint(path: str, cfg: TuneConfig):
@@ -410,7 +402,7 @@ def run_tune(cfg: TuneConfig, out_dir: str, stop_after: int | None = None, progr
         if old.get("hash") != cfg.hash:
             raise RuntimeError(f"{out_dir} holds a tuning run of another configuration (hash {old.get('hash', '?')[:12]}"
                                f" != {cfg.hash[:12]}); use another --out or remove it")
-    _atomic(cpath, lambda f: f.write(json.dumps(dict(config=cfg.to_dict(), hash=cfg.hash), indent=1).encode()))
+    atomic_write(cpath, lambda f: f.write(json.dumps(dict(config=cfg.to_dict(), hash=cfg.hash), indent=1).encode()))
     opt = make_optimizer(cfg)
     if os.path.exists(ckpt):
         step, theta, opt_state = load_checkpoint(ckpt, cfg)
@@ -422,7 +414,7 @@ def run_tune(cfg: TuneConfig, out_dir: str, stop_after: int | None = None, progr
     if os.path.exists(lpath):
         with open(lpath) as f:
             lines = [ln for ln in f if ln.strip() and json.loads(ln)["step"] < step]
-    _atomic(lpath, lambda f: f.write("".join(lines).encode()))
+    atomic_write(lpath, lambda f: f.write("".join(lines).encode()))
     sc = cfg.train_set()
     fn = _step_fn(cfg)
     end = cfg.steps if stop_after is None else min(cfg.steps, step + stop_after)
