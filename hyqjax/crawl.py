@@ -13,6 +13,9 @@ A state machine alternates two phases (Fig. 2):
   ``search_speed`` until the estimated ground reaction force along the normal exceeds
   ``touchdown_force`` (haptic touchdown, footnote 1: 30 N), or a workspace / end-stop limit or
   ``max_search_depth`` is reached, in which case stance is triggered anyway so the machine never gets stuck.
+  While the height reflex is active its end-stop springs keep the joints off their limits, so only the
+  leg-extension and depth limits end its search. A step whose foothold or apex would leave the leg's
+  workspace is shortened at planning time (:func:`_reachable_foothold`).
 
 Frames: the plan lives in ``H0``, the horizontal frame at the start of the current phase. Stance feet
 are fixed in ``H0``; the desired trunk pose relative to ``H0`` is ``(p_des(t), R_des(t))`` and the desired
