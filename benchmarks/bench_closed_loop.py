@@ -42,10 +42,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import datetime
-import json
 import os
-import platform
 import sys
 import time
 
@@ -61,48 +58,14 @@ from mujoco import mjx  # noqa: E402
 
 from hyqjax import crawl, io as hio, model as hmodel, robot, sim, spatial, stand, stepdown  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_physics import host_info  # noqa: E402  (the same host / version record in every benchmark)
+
 GPU_BATCHES = (4096, 16384, 65536)
 GPU_C_BATCHES = (4096, 16384)
 CPU_BATCHES = (8, 32)
 HEIGHTS = (0.05, 0.10, 0.15, 0.20)  # x reflex off/on: batches are multiples of 8
 SECTIONS = ("throughput", "memory", "stages", "nan", "grad", "scaling")
-
-
-def _version(dist: str) -> str:
-    try:
-        from importlib.metadata import version
-
-        return version(dist)
-    except Exception:  # pragma: no cover
-        return "unknown"
-
-
-def host_info() -> dict:
-    dev = jax.devices()[0]
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    cpu = line.split(":", 1)[1].strip()
-                    break
-    except OSError:
-        pass
-    return {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "backend": jax.default_backend(),
-        "device": f"{dev.platform.upper()}: {getattr(dev, 'device_kind', str(dev))}",
-        "n_devices": jax.local_device_count(),
-        "cpu": cpu,
-        "cpu_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
-        "loadavg_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "jaxlib": _version("jaxlib"),
-        "mujoco": mujoco.__version__,
-        "mujoco_mjx": _version("mujoco-mjx"),
-        "hyqjax": hyqjax.__version__,
-    }
 
 
 # ----------------------------------------------------------------------------------------------- setup
