@@ -56,10 +56,18 @@ import mujoco.rollout  # noqa: E402
 import numpy as np  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
-from hyqjax import crawl, io as hio, model as hmodel, robot, sim, spatial, stand, stepdown  # noqa: E402
+from hyqjax.crawl import controller as crawl  # noqa: E402
+from hyqjax.io import atomic as hio
+from hyqjax.sim import model as hmodel
+from hyqjax.core import robot
+from hyqjax.sim import rollout as sim
+from hyqjax.core import spatial
+from hyqjax.control import stand
+from hyqjax.studies import stepdown
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_physics import host_info  # noqa: E402  (the same host / version record in every benchmark)
+import mjx_impl  # noqa: E402
 
 GPU_BATCHES = (4096, 16384, 65536)
 GPU_C_BATCHES = (4096, 16384)
@@ -82,12 +90,15 @@ def scenario(batch: int, seed: int = 0):
 
 def closed_loop_fn(scen, cfg: stepdown.StepdownConfig, mesh=None, metrics=None, params=None):
     """What ``stepdown.run_batch`` builds (no traces): the jitted batch rollout and its arguments."""
-    m, mx, ids, slots = stepdown._setup(cfg.layout, cfg.control_dt)
+    st = stepdown.setup(cfg)
+    m, mx, ids = st.m, st.mx, st.ids
     scfg = cfg.sim_config()
     b = scen.batch_size
     mb = hmodel.batch_model(mx, ids, scen.terrain)
-    d0 = sim.initial_data(mx, stepdown.initial_qpos(m, scen), b)
-    metrics = metrics or stepdown.make_metrics(ids, slots, cfg)
+    qpos = stepdown.initial_qpos(m, scen)
+    # warp: data from the MjModel, terrain poses from the batched model (see sim.initial_data)
+    d0 = sim.initial_data(mb, qpos, b, m=m) if st.impl == "warp" else sim.initial_data(mx, qpos, b)
+    metrics = metrics or stepdown.make_metrics(ids, cfg)
     fn, args = sim.batch_rollout_fn(mb, ids, d0, crawl.crawl_controller(scfg.control_dt),
                                     scen.params if params is None else params, scfg, metrics=metrics,
                                     record=None, params_axes=0, mesh=mesh, push=scen.push)
@@ -139,6 +150,15 @@ def device_peak() -> dict | None:
     return {k: int(st[k]) for k in ("peak_bytes_in_use", "bytes_in_use", "bytes_limit") if k in st}
 
 
+def _warp_version() -> str | None:
+    try:
+        import warp
+
+        return warp.__version__
+    except ImportError:
+        return None
+
+
 def tree_bytes(tree) -> int:
     return int(sum(np.prod(x.shape) * np.dtype(x.dtype).itemsize for x in jax.tree_util.tree_leaves(tree)))
 
@@ -146,11 +166,13 @@ def tree_bytes(tree) -> int:
 # ------------------------------------------------------------------------------------------ measurements
 
 
-def bench_physics(batch: int, steps: int, repeats: int, cfg) -> dict:
+def bench_physics(batch: int, steps: int, repeats: int, cfg, impl: str = "jax") -> dict:
     scen, _ = scenario(batch)
-    m, mx, ids, _ = stepdown._setup(cfg.layout, cfg.control_dt)
+    st = stepdown.setup(cfg)
+    m, ids = st.m, st.ids
+    mx = mjx_impl.put_model(m, impl)
     mb = hmodel.batch_model(mx, ids, scen.terrain)
-    d0 = sim.initial_data(mx, stepdown.initial_qpos(m, scen), batch)
+    d0 = mjx_impl.batch_data(m, mb, stepdown.initial_qpos(m, scen), impl)
     d0 = d0.replace(ctrl=jnp.broadcast_to(jnp.asarray(standing_torques(), d0.ctrl.dtype), d0.ctrl.shape))
     m_axes = hmodel.model_in_axes(mb)
 
@@ -163,12 +185,14 @@ def bench_physics(batch: int, steps: int, repeats: int, cfg) -> dict:
     compiled, compile_s = compile_timed(jax.jit(run), args)
     times, out = time_compiled(compiled, args, repeats)
     return dict(compile_s=compile_s, times_s=times, memory=memory_analysis(compiled),
-                finite=bool(np.all(np.isfinite(np.asarray(out.qpos)))))
+                finite=bool(np.all(np.isfinite(np.asarray(out.qpos)))), overflow=mjx_impl.overflow_count(out),
+                state_bytes_per_instance=tree_bytes(out) // batch,
+                final_trunk_z=float(np.mean(np.asarray(out.qpos[:, 2]) - np.asarray(scen.terrain.platform_height))))
 
 
-def bench_closed(batch: int, steps: int, repeats: int, cfg, mesh=None) -> dict:
+def bench_closed(batch: int, steps: int, repeats: int, cfg, mesh=None, impl: str | None = None) -> dict:
     scen, _ = scenario(batch)
-    cfg = dataclasses.replace(cfg, duration=steps * cfg.control_dt, record_every=0)
+    cfg = dataclasses.replace(cfg, duration=steps * cfg.control_dt, record_every=0, impl=impl or cfg.impl)
     fn, args = closed_loop_fn(scen, cfg, mesh=mesh)
     compiled, compile_s = compile_timed(fn, args)
     times, out = time_compiled(compiled, args, repeats)
@@ -188,7 +212,8 @@ def bench_closed(batch: int, steps: int, repeats: int, cfg, mesh=None) -> dict:
 def bench_mujoco_c(batch: int, steps: int, repeats: int, nthread: int, cfg, chunk: int = 4096) -> dict:
     """C MuJoCo rollouts of the same instances (platform height per instance; payload and friction not set)."""
     scen, _ = scenario(batch)
-    m, _, ids, _ = stepdown._setup(cfg.layout, cfg.control_dt)
+    st = stepdown.setup(cfg)
+    m, ids = st.m, st.ids
     qpos = stepdown.initial_qpos(m, scen)
     heights = np.asarray(scen.terrain.platform_height)
     models = {}
@@ -241,14 +266,15 @@ def _copy_model(m):
 def bench_stages(batch: int, steps: int, repeats: int, cfg) -> dict:
     """Observation alone and observation + crawl controller + metrics, without physics, at one batch."""
     scen, _ = scenario(batch)
-    m, mx, ids, slots = stepdown._setup(cfg.layout, cfg.control_dt)
+    st = stepdown.setup(cfg)
+    m, mx, ids = st.m, st.mx, st.ids
     d0 = sim.initial_data(mx, stepdown.initial_qpos(m, scen), batch)
     # Contact and kinematic fields the controller and metrics read: one forward pass.
     mb = hmodel.batch_model(mx, ids, scen.terrain)
     m_axes = hmodel.model_in_axes(mb)
     d0 = jax.jit(jax.vmap(mjx.forward, in_axes=(m_axes, 0)))(mb, d0)
     ctrl = crawl.crawl_controller(cfg.control_dt)
-    metrics = stepdown.make_metrics(ids, slots, cfg)
+    metrics = stepdown.make_metrics(ids, cfg)
     qadr = np.asarray(ids.qpos_joints)
 
     def nudge(d, tau):  # joints move a little every tick (so XLA cannot hoist the work out of the loop)
@@ -309,7 +335,7 @@ def bench_nan(batch: int, duration: float, cfg) -> dict:
     t = time.perf_counter()
     res = jax.block_until_ready(compiled(*args))
     run_s = time.perf_counter() - t
-    out = stepdown.summarize_instances(res, scen, c, stepdown._setup(c.layout, c.control_dt)[2])
+    out = stepdown.summarize_instances(res, scen, c)
     qpos, qvel = np.asarray(res.data.qpos), np.asarray(res.data.qvel)
     nonfinite = ~(np.all(np.isfinite(qpos), 1) & np.all(np.isfinite(qvel), 1))
     div = np.asarray(res.diverged)
@@ -385,7 +411,9 @@ def summary(res: dict) -> str:
     tp = res.get("throughput", {})
     if tp:
         lines += ["| batch | MJX physics | closed loop (step-down) | C MuJoCo | overhead (physics / closed) "
-                  "| closed / C | compile s (physics / closed) |", "|---:|---:|---:|---:|---:|---:|---|"]
+                  "| closed / C | compile s (physics / closed) | MJX-Warp physics | warp / jax physics "
+                  "| closed loop under warp | closed warp / bare warp | closed warp / C |",
+                  "|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|"]
 
         def f(x):
             return "–" if x is None else f"{x:,.0f}"
@@ -400,6 +428,11 @@ def summary(res: dict) -> str:
             lines.append(f"| {b:,} | {f(p)} | {f(cl)} | {f(cc)} | {p / cl:.2f}x |" if p and cl else
                          f"| {b:,} | {f(p)} | {f(cl)} | {f(cc)} | – |")
             lines[-1] += (f" {cl / cc:.2f} |" if cl and cc else " – |") + f" {comp} |"
+            pw = row.get("physics_warp", {}).get("env_steps_per_s")
+            cw = row.get("closed_warp", {}).get("env_steps_per_s")
+            lines[-1] += f" {f(pw)} |" + (f" {pw / p:.2f}x |" if pw and p else " – |")
+            lines[-1] += f" {f(cw)} |" + (f" {cw / pw:.0%} |" if cw and pw else " – |")
+            lines[-1] += f" {cw / cc:.1f}x |" if cw and cc else " – |"
     st = res.get("stages")
     if st:
         lines += ["", f"stages at batch {st['batch']} ({st['steps']} ticks): " + ", ".join(
@@ -441,7 +474,8 @@ def plot(res: dict, path: str) -> None:
 
     info = res["info"]
     fig, ax = plt.subplots(figsize=(6.4, 4.4))
-    labels = {"physics": "bare MJX physics", "closed": "closed loop (crawl + reflex + MJX)",
+    labels = {"physics": "bare MJX physics", "physics_warp": "bare MJX-Warp physics",
+              "closed": "closed loop (crawl + reflex + MJX)", "closed_warp": "closed loop, MJX-Warp",
               "mujoco_c": f"C MuJoCo ({info.get('c_threads')} threads)"}
     tp = res.get("throughput", {})
     for mode, lab in labels.items():
@@ -485,9 +519,14 @@ def main(argv=None) -> int:
     ap.add_argument("--grad-fields", nargs="+", default=["k_x", "k_base", "d_sw_max"])
     ap.add_argument("--scaling-batches", type=int, nargs="+", default=None, help="batch per device")
     ap.add_argument("--budget-s", type=float, default=None, help="start nothing new after this many seconds")
+    ap.add_argument("--impls", nargs="+", default=None, choices=mjx_impl.IMPLS,
+                    help="MJX implementations of the bare-physics column (default: jax, and warp when installed)")
+    ap.add_argument("--modes", nargs="+", default=["physics", "closed", "mujoco_c"],
+                    choices=["physics", "closed", "mujoco_c"], help="throughput columns to measure")
     ap.add_argument("--out", default=None)
     ap.add_argument("--plot", default=None)
     args = ap.parse_args(argv)
+    impls = args.impls or (["jax", "warp"] if mjx_impl.warp_available() else ["jax"])
 
     info = host_info()
     gpu = info["backend"] != "cpu"
@@ -503,10 +542,11 @@ def main(argv=None) -> int:
     grad_duration = args.grad_duration or (0.1 if tiny else 0.8)
     long_batch = max(batches)
     scaling_batches = args.scaling_batches or ([8] if tiny else [16384, 32768])
-    cfg = stepdown.StepdownConfig(record_every=0)
-    info.update(batches=batches, c_batches=c_batches, steps=steps, repeats=repeats, c_threads=threads,
+    cfg = stepdown.StepdownConfig(record_every=0, impl="jax")  # the other implementations: *_warp columns
+    info.update(impls=impls, warp=_warp_version(), batches=batches, c_batches=c_batches, steps=steps,
+                repeats=repeats, c_threads=threads,
                 heights=list(HEIGHTS), timestep=cfg.control_dt, dtype="float32",
-                solver="Newton, iterations=4, ls_iterations=8 (hyqjax.model.load_model defaults)",
+                solver="Newton, iterations=4, ls_iterations=8 (hyqjax.sim.model.load_model defaults)",
                 provenance=hio.provenance(argv if argv is not None else sys.argv[1:]))
     print("# bench_closed_loop")
     for k in ("date", "device", "n_devices", "cpu", "cpu_cores", "loadavg_start", "python", "jax", "jaxlib",
@@ -550,12 +590,20 @@ def main(argv=None) -> int:
         tp = res.setdefault("throughput", {})
         for b in sorted(set(batches) | set(c_batches)):
             row = tp.setdefault(str(b), {})
-            for mode in ("physics", "closed", "mujoco_c"):
+            others = [i for i in impls if i != "jax"]
+            for mode in ([f"physics_{i}" for i in others] + ["physics"] + [f"closed_{i}" for i in others]
+                         + ["closed", "mujoco_c"]):
+                if mode.split("_")[0] not in args.modes and mode not in args.modes:
+                    continue
                 if mode == "mujoco_c" and b not in c_batches:
                     continue
                 if mode != "mujoco_c" and b not in batches:
                     continue
-                if mode == "physics":
+                if mode.startswith("physics_"):
+                    r = attempt(f"{mode} {b}", lambda: bench_physics(b, steps, repeats, cfg, mode.split("_", 1)[1]))
+                elif mode.startswith("closed_"):
+                    r = attempt(f"{mode} {b}", lambda: bench_closed(b, steps, repeats, cfg, impl=mode.split("_", 1)[1]))
+                elif mode == "physics":
                     r = attempt(f"physics {b}", lambda: bench_physics(b, steps, repeats, cfg))
                 elif mode == "closed":
                     r = attempt(f"closed {b}", lambda: bench_closed(b, steps, repeats, cfg))

@@ -42,9 +42,11 @@ import mujoco.rollout  # noqa: E402
 import numpy as np  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
-from hyqjax import io as hio  # noqa: E402
-from hyqjax import model as hmodel  # noqa: E402
-from hyqjax import robot, sim, stand  # noqa: E402
+from hyqjax.io import atomic as hio  # noqa: E402
+from hyqjax.sim import model as hmodel  # noqa: E402
+from hyqjax.core import robot  # noqa: E402
+from hyqjax.sim import rollout as sim
+from hyqjax.control import stand
 
 CPU_BATCHES = (1, 16, 64, 256, 1024)
 GPU_BATCHES = (1024, 4096, 16384, 65536)
@@ -267,7 +269,7 @@ def main(argv=None) -> int:
     c_batches = args.c_batches or batches
     threads = args.threads or info["cpu_cores"]
     info.update(batches=batches, c_batches=c_batches, steps=args.steps, repeats=args.repeats, c_threads=threads,
-                timestep=0.002, solver="Newton, iterations=4, ls_iterations=8 (hyqjax.model.load_model defaults)",
+                timestep=0.002, solver="Newton, iterations=4, ls_iterations=8 (hyqjax.sim.model.load_model defaults)",
                 provenance=hio.provenance(argv if argv is not None else sys.argv[1:]))
     print("# bench_physics")
     for k in ("date", "device", "n_devices", "cpu", "cpu_cores", "loadavg_start", "python", "jax", "mujoco",

@@ -1,4 +1,4 @@
-"""Benchmark of the height reflex tick (:func:`hyqjax.reflex.reflex_step`).
+"""Benchmark of the height reflex tick (:func:`hyqjax.reflex.step.reflex_step`).
 
 * Latency: one jitted ``reflex_step`` call for one robot (float32), median over many calls,
   each blocking on all outputs (``jax.block_until_ready``). This includes JAX's dispatch of a
@@ -32,8 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax import kinematics, robot
-from hyqjax import reflex as R
+from hyqjax.core import kinematics
+from hyqjax.core import robot
+from hyqjax.reflex import step as R
 
 DT = 1e-3
 SECTION_TITLE = "## Height reflex step (reflex_step)"
@@ -87,7 +88,7 @@ def bench_latency(device, n_calls: int = 5000) -> dict:
     floor = _time(jax.jit(same_signature), state, inputs, params, dt, repeats=n_calls)
 
     # The packed real-time entry point: one (44,) vector in, one (67,) out, parameters closed over.
-    from hyqjax import reflex_realtime as RT
+    from hyqjax.reflex import realtime as RT
 
     with jax.default_device(device):
         packed_step = RT.make_realtime_reflex(R.ReflexParams(), DT)
@@ -191,7 +192,7 @@ def run(devices, batches, cpu_target_ticks, gpu_target_ticks, n_calls, date) -> 
 
 
 def main(argv=None) -> str:
-    parser = argparse.ArgumentParser(description="Benchmark hyqjax.reflex.reflex_step")
+    parser = argparse.ArgumentParser(description="Benchmark hyqjax.reflex.step.reflex_step")
     parser.add_argument("--batches", type=int, nargs="+", default=[1_000, 10_000, 100_000])
     parser.add_argument("--cpu-target-ticks", type=float, default=2e6, help="robot-ticks per timed call on CPU")
     parser.add_argument("--gpu-target-ticks", type=float, default=2e8, help="robot-ticks per timed call on GPU")

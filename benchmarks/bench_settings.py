@@ -2,7 +2,7 @@
 
 For each setting (``timestep``, ``iterations``, ``ls_iterations``) a batch of HyQ instances runs
 ``--duration`` s of closed loop from the standing keyframe (flat ground, x = 1 m) under
-``hyqjax.stand.stand_controller`` at a fixed 250 Hz control rate (zero-order hold, so the controller
+``hyqjax.control.stand.stand_controller`` at a fixed 250 Hz control rate (zero-order hold, so the controller
 is the same for every timestep; ``control_dt / timestep`` physics steps per tick), float32 MJX.
 Half of the instances only stand; the other half get a horizontal push at t = 0.5 s for 0.1 s,
 200 to 800 N in directions spread around the compass (the feet slip; HyQ slides and recovers).
@@ -10,7 +10,7 @@ Half of the instances only stand; the other half get a horizontal push at t = 0.
 Reported per setting:
   env-steps/s      batch x physics steps / wall time of the jitted rollout (after compile);
   sim-s/s          batch x simulated seconds / wall time (the cost measure that compares timesteps);
-  diverged         fraction of instances with a non-finite state or |qvel| > 100 (hyqjax.sim's test);
+  diverged         fraction of instances with a non-finite state or |qvel| > 100 (hyqjax.sim.rollout's test);
   fell             fraction with the trunk below 0.35 m at the end;
   height drift     max over time of |z(t) - z(0)| of the standing instances (mm);
   error vs ref     final-state error against a high-accuracy C MuJoCo reference (float64, default
@@ -20,7 +20,7 @@ Reported per setting:
 
 ``iterations``/``ls_iterations`` are static in MJX (one compile per pair); the timestep is passed at run
 time, so one compiled program serves the three timesteps. "default" means MuJoCo's defaults (100, 50).
-The project's setting is timestep 0.002, iterations 4, ls_iterations 8 (``hyqjax.model.load_model``).
+The project's setting is timestep 0.002, iterations 4, ls_iterations 8 (``hyqjax.sim.model.load_model``).
 
 Usage::
 
@@ -45,9 +45,12 @@ import numpy as np  # noqa: E402
 from mujoco import mjx  # noqa: E402
 
 from bench_physics import host_info  # noqa: E402
-from hyqjax import io as hio  # noqa: E402
-from hyqjax import model as hmodel  # noqa: E402
-from hyqjax import robot, sim, spatial, stand  # noqa: E402
+from hyqjax.io import atomic as hio  # noqa: E402
+from hyqjax.sim import model as hmodel  # noqa: E402
+from hyqjax.core import robot  # noqa: E402
+from hyqjax.sim import rollout as sim
+from hyqjax.core import spatial
+from hyqjax.control import stand
 
 DEFAULT_ITERATIONS, DEFAULT_LS_ITERATIONS = 100, 50  # MuJoCo's defaults
 ITERATIONS = (1, 2, 4, DEFAULT_ITERATIONS)

@@ -1,4 +1,4 @@
-"""Step-down sweep throughput: instances per second of ``hyqjax.sweep.run_rows`` (the chunk runner of
+"""Step-down sweep throughput: instances per second of ``hyqjax.studies.sweep.run_rows`` (the chunk runner of
 ``hyqjax sweep``), on one local device and sharded over all of them.
 
 Usage: ``PYTHONPATH=. python benchmarks/bench_sweep.py [--batch 16 32] [--duration 2] [--host-devices N]``.
@@ -33,7 +33,7 @@ def main(argv=None):
     import mujoco
     import numpy as np
 
-    from hyqjax import sweep
+    from hyqjax.studies import sweep
 
     devs = jax.local_devices()
     try:

@@ -22,8 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax import kinematics, robot
-from hyqjax import reflex as R
+from hyqjax.core import kinematics
+from hyqjax.core import robot
+from hyqjax.reflex import step as R
 
 DT = 1e-3
 RF = robot.RF

@@ -34,7 +34,7 @@ def load_instances(dirs):
 
 
 def summarise(rows):
-    from hyqjax.stepdown import wilson_interval
+    from hyqjax.studies.stepdown import failure_labels, wilson_interval
 
     cells = collections.defaultdict(list)
     for r in rows:
@@ -44,7 +44,7 @@ def summarise(rows):
         n, k = len(rs), int(sum(bool(r["success"]) for r in rs))
         lost = int(sum(int(r["lost_footholds"]) > 0 for r in rs))
         lo, hi = wilson_interval(k, n)
-        reasons = collections.Counter(r["failure_reason"] for r in rs if not r["success"])
+        reasons = collections.Counter(" + ".join(failure_labels(r)) for r in rs if not r["success"])
         table.append(dict(height=h, reflex=reflex, n=n, successes=k, success_rate=k / n, success_ci95=[lo, hi],
                           lost_foothold_rate=lost / n, failure_reasons=dict(reasons.most_common())))
     limits = {}
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
     sources = args.sources
     if not sources:
         run_dir = os.path.join(args.out, "run")
-        cmd = [sys.executable, "-m", "hyqjax.cli", "stepdown", "--heights", *map(str, args.heights),
+        cmd = [sys.executable, "-m", "hyqjax.cli.app", "stepdown", "--heights", *map(str, args.heights),
                "--instances", str(args.instances), "--seed", str(args.seed), "--no-figures", "--out", run_dir]
         print(" ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)

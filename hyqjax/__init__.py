@@ -1,14 +1,20 @@
 """hyqjax: IIT HyQ's height reflex, crawl and bounding gaits as pure, batched, differentiable JAX on MJX.
 
-Modules, one concept each:
-  robot        HyQ constants (names, geometry, limits, standing pose)
-  model        HyQ + step-down terrain as MjModel / batched mjx.Model
-  kinematics   FK, foot Jacobians, analytic IK (trunk frame)
-  sim          closed-loop batched rollout (lax.scan over ticks, vmap over instances, sharding)
-  impedance    joint PD + feed-forward
-  reflex       the height reflex (Focchi et al. 2017, Section III)
-  crawl        the statically stable crawl (Section II) with the reflex hooked in
-  stepdown     the step-down experiment (Section IV)
+Subpackages by concept (docs/architecture.md draws the layers):
+  core      robot constants, spatial algebra, kinematics, parameter declarations
+  sim       HyQ + terrain model, contacts (sensors), backend choice (impl), rollout, batch runner
+  control   joint impedance, trunk control, trajectories, standing
+  reflex    the height reflex (Focchi et al. 2017, Section III, Eqs. 2-12)
+  crawl     the statically stable crawl (Section II) with the reflex hooked in
+  bounding  impulse-based bounding and turning (Orsolino et al.)
+  studies   the step-down experiment (Section IV), sweeps, tuning, statistics
+  io, cli   results, recordings, rendering, reports; the command line
+
+The public API is re-exported here and imported on first use (``import hyqjax`` loads no JAX):
+``StepdownConfig``, ``Scenario``, ``make_scenarios``, ``make_stepdown_rollout``, ``StepdownOutcome``,
+``run_batch``, ``summarize``, ``format_table``; ``CrawlParams``, ``ReflexParams``, ``batch_params``;
+``SimConfig``, ``make_batch_runner``, ``rollout``, ``batch_mesh``; ``load_model``, ``model_ids``,
+``InstanceTerrain``, ``batch_model``; ``resolve_impl``.
 """
 from __future__ import annotations
 
@@ -26,3 +32,37 @@ if "jax" not in _sys.modules:
             _flags + " --xla_cpu_enable_concurrency_optimized_scheduler=false"
             " --xla_cpu_experimental_ynn_fusion_type="
         ).strip()
+
+from hyqjax.sim import backend as _backend  # noqa: E402  (stdlib only: no JAX at import)
+
+_backend.install_quiet_warp_import()
+
+_PUBLIC = {
+    "StepdownConfig": "hyqjax.studies.stepdown", "Scenario": "hyqjax.studies.stepdown",
+    "make_scenarios": "hyqjax.studies.stepdown", "make_stepdown_rollout": "hyqjax.studies.stepdown",
+    "StepdownRollout": "hyqjax.studies.stepdown", "run_batch": "hyqjax.studies.stepdown",
+    "StepdownOutcome": "hyqjax.studies.stepdown_outcome", "FAILURE_REASONS": "hyqjax.studies.stepdown_outcome",
+    "summarize": "hyqjax.studies.stepdown_table", "format_table": "hyqjax.studies.stepdown_table",
+    "CrawlParams": "hyqjax.crawl.controller", "ReflexParams": "hyqjax.reflex.params",
+    "batch_params": "hyqjax.core.params",
+    "SimConfig": "hyqjax.sim.rollout", "rollout": "hyqjax.sim.rollout", "Observation": "hyqjax.sim.rollout",
+    "Controller": "hyqjax.sim.rollout", "Metrics": "hyqjax.sim.rollout", "Push": "hyqjax.sim.rollout",
+    "make_batch_runner": "hyqjax.sim.runner", "batch_mesh": "hyqjax.sim.runner",
+    "load_model": "hyqjax.sim.model", "model_ids": "hyqjax.sim.model", "InstanceTerrain": "hyqjax.sim.model",
+    "batch_model": "hyqjax.sim.model", "resolve_impl": "hyqjax.sim.backend",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name):
+    if name in _PUBLIC:
+        import importlib
+
+        value = getattr(importlib.import_module(_PUBLIC[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'hyqjax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))

@@ -17,13 +17,39 @@ import pytest
 REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # A persistent compilation cache for this test session only (fresh each run, removed at exit): the
-# same program compiled twice (hyqjax.sim.batch_rollout jits a new closure on every call) is compiled
+# same program compiled twice (hyqjax.sim.rollout.batch_rollout jits a new closure on every call) is compiled
 # once. Subprocesses started by run_python/start_python share it. A cache set by the user is kept.
 if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
     _CACHE_DIR = tempfile.mkdtemp(prefix="hyqjax-test-jax-cache-")
     atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _CACHE_DIR
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+
+
+_RUNNING: dict[str, pytest.Item] = {}
+
+
+def pytest_configure(config):
+    """The unit lane (``pytest -m "not slow"``) compiles no MJX model: there, building one (``mjx.put_model``)
+    in a test without the ``slow`` mark, or in a fixture it uses, fails at once naming the test and the fix."""
+    if "not slow" not in (config.getoption("-m") or ""):
+        return
+    from mujoco import mjx
+
+    put_model = mjx.put_model
+
+    def guarded(*args, **kwargs):
+        item = _RUNNING.get("item")
+        if item is not None and item.get_closest_marker("slow") is None:
+            raise RuntimeError(f"{item.nodeid} builds an MJX model (mjx.put_model) in the unit lane: "
+                               "mark it @pytest.mark.slow")
+        return put_model(*args, **kwargs)
+
+    mjx.put_model = guarded
+
+
+def pytest_runtest_setup(item):
+    _RUNNING["item"] = item
 
 
 @pytest.fixture
@@ -36,7 +62,7 @@ def x64():
 @pytest.fixture(scope="session")
 def hyq():
     """The compiled default HyQ + terrain ``MjModel`` and its named ids."""
-    from hyqjax import model as hmodel
+    from hyqjax.sim import model as hmodel
 
     m = hmodel.load_model()
     return m, hmodel.model_ids(m)

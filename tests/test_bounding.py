@@ -1,17 +1,25 @@
-"""Tests of the bounding gait (hyqjax.bounding, bounding_cycle, bounding_experiment, commands/bound).
+"""Tests of the bounding gait (hyqjax.bounding: params, gait, controller, cycle, experiment, summary; cli/bound).
 
-CPU-sized: two compiled programs (one batched forward-mode return map, one batched closed-loop rollout),
-about 3-4 minutes on 2 cores, most of it XLA compile time.
+CPU-sized: three compiled programs (one batched forward-mode return map, one Levenberg-Marquardt step, one
+batched closed-loop rollout), about 5-8 minutes on 2 cores, most of it XLA compile time.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax import bounding as bd, bounding_cycle as bc, bounding_experiment as bx
+from hyqjax.bounding import controller as bctrl
+from hyqjax.bounding import cycle as bc
+from hyqjax.bounding import defaults as bdef
+from hyqjax.bounding import experiment as bx
+from hyqjax.bounding import gait as bgait
+from hyqjax.bounding import params as bd
+from hyqjax.bounding import summary as bs
 
 #: Periodicity tolerance of the stored cycle: scaled residual norm (Eq. C2 units: 1 = 1 cm, 0.01 rad,
 #: 0.05 m/s, 0.05 m/s, 0.1 rad/s, 1 cm of drift). 0.01 means e.g. 0.1 mm of height, 1e-4 rad of pitch (measured: 3.4e-4).
@@ -26,16 +34,17 @@ GRAD_RTOL = 0.01
 # ----------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_profile_impulse_matches_kappa_and_park_kim_balance():
     for prof in ("half_sine", "bezier"):
         gait = bd.GaitParams.make(profile=prof)
         s = jnp.linspace(0.0, 1.0, 20001)
-        beta = np.asarray(bd.profile(gait, s))
+        beta = np.asarray(bgait.profile(gait, s))
         assert beta[0] == pytest.approx(0.0, abs=1e-6) and beta[-1] == pytest.approx(0.0, abs=1e-6)
         assert np.trapezoid(beta, np.asarray(s)) == pytest.approx(float(gait.kappa), rel=1e-4)
-        assert float(bd.profile(gait, jnp.float32(1.5))) == 0.0
+        assert float(bgait.profile(gait, jnp.float32(1.5))) == 0.0
         # Eq. B2: weight carried over a period and zero net pitch moment about com_x.
-        af, ah = bd.impulse_guess(gait, mass=80.0, com_x=0.01)
+        af, ah = bgait.impulse_guess(gait, mass=80.0, com_x=0.01)
         d, T, k = np.asarray(gait.duty), float(gait.period), float(gait.kappa)
         xf, xh = float(gait.foot_xy[0, 0]), float(gait.foot_xy[2, 0])
         assert 2 * k * (af * d[0] + ah * d[1]) * T == pytest.approx(80.0 * 9.81 * T, rel=1e-6)
@@ -44,22 +53,22 @@ def test_profile_impulse_matches_kappa_and_park_kim_balance():
 
 def test_leg_phase_stance_windows():
     gait = bd.GaitParams.make(period=0.4, duty=(0.4, 0.4), touchdown_phase=(0.55, 0.05))
-    st, s_st, _ = bd.leg_phase(gait, jnp.float32(0.0))  # apex: all legs in flight
+    st, s_st, _ = bgait.leg_phase(gait, jnp.float32(0.0))  # apex: all legs in flight
     assert not np.any(np.asarray(st))
-    st, s_st, _ = bd.leg_phase(gait, jnp.float32(0.1))  # hind mid-stance window
+    st, s_st, _ = bgait.leg_phase(gait, jnp.float32(0.1))  # hind mid-stance window
     assert list(np.asarray(st)) == [False, False, True, True]
     assert np.allclose(np.asarray(s_st)[2:], (0.25 - 0.05) / 0.4, atol=1e-5)
-    st, _, _ = bd.leg_phase(gait, jnp.float32(0.3))  # front stance
+    st, _, _ = bgait.leg_phase(gait, jnp.float32(0.3))  # front stance
     assert list(np.asarray(st)) == [True, True, False, False]
 
 
 def test_centrifugal_compensation_leans_into_the_turn():
     # Right turn (psidot < 0) at 1 m/s: feet move outward (+y), trunk rolls right-side down (phi > 0).
-    a_y, dy, lean = (float(v) for v in bd.centrifugal_compensation(1.0, -0.5, 0.6))
+    a_y, dy, lean = (float(v) for v in bctrl.centrifugal_compensation(1.0, -0.5, 0.6))
     assert a_y == pytest.approx(-0.5)
     assert dy == pytest.approx(0.6 * 0.5 / 9.81, rel=1e-5) and dy > 0
     assert lean == pytest.approx(np.arctan(dy / 0.6), rel=1e-5)
-    assert all(float(v) == 0.0 for v in bd.centrifugal_compensation(1.0, -0.5, 0.6, on=0.0))
+    assert all(float(v) == 0.0 for v in bctrl.centrifugal_compensation(1.0, -0.5, 0.6, on=0.0))
 
 
 def test_input_validation_names_the_parameter():
@@ -77,7 +86,17 @@ def test_input_validation_names_the_parameter():
         (lambda: bx.Randomisation(friction=(0.0, 1.0)), "friction"),
         (lambda: bx.make_batch([bd.default_params()] * 3, n_unique=2), "n_unique"),
         (lambda: bx.make_batch([bd.default_params()], push_force=1e5), "push_force"),
-        (lambda: bc.optimise_cycle(bd.default_params(), np.zeros((1, 8)), method="bfgs"), "method"),
+        (lambda: bc.optimise_cycle(bd.default_params(), np.full((1, 8), np.nan)), "u0"),
+        (lambda: bc.optimise_cycle(bd.default_params(), np.zeros((1, 8)), iterations=0), "iterations"),
+        (lambda: bd.default_params().replace(mass=jnp.float32(-1.0)), "mass"),
+        (lambda: bd.BoundingGains.make(k_unknown=1.0), "k_unknown"),
+        (lambda: bx.validate_run(speed=5.0), "speed"),
+        (lambda: bx.validate_run(instances=0), "instances"),
+        (lambda: bx.validate_run(friction=(2.0, 1.0)), "friction"),
+        (lambda: bx.validate_run(payload=(0.0, float("nan"))), "payload"),
+        (lambda: bx.validate_run(duration=1.3), "duration"),
+        (lambda: bx.validate_run(push=float("inf")), "push"),
+        (lambda: bx.validate_run(seed=-1), "seed"),
         (lambda: bc.gradient_check(bd.default_params(), np.zeros(8), indices=(9,)), "indices"),
         (lambda: bc.initial_guesses(bd.default_params(), 0), "n"),
     ]
@@ -86,27 +105,92 @@ def test_input_validation_names_the_parameter():
             fn()
 
 
+@pytest.mark.slow
+def test_parameters_validate_batched_leaves_and_stay_differentiable():
+    plist = [bd.default_params(speed=v) for v in (0.0, 0.5, 1.0)]
+    batch = bx.stack_params(plist)
+    assert batch.validate() is batch  # batched leaves are checked element-wise
+    with pytest.raises(ValueError, match="k_speed"):  # one bad element of a batch is refused
+        dataclasses.replace(batch.gains, k_speed=jnp.array([200.0, -1.0, 200.0]))
+    # jax rebuilds the PyTree for gradients (any sign): no validation error, and d a_fz / d k_height of Eq. B4 is
+    # a*_fz (z* - z_k) (alpha not clipped).
+    p = plist[0]
+    apex = p.apex_ref._replace(z=p.apex_ref.z - 0.01)
+    zero2 = jnp.zeros(2)
+
+    def a_fz(gains):
+        q = dataclasses.replace(p, gains=gains)
+        return bctrl.cycle_amplitudes(q, apex, jnp.zeros(3), zero2, jnp.zeros(4))[0, 2]
+
+    g = jax.grad(a_fz)(p.gains)
+    assert float(g.k_height) == pytest.approx(float(p.amplitudes[0, 2]) * 0.01, rel=1e-4)
+    assert float(g.k_pitch) == pytest.approx(0.0, abs=1e-6)
+
+
+def test_apex_sample_is_named_and_round_trips():
+    a = bd.Apex.of(jnp.arange(5.0))
+    assert bd.APEX_NAMES == ("z", "pitch", "vx", "vz", "pitch_rate") and float(a.vz) == 3.0
+    np.testing.assert_array_equal(np.asarray(a.array()), np.arange(5.0))
+    p = bd.default_params()
+    np.testing.assert_allclose(np.asarray(p.apex_ref.array()), bdef.stored().apex, rtol=1e-6)
+
+
+def test_cycle_file_round_trip_and_bad_file(tmp_path):
+    c = bdef.stored()
+    u = c.decision_vector()
+    assert u.shape == (8,) and u[4] == c.apex[0] and u[7] == c.apex[2]
+    path = tmp_path / "cycle.json"
+    bdef.save(path, u, c.reference, c.apex_gains, dict(note="round trip"))
+    back = bdef.load(path)
+    np.testing.assert_allclose(back.amplitudes, c.amplitudes, rtol=1e-7)
+    np.testing.assert_allclose(back.apex, c.apex, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(back.reference, c.reference, rtol=1e-7)
+    assert back.apex_gains == c.apex_gains and back.provenance == dict(note="round trip")
+    path.write_text('{"amplitudes": {"a_fz": 1.0}}')
+    with pytest.raises(ValueError, match="cycle.json"):
+        bdef.load(path)
+
+
+def test_per_cycle_speeds_of_a_circular_run():
+    # A trunk on a circle of radius R at yaw rate w, heading tangent: per cycle the chord 2 R sin(w T / 2) / T
+    # along the mid-cycle heading, no lateral speed, yaw rate w.
+    period, dt, w, radius = 0.4, 0.02, 0.5, 2.0
+    t = np.arange(0.0, 4.0 + 1e-9, dt)
+    pos = np.stack([radius * np.sin(w * t), radius * (1 - np.cos(w * t)), np.full_like(t, 0.6)], -1)
+    rpy = np.stack([np.zeros_like(t), np.zeros_like(t), bs.wrap_angle(w * t)], -1)
+    trace = dict(t=np.stack([t, t]), pos=np.stack([pos, pos]), rpy=np.stack([rpy, rpy]))
+    idx, v_fwd, v_lat, yaw_rate = bs.per_cycle(trace, period, control_dt=dt)
+    assert len(idx) == 11 and np.allclose(t[idx], np.arange(11) * period)
+    np.testing.assert_allclose(v_fwd, 2 * radius * np.sin(w * period / 2) / period, rtol=1e-9)
+    np.testing.assert_allclose(v_lat, 0.0, atol=1e-12)
+    np.testing.assert_allclose(yaw_rate, w, rtol=1e-9)
+
+
 def test_aggregate_and_contributions_keep_failures_and_measure_side_slip():
     def inst(result, yaw, slip):
-        return dict(result=result, yaw_error_max_deg=yaw, yaw_error_rms_deg=yaw / 2, speed_error_mean_abs=0.01,
-                    speed_error_rms=0.02, yaw_rate_error_rms=0.001, periodicity_residual=0.5, lateral_speed_mean=slip)
+        flags = {r: r == result for r in bs.FAIL_REASONS}
+        return bs.InstanceResult(success=result == "ok", **flags, fail_time=None if result == "ok" else 1.0,
+                                 yaw_error_max_deg=yaw, yaw_error_rms_deg=yaw / 2, speed_cmd=0.5, yaw_rate_cmd=0.3,
+                                 speed_mean=0.5, speed_error_mean_abs=0.01, speed_error_rms=0.02,
+                                 lateral_speed_mean=slip, yaw_rate_mean=0.3, yaw_rate_error_rms=0.001,
+                                 periodicity_residual=0.5)
 
-    full = bx.aggregate([inst("ok", 1.0, 0.01), inst("ok", 2.0, -0.03), inst("pitch", 9.0, 0.5)])
-    assert full["n"] == 3 and full["falls"] == 1 and full["fail_reasons"] == ["pitch"]
+    full = bs.aggregate([inst("ok", 1.0, 0.01), inst("ok", 2.0, -0.03), inst("fell_pitch", 9.0, 0.5)])
+    assert full["n"] == 3 and full["falls"] == 1 and full["fail_reasons"] == ["fell_pitch"]
     # Tracking errors over the surviving instances only; the fall is counted, not averaged in.
     assert full["yaw_error_max_deg_mean"] == pytest.approx(1.5) and full["yaw_error_max_deg_worst"] == 2.0
     assert full["side_slip_mean"] == pytest.approx(0.02) and full["side_slip_worst"] == pytest.approx(0.03)
-    off = bx.aggregate([inst("ok", 1.0, 0.25), inst("ok", 2.0, -0.25), inst("ok", 3.0, 0.25)])
+    off = bs.aggregate([inst("ok", 1.0, 0.25), inst("ok", 2.0, -0.25), inst("ok", 3.0, 0.25)])
     groups = {k: dict(aggregate=v) for k, v in
               dict(full=full, no_kinematic_adjustment=full, no_centrifugal=off, neither=off).items()}
-    c = bx.contributions(groups)
+    c = bs.contributions(groups)
     assert c["centrifugal"]["side_slip_mean_increase_when_off"] == pytest.approx(0.23)
     assert c["centrifugal"]["falls_increase_when_off"] == pytest.approx(-1.0)
     assert c["kinematic_adjustment"]["side_slip_mean_increase_when_off"] == pytest.approx(0.0)
 
 
 def test_cli_validation_names_the_option():
-    from hyqjax.commands import bound
+    from hyqjax.cli import bound
 
     p = argparse.ArgumentParser()
     bound.add_arguments(p)
@@ -116,7 +200,7 @@ def test_cli_validation_names_the_option():
                        (["--lateral-speed", "nan"], "--lateral-speed"), (["--ramp-time", "-1"], "--ramp-time"),
                        (["--push", "1e5"], "--push"), (["--push-duration", "11"], "--push-duration")):
         with pytest.raises(ValueError, match=name):
-            bound._validate(p.parse_args(argv))
+            bound.check_options(p.parse_args(argv))
     with pytest.raises(ValueError, match="speed"):
         bound.run(p.parse_args(["--speed", "9", "--out", "/tmp/hyqjax_test_bound_unused"]))
 
@@ -151,6 +235,20 @@ def test_stored_cycle_is_periodic(cycle_check):
     assert np.linalg.norm(r0) < PERIODIC_TOL, r0
 
 
+@pytest.mark.slow
+def test_levenberg_marquardt_returns_to_the_cycle():
+    """optimistix's LM with forward-mode Jacobians, from the stored cycle with its vertical impulses moved by
+    +-15 N: three LM moves shrink the periodicity residual (Eq. C2) by more than 10x."""
+    params = bd.default_params(apex_feedback=False, stance_feedback=False)
+    u0 = bc.stored_cycle() + np.array([15.0, -15.0, 0, 0, 0, 0, 0, 0])
+    res = bc.optimise_cycle(params, u0[None], iterations=4, progress=False)
+    r0, r1 = res.residual_history[0, 0], res.residual_norm[0]  # at the guess, at the last accepted iterate
+    assert res.history.shape == (4, 1) and np.isfinite(r1)
+    assert r0 > 0.1, r0  # the perturbation really breaks periodicity
+    assert r1 < 0.1 * r0 and r1 < 0.05, (r0, r1)
+    assert np.all(np.diff(res.history[:, 0]) <= 1e-6 * res.history[0, 0])  # LM accepts only steps lowering Eq. C2
+
+
 # ----------------------------------------------------------------------------------------------
 # Closed loop: in place, forward, turning (one compiled batched rollout)
 # ----------------------------------------------------------------------------------------------
@@ -165,7 +263,7 @@ def closed_loop():
     plist = [bd.default_params(**s) for s in SCENARIOS]
     batch = bx.make_batch(plist, seed=3)
     res, trace = bx.run(batch, duration=DURATION)
-    summary = bx.summarise(res, trace, batch)
+    summary = bs.summarise(res, trace, batch)
     return res, trace, summary
 
 
@@ -174,13 +272,13 @@ def test_bounds_in_place_without_falling(closed_loop):
     res, trace, summary = closed_loop
     assert not np.any(np.asarray(res.diverged))
     for i in range(3):
-        p = summary["instances"][i]
-        assert p["result"] == "ok", p
-        assert p["min_height"] > 0.45 and p["max_roll_deg"] < 10.0 and p["max_pitch_deg"] < 20.0, p
+        p = summary.instances[i]
+        assert p.success, p
+        assert p.min_height > 0.45 and p.max_roll_deg < 10.0 and p.max_pitch_deg < 20.0, p
         assert np.all(np.isfinite(trace["pos"][i]))
         # In place: little drift, and the motion is periodic (median apex-to-apex residual, Eq. C2 units).
-        assert abs(p["speed_mean"]) < 0.1, p
-        assert p["periodicity_residual"] < 2.0, p
+        assert abs(p.speed_mean) < 0.1, p
+        assert p.periodicity_residual < 2.0, p
         # Really bounding: the trunk pitches (front/hind alternation) by several degrees.
         assert np.ptp(trace["rpy"][i, 100:, 1]) > np.radians(8.0)
 
@@ -189,26 +287,26 @@ def test_bounds_in_place_without_falling(closed_loop):
 def test_speed_control_tracks_forward_speed(closed_loop):
     _, trace, summary = closed_loop
     for i in (3, 4):
-        p = summary["instances"][i]
-        assert p["result"] == "ok", p
-        assert trace["pos"][i, -1, 0] > 0.5 * p["speed_cmd"] * (DURATION - 1.5)
-        assert p["speed_error_mean_abs"] < 0.1, p
+        p = summary.instances[i]
+        assert p.success, p
+        assert trace["pos"][i, -1, 0] > 0.5 * p.speed_cmd * (DURATION - 1.5)
+        assert p.speed_error_mean_abs < 0.1, p
     # Faster command, faster robot.
-    assert summary["instances"][4]["speed_mean"] > summary["instances"][3]["speed_mean"] + 0.15
+    assert summary.instances[4].speed_mean > summary.instances[3].speed_mean + 0.15
 
 
 @pytest.mark.slow
 def test_turning_follows_yaw_rate_sign_and_magnitude(closed_loop):
     _, trace, summary = closed_loop
     for i in (5, 6):
-        p = summary["instances"][i]
-        assert p["result"] == "ok", p
-        assert np.sign(p["yaw_rate_mean"]) == np.sign(p["yaw_rate_cmd"])
-        assert abs(p["yaw_rate_mean"] - p["yaw_rate_cmd"]) < 0.1, p
-        assert p["yaw_error_max_deg"] < 4.0, p  # the paper: below 4 deg on HyQ
+        p = summary.instances[i]
+        assert p.success, p
+        assert np.sign(p.yaw_rate_mean) == np.sign(p.yaw_rate_cmd)
+        assert abs(p.yaw_rate_mean - p.yaw_rate_cmd) < 0.1, p
+        assert p.yaw_error_max_deg < 4.0, p  # the paper: below 4 deg on HyQ
     # Straight bounding does not turn.
     for i in range(5):
-        assert abs(summary["instances"][i]["yaw_rate_mean"]) < 0.05
+        assert abs(summary.instances[i].yaw_rate_mean) < 0.05
 
 
 @pytest.mark.slow

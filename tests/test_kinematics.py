@@ -1,4 +1,4 @@
-"""Leg kinematics (hyqjax.kinematics) against MuJoCo's own kinematics of the MJCF, in float64.
+"""Leg kinematics (hyqjax.core.kinematics) against MuJoCo's own kinematics of the MJCF, in float64.
 
 Random configurations are drawn uniformly inside the joint ranges (robot.Q_MIN/Q_MAX); the
 ranges fix the knee direction (front KFE < 0, hind KFE > 0), so every sample has the right one.
@@ -11,7 +11,8 @@ import mujoco
 import numpy as np
 import pytest
 
-from hyqjax import kinematics, robot
+from hyqjax.core import kinematics
+from hyqjax.core import robot
 
 N_SAMPLES = 300
 
@@ -157,6 +158,7 @@ def test_stacked_jacobian_block_structure(rng, x64):
     np.testing.assert_allclose(np.einsum("nij,nj->ni", big, np.asarray(qd)), v, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_jit_vmap_grad_and_shapes(rng):
     qs = jnp.asarray(random_q(rng, 8), jnp.float32)
     # Batched (..., 12) and (..., 4, 3) inputs agree, with and without jit/vmap.

@@ -1,5 +1,6 @@
-"""The HyQ MJCF and the per-instance terrain batching of hyqjax.model."""
+"""The HyQ MJCF and the per-instance terrain batching of hyqjax.sim.model."""
 from __future__ import annotations
+
 
 import jax
 import jax.numpy as jnp
@@ -8,8 +9,9 @@ import numpy as np
 import pytest
 from mujoco import mjx
 
-from hyqjax import model as hmodel
-from hyqjax import robot, stand
+from hyqjax.sim import model as hmodel
+from hyqjax.core import robot
+from hyqjax.control import stand
 
 
 # ---------------------------------------------------------------- the URDF's numbers
@@ -183,6 +185,7 @@ def batched_platform_run(hyq):
     return m, ids, mxb, qpos0, first_contact, first_com, d_last
 
 
+@pytest.mark.slow
 def test_batched_model_fields(batched_platform_run):
     m, ids, mxb = batched_platform_run[:3]
     hz = hmodel.PLATFORM_HALF_SIZE[2]
@@ -198,6 +201,7 @@ def _foot_contacts(c, ids, b, foot, terrain_geom):
     return np.flatnonzero(((g1 == terrain_geom) & (g2 == foot)) | ((g2 == terrain_geom) & (g1 == foot)))
 
 
+@pytest.mark.slow
 def test_platform_contact_height_per_instance(batched_platform_run):
     m, ids, _, _, c, _, d_last = batched_platform_run
     dist, pos = np.asarray(c.dist), np.asarray(c.pos)
@@ -223,6 +227,7 @@ def test_platform_contact_height_per_instance(batched_platform_run):
         assert -2e-3 < float(c_last.dist[b, k]) < 0.0  # in contact, still with the platform
 
 
+@pytest.mark.slow
 def test_payload_shifts_mass_and_com(batched_platform_run):
     m, ids, mxb, qpos0, _, com_mjx, _ = batched_platform_run
     com_mjx = np.asarray(com_mjx)
@@ -244,6 +249,7 @@ def test_payload_shifts_mass_and_com(batched_platform_run):
     np.testing.assert_allclose(np.asarray(mxb.body_inertia)[2, ids.payload_body], PAYLOAD[2] * box, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_friction_is_per_instance(hyq):
     m, ids = hyq
     mx = mjx.put_model(m)
@@ -289,3 +295,134 @@ def test_load_model_rejects_bad_settings():
     assert (m.opt.timestep, m.opt.iterations, m.opt.ls_iterations) == (0.001, 2, 4)
     dflt = hmodel.load_model()
     assert (dflt.opt.timestep, dflt.opt.iterations, dflt.opt.ls_iterations) == (0.002, 4, 8)
+
+
+# ---------------------------------------------------------------- contacts through sensors (hyqjax.sim.contacts)
+
+SENSOR_FORCE_TOL = 0.1  # N, on forces of 10-1500 N (float32 MJX, 4 Newton iterations, against float64 C)
+CLEARANCE_TOL = 1e-5  # m
+
+
+def _on_platform(height):
+    return hmodel.model_spec(platform_height=height).compile()
+
+
+def _contact_states(m):
+    """C MuJoCo states with terrain contacts of every kind, as ``(model, qpos, qvel)``.
+
+    Standing on the floor (four feet), and HyQ standing with its front feet 5 cm past the edge of a 16 cm
+    platform under soft joint PD: it tips forward off the edge, its front feet fall to the floor past the
+    edge, and its shins and feet touch the platform's edge.
+    """
+    states = []
+    d = mujoco.MjData(m)
+    d.qpos[:] = hmodel.standing_qpos(m, base_xy=(1.0, 0.0))
+    states.append((m, d.qpos.copy(), d.qvel.copy()))
+    mc = _on_platform(0.16)
+    d = mujoco.MjData(mc)
+    d.qpos[:] = hmodel.standing_qpos(mc, base_xy=(-float(robot.B_P_HIP[0, 0]) + 0.05, 0.0), ground_height=0.16)
+    q0 = d.qpos[7:].copy()
+    for k in range(600):
+        d.ctrl[:] = np.clip(300.0 * (q0 - d.qpos[7:]) - 10.0 * d.qvel[6:], -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        mujoco.mj_step(mc, d)
+        if k % 100 == 99:
+            states.append((mc, d.qpos.copy(), d.qvel.copy()))
+    # Standing on the floor with the hind feet pressed against the platform's face: feet on two geoms at once.
+    d = mujoco.MjData(mc)
+    d.qpos[:] = hmodel.standing_qpos(mc, base_xy=(0.0, 0.0))
+    mujoco.mj_kinematics(mc, d)
+    hind_x = d.site_xpos[list(ids_of(mc).foot_sites[2:]), 0].max()
+    d.qpos[0] += mc.geom_size[ids_of(mc).foot_geoms[2], 0] - 0.003 - hind_x
+    for k in range(300):
+        d.ctrl[:] = np.clip(3000.0 * (q0 - d.qpos[7:]) - 30.0 * d.qvel[6:], -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        mujoco.mj_step(mc, d)
+        if k % 100 == 99:
+            states.append((mc, d.qpos.copy(), d.qvel.copy()))
+    return states
+
+
+def ids_of(m):
+    return hmodel.model_ids(m)
+
+
+def _c_forward(mc, qpos, qvel):
+    d = mujoco.MjData(mc)
+    d.qpos[:], d.qvel[:] = qpos, qvel
+    mujoco.mj_forward(mc, d)
+    return d
+
+
+def _old_max_normal(mc, d, geom) -> float:
+    """The previous reader's quantity: the largest normal force over the contacts of ``geom`` (0 if none)."""
+    f6, out = np.zeros(6), 0.0
+    for i in range(d.ncon):
+        c = d.contact[i]
+        if geom in (c.geom1, c.geom2) and c.efc_address >= 0:
+            mujoco.mj_contactForce(mc, d, i, f6)
+            out = max(out, f6[0])
+    return out
+
+
+@pytest.mark.slow
+def test_foot_clearance_is_the_geometric_distance_to_the_terrain(hyq):
+    from hyqjax.sim import contacts
+
+    m, ids = hyq
+    ci = ids.contacts
+    n_close = 0
+    for mc, qpos, qvel in _contact_states(m):
+        d = _c_forward(mc, qpos, qvel)
+        got = np.asarray(contacts.foot_clearance(ci, mjx.put_data(mc, d)))
+        fromto = np.zeros(6)
+        want = [min(mujoco.mj_geomDistance(mc, d, f, g, 1.0, fromto) for g in ci.terrain_geoms) for f in ci.foot_geoms]
+        np.testing.assert_allclose(got, want, atol=CLEARANCE_TOL)
+        n_close += int(np.sum(np.abs(want) < 0.005))
+    assert n_close >= 8  # the 5 mm foothold test is exercised on feet touching the terrain
+
+
+@pytest.mark.slow
+def test_contact_sensors_match_mujoco_c_and_the_previous_reader(hyq):
+    """Shin, trunk and foot sensors in MJX (float32) against C MuJoCo's sensors and contact forces (float64)
+    on a standing state and the states of a collapse over the platform edge."""
+    from hyqjax.sim import contacts
+
+    m, ids = hyq
+    ci = ids.contacts
+    fwd = jax.jit(mjx.forward)
+    seen_shin = seen_two = 0
+    for mc, qpos, qvel in _contact_states(m):
+        dc = _c_forward(mc, qpos, qvel)
+        dx = fwd(mjx.put_model(mc), mjx.make_data(mjx.put_model(mc)).replace(qpos=qpos, qvel=qvel))
+        for read, adr in ((contacts.shin_forces, ci.shin_adr), (contacts.foot_forces, ci.foot_adr)):
+            np.testing.assert_allclose(np.asarray(read(ci, dx)), dc.sensordata[np.asarray(adr) + 1],
+                                       atol=SENSOR_FORCE_TOL)
+        np.testing.assert_array_equal(np.asarray(contacts.shin_in_contact(ci, dx)), dc.sensordata[np.asarray(ci.shin_adr)] > 0)
+        np.testing.assert_array_equal(np.asarray(contacts.foot_in_contact(ci, dx)), dc.sensordata[np.asarray(ci.foot_adr)] > 0)
+        assert float(contacts.trunk_force(ci, dx)) == pytest.approx(dc.sensordata[ci.trunk_adr + 1], abs=SENSOR_FORCE_TOL)
+        # Against the previous reader (the largest normal force over the geom's contacts): equal whenever a
+        # geom has one contact; with two (a foot on the floor and the edge) the sensor reports the contact
+        # of larger force magnitude, which is also the larger normal force in these states.
+        for geoms, read in ((ids.shin_geoms, contacts.shin_forces), (ids.foot_geoms, contacts.foot_forces)):
+            old = np.array([_old_max_normal(mc, dc, g) for g in geoms])
+            np.testing.assert_allclose(np.asarray(read(ci, dx)), old, atol=SENSOR_FORCE_TOL)
+        seen_shin += int(np.any(dc.sensordata[np.asarray(ci.shin_adr) + 1] > 1.0))
+        seen_two += int(np.any(dc.sensordata[np.asarray(ci.foot_adr)] >= 2))
+    assert seen_shin >= 1 and seen_two >= 1, (seen_shin, seen_two)
+    assert contacts.overflow(dx).dtype == bool and not bool(contacts.overflow(dx))
+
+
+@pytest.mark.slow
+def test_one_mjx_step_matches_mujoco_c(hyq):
+    """Golden test: one 2 ms step of MJX (float32) from a settled standing state equals C MuJoCo's (float64)."""
+    m, ids = hyq
+    d = mujoco.MjData(m)
+    d.qpos[:] = hmodel.standing_qpos(m, base_xy=(1.0, 0.0))
+    q0 = d.qpos[7:].copy()
+    for _ in range(250):  # settle under joint PD so the feet carry the weight
+        d.ctrl[:] = np.clip(3000.0 * (q0 - d.qpos[7:]) - 30.0 * d.qvel[6:], -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        mujoco.mj_step(m, d)
+    dx = jax.jit(mjx.step)(mjx.put_model(m), mjx.put_data(m, d))  # same state, controls and solver warm start
+    mujoco.mj_step(m, d)
+    assert d.ncon >= 4
+    np.testing.assert_allclose(np.asarray(dx.qpos), d.qpos, atol=2e-6)
+    np.testing.assert_allclose(np.asarray(dx.qvel), d.qvel, atol=2e-3)

@@ -1,4 +1,4 @@
-"""Tests of the height reflex (Focchi et al. 2017, Section III) in ``hyqjax.reflex``.
+"""Tests of the height reflex (Focchi et al. 2017, Section III) in ``hyqjax.reflex.step``.
 
 Every test jits what it calls. Float64 tests enable x64 through the ``x64`` fixture, which
 restores the previous setting afterwards.
@@ -13,8 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax import kinematics, robot
-from hyqjax import reflex as R
+from hyqjax.core import kinematics
+from hyqjax.core import robot
+from hyqjax.core.params import ParameterError
+from hyqjax.reflex import step as R
 
 DT = 1e-3
 RF, LH = robot.RF, robot.LH
@@ -80,6 +82,13 @@ def search_rollout(params):
     return rollout_seq(R.reflex_init(x0), search_inputs(x0, RF, depth=0.2, speed=0.1, n_steps=5000), params)
 
 
+def unchecked(params, **kw):
+    """``params`` with fields replaced *without* validation (PyTree unflatten), to test the fallbacks."""
+    names = [f.name for f in dataclasses.fields(params)]
+    leaves = [kw.get(n, getattr(params, n)) for n in names]
+    return jax.tree_util.tree_unflatten(jax.tree.structure(params), leaves)
+
+
 def stance_distances(x_feet, swing_leg):
     st = x_feet[..., R.STANCE_LEGS[swing_leg], :]
     return np.stack([np.linalg.norm(st[..., i, :] - st[..., j, :], axis=-1) for i, j in R.STANCE_PAIRS], -1)
@@ -106,12 +115,17 @@ def stance_distances(x_feet, swing_leg):
         ({"k_x": 3e4}, "k_x"),
         ({"k_x": float("nan")}, "k_x"),
         ({"k_x_max": float("inf")}, "k_x_max"),
-        ({"k_x": np.ones(4)}, "k_x"),
+        ({"k_x": "stiff"}, "k_x"),
+        ({"d_sw_min": -5.0}, "d_sw_min"),
     ],
 )
 def test_validation_names_parameter(kwargs, name):
-    with pytest.raises(ValueError, match=name):
-        R.ReflexParams.make(**kwargs)
+    """Construction, ``make``, ``replace`` and ``dataclasses.replace`` all refuse, naming the field."""
+    for build in (lambda: R.ReflexParams.make(**kwargs), lambda: R.ReflexParams(**kwargs),
+                  lambda: R.ReflexParams().replace(**kwargs), lambda: dataclasses.replace(R.ReflexParams(), **kwargs)):
+        with pytest.raises(ParameterError, match=rf"^ReflexParams\.{name}=.*must be") as e:
+            build()
+        assert "\n" not in str(e.value) and e.value.param == name
 
 
 def test_table1_defaults_and_pytree():
@@ -123,6 +137,8 @@ def test_table1_defaults_and_pytree():
         R.ReflexParams.make(k_z=1.0)
     with pytest.raises(ValueError, match="outside jit"):
         jax.jit(lambda k: R.ReflexParams(k_x=k).validate())(1.0)
+    # Built inside a transformation (traced values), parameters are not checked there.
+    assert float(jax.jit(lambda k: R.ReflexParams(k_x=k).replace(k_base=2 * k).k_base)(3.0)) == 6.0
     # vmap over a batch of parameter sets.
     batch = jax.tree.map(lambda a: jnp.full((3,), a), p).replace(k_base=jnp.asarray([100.0, 1500.0, 3000.0]))
     d = jax.jit(jax.vmap(lambda pp: R.damping_schedule(0.2, pp)[0]))(batch)
@@ -134,6 +150,7 @@ def test_table1_defaults_and_pytree():
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_eq3_static_equilibrium_random_layouts(x64):
     rng = np.random.default_rng(0)
     n = 32
@@ -185,6 +202,7 @@ def test_eq3_static_equilibrium_random_layouts(x64):
         assert np.abs(np.einsum("nkj,nj->nk", np.asarray(jt), qd)).max() < 1e-10
 
 
+@pytest.mark.slow
 def test_eq4_stance_distances_constant_along_trajectory(x64):
     x0 = standing_feet()
     inputs = constant_inputs(x0.at[RF, 2].add(-0.3), RF)  # target far below the workspace
@@ -202,6 +220,7 @@ def test_eq4_stance_distances_constant_along_trajectory(x64):
     assert np.abs(d - d[0]).max() < 1e-3
 
 
+@pytest.mark.slow
 def test_motion_sharing_depends_on_mobility(x64):
     x0 = standing_feet()
     params = R.ReflexParams()
@@ -250,6 +269,7 @@ def test_end_stop_torques_band_and_sign(x64):
     np.testing.assert_allclose(np.asarray(f(jnp.asarray(qmax + 0.1))), -1000.0 * 0.15, rtol=1e-9)
 
 
+@pytest.mark.slow
 def test_end_stop_stops_joint_before_limit():
     # Downward search of the RF foot at 0.1 m/s to 20 cm: the trunk squats until a stance knee
     # reaches its end-stop band (Fig. 10 situation).
@@ -273,6 +293,7 @@ def test_end_stop_stops_joint_before_limit():
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_fig6_base_spring_lh_extends_or_retracts():
     x0 = np.asarray(standing_feet(jnp.float32))
     res = {}
@@ -308,6 +329,7 @@ def _np_orientation_error(a, b):
     return np.arccos(np.clip(a @ b, -1, 1)) * axis / s
 
 
+@pytest.mark.slow
 def test_orientation_error_and_normal_reference_and_gradients(x64):
     rng = np.random.default_rng(1)
     err = jax.jit(R.orientation_error)
@@ -357,6 +379,7 @@ def test_orientation_error_and_normal_reference_and_gradients(x64):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_velocity_transformation_ratio_reference_and_extension(x64):
     vtr = jax.jit(R.velocity_transformation_ratio)
     rng = np.random.default_rng(2)
@@ -446,6 +469,7 @@ def _grad_scenario():
     return state, inputs
 
 
+@pytest.mark.slow
 def test_gradients_wrt_every_param_match_finite_differences(x64):
     state, inputs = _grad_scenario()
     w_q = jnp.asarray(np.random.default_rng(3).normal(size=12))
@@ -464,7 +488,7 @@ def test_gradients_wrt_every_param_match_finite_differences(x64):
 
     base = jax.tree.map(lambda a: jnp.asarray(a, jnp.float64), R.ReflexParams())
     # k_x above its bound (non-weak float64 leaves, so the same compilation is reused).
-    clipped = base.replace(k_x=jnp.asarray(2.5e4, jnp.float64), k_x_max=jnp.asarray(1.2e4, jnp.float64))
+    clipped = unchecked(base, k_x=jnp.asarray(2.5e4, jnp.float64), k_x_max=jnp.asarray(1.2e4, jnp.float64))
     names = [f.name for f in R.ReflexParams.__dataclass_fields__.values()]
     for params, zero_field in ((base, "k_x_max"), (clipped, "k_x")):
         (_, (mobility, tau_lf_haa)), g = value_and_grad(params)
@@ -477,8 +501,8 @@ def test_gradients_wrt_every_param_match_finite_differences(x64):
             assert np.isfinite(gv), name
             v = float(getattr(params, name))
             h = 1e-5 * abs(v)
-            fp = float(outcome(params.replace(**{name: jnp.asarray(v + h, jnp.float64)})))
-            fm = float(outcome(params.replace(**{name: jnp.asarray(v - h, jnp.float64)})))
+            fp = float(outcome(unchecked(params, **{name: jnp.asarray(v + h, jnp.float64)})))
+            fm = float(outcome(unchecked(params, **{name: jnp.asarray(v - h, jnp.float64)})))
             fd = (fp - fm) / (2 * h)
             if name == zero_field:  # the clip min(k_x, k_x_max) makes it inactive here
                 assert gv == 0.0 and fd == 0.0, name
@@ -493,6 +517,7 @@ def test_gradients_wrt_every_param_match_finite_differences(x64):
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_collinear_stance_feet_flagged_fallback():
     # Stance feet LF, LH, RH on one line (RF swings): LH on the LF-RH diagonal, all at z = -0.5.
     x = np.array(standing_feet(jnp.float32))
@@ -530,6 +555,7 @@ def test_collinear_stance_feet_flagged_fallback():
     assert all(np.all(np.isfinite(np.asarray(a))) for a in g)
 
 
+@pytest.mark.slow
 def test_nan_inputs_flagged_and_state_held():
     x0 = standing_feet(jnp.float32)
     state = init(x0)
@@ -544,7 +570,7 @@ def test_nan_inputs_flagged_and_state_held():
     ]
     for bad in bad_cases:
         s2, out = step(s1, bad, params)
-        assert not bool(out.input_ok) and not bool(out.active)
+        assert not bool(out.input_ok) and not bool(out.active) and bool(out.failed)
         np.testing.assert_array_equal(np.asarray(s2.q_r), np.asarray(s1.q_r))  # held
         assert np.all(np.asarray(s2.qd_r) == 0.0)
         for a in jax.tree.leaves(out):
@@ -552,13 +578,15 @@ def test_nan_inputs_flagged_and_state_held():
             if a.dtype.kind == "f":
                 assert np.all(np.isfinite(a))
     # NaN parameter: flagged, held.
-    s2, out = step(s1, good, params.replace(k_base=float("nan")))
-    assert not bool(out.input_ok)
+    s2, out = step(s1, good, unchecked(params, k_base=float("nan")))
+    assert not bool(out.input_ok) and bool(out.failed)
     np.testing.assert_array_equal(np.asarray(s2.q_r), np.asarray(s1.q_r))
     # NaN state with a valid plan: restarted from the plan, flagged.
     nan_state = R.ReflexState(q_r=jnp.full(12, jnp.nan, jnp.float32), qd_r=jnp.zeros(12, jnp.float32))
     s3, out = step(nan_state, good, params)
-    assert not bool(out.input_ok)
+    assert not bool(out.input_ok) and bool(out.failed)
+    _, out = step(s1, good, params)
+    assert not bool(out.failed)
     q_plan = np.asarray(kinematics.inverse_kinematics(good.x_des).reshape(12))
     np.testing.assert_allclose(np.asarray(s3.q_r), q_plan, atol=1e-6)
 
@@ -568,6 +596,7 @@ def test_nan_inputs_flagged_and_state_held():
 # ---------------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_inactive_tracks_plan_and_activation_starts_from_plan(x64):
     x0 = standing_feet()
     n, k_on = 300, 150
@@ -594,6 +623,7 @@ def test_inactive_tracks_plan_and_activation_starts_from_plan(x64):
     assert np.abs(np.asarray(out.x_r[-1] - x_des[-1]))[R.STANCE_LEGS[RF]].max() > 1e-3
 
 
+@pytest.mark.slow
 def test_vmap_batch_matches_single(x64):
     x0 = standing_feet()
     swing = jnp.asarray([0, 1, 2, 3, 1])
@@ -612,6 +642,7 @@ def test_vmap_batch_matches_single(x64):
         assert np.argmin(dz) == int(swing[b])
 
 
+@pytest.mark.slow
 def test_float32_matches_float64_trajectory():
     # The 5 s downward search of the end-stop test (squat of ~25 cm, end stops engaged).
     with jax.enable_x64(True):
@@ -624,9 +655,10 @@ def test_float32_matches_float64_trajectory():
     assert np.abs(x32 - x64_).max() < 1e-3  # float32 stays within 1 mm of float64 over 5000 ticks
 
 
+@pytest.mark.slow
 def test_realtime_packed_step_equals_reflex_step():
     """The flat-vector real-time entry point computes exactly reflex_step, and its state feeds back."""
-    from hyqjax import reflex_realtime as RT
+    from hyqjax.reflex import realtime as RT
 
     x0 = kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, jnp.float32))
     inputs = R.ReflexInputs.make(x0.at[robot.RF, 2].add(-0.12), robot.RF)
@@ -641,7 +673,7 @@ def test_realtime_packed_step_equals_reflex_step():
         np.testing.assert_allclose(out_v[RT.OUT_X_R], out.x_r.reshape(12), rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(out_v[RT.OUT_STATE], jnp.concatenate([state.q_r, state.qd_r]), rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(out_v[RT.OUT_D_DIAG], out.d_diag, rtol=1e-6)
-        assert out_v[RT.OUT_FLAGS][0] == 1.0  # active
+        np.testing.assert_array_equal(out_v[RT.OUT_FLAGS], [1.0, 0.0, 1.0, 0.0])  # active, ok, not failed
         v = v.at[:24].set(out_v[RT.OUT_STATE])
     with pytest.raises(ValueError, match="dt"):
         RT.make_realtime_reflex(params, 0.5)

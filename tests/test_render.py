@@ -2,17 +2,21 @@
 
 The trajectory is synthesised (the standing keyframe walking forward off a platform) instead of
 simulated, so these tests need no MJX compile; the trace file goes through the same
-``hyqjax.recording.save`` the step-down command uses.
+``hyqjax.io.recording.save`` the step-down command uses.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
 
-from hyqjax import cli, model as hmodel, recording, robot
+from hyqjax.cli import app as cli
+from hyqjax.sim import model as hmodel
+from hyqjax.io import recording
+from hyqjax.core import robot
 
 W, H = 64, 48
 N_SAMPLES = 12
@@ -98,8 +102,9 @@ def test_subset_of_instances_keeps_results_rows(tmp_path):
     assert float(rec.arrays["input_height"][0]) == pytest.approx(0.3)
 
 
+@pytest.mark.slow
 def test_frames_are_drawn_and_change_over_time(recorded_dir):
-    from hyqjax import render
+    from hyqjax.io import render
 
     rec = recording.load(recorded_dir)
     inst = rec.instance(0)
@@ -118,8 +123,9 @@ def test_frames_are_drawn_and_change_over_time(recorded_dir):
     assert cursor[1] > cursor[0]
 
 
+@pytest.mark.slow
 def test_force_bars_and_platform_height_show(recorded_dir):
-    from hyqjax import render
+    from hyqjax.io import render
 
     inst = recording.load(recorded_dir).instance(0)
     q = np.asarray(inst["qpos"][0], np.float64)
@@ -133,6 +139,7 @@ def test_force_bars_and_platform_height_show(recorded_dir):
     assert top == pytest.approx(0.3)
 
 
+@pytest.mark.slow
 def test_render_command_writes_gif_and_stills(recorded_dir, tmp_path, capsys):
     from PIL import Image
 
@@ -148,8 +155,9 @@ def test_render_command_writes_gif_and_stills(recorded_dir, tmp_path, capsys):
     assert "instance 1" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_render_command_writes_mp4(recorded_dir, tmp_path):
-    from hyqjax import render
+    from hyqjax.io import render
 
     assert render.has_ffmpeg(), "MP4 needs imageio + imageio-ffmpeg: install hyqjax[video] (the CI does)"
     import imageio.v2 as imageio
@@ -162,21 +170,28 @@ def test_render_command_writes_mp4(recorded_dir, tmp_path):
         assert r.get_meta_data()["fps"] == pytest.approx(1.0 / DT, rel=0.01)
 
 
+def refused(capsys, argv) -> str:
+    """Runs the command line, checks it was refused as a usage error (exit 2, one line, no traceback) and
+    returns that line."""
+    capsys.readouterr()
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--instance", "7"], r"--instance 7 was not recorded.*recorded instances: 0-1"),
     (["--where", "height=0.5"], r"--where .*no recorded instance matches"),
     (["--width", "5"], r"--width must be in \[16, 4096\]"),
 ])
-def test_render_command_rejects_bad_input(recorded_dir, argv, message):
-    with pytest.raises(SystemExit, match=message):
-        cli.main(["render", recorded_dir, *argv])
+def test_render_command_rejects_bad_input(recorded_dir, argv, message, capsys):
+    assert re.search(message, refused(capsys, ["render", recorded_dir, *argv]))
 
 
-def test_render_command_rejects_missing_dir(tmp_path):
-    with pytest.raises(SystemExit, match="SOURCE .* does not exist"):
-        cli.main(["render", str(tmp_path / "missing")])
-    with pytest.raises(SystemExit, match="no trace archive"):
-        cli.main(["render", str(tmp_path)])
+def test_render_command_rejects_missing_dir(tmp_path, capsys):
+    assert re.search("SOURCE .* does not exist", refused(capsys, ["render", str(tmp_path / "missing")]))
+    assert "no trace archive" in refused(capsys, ["render", str(tmp_path)])
 
 
 def test_view_without_display_exits_with_message(recorded_dir, monkeypatch, capsys):
@@ -190,7 +205,7 @@ def test_view_without_display_exits_with_message(recorded_dir, monkeypatch, caps
 
 
 def test_report_from_stepdown_dir(recorded_dir, tmp_path):
-    from hyqjax import render
+    from hyqjax.io import render
 
     d = tmp_path / "exp"
     d.mkdir()
@@ -208,7 +223,7 @@ def test_report_from_stepdown_dir(recorded_dir, tmp_path):
     assert "instance_001_t000.10s.png" in page
 
 
-def test_report_of_a_sweep_and_bad_dir(tmp_path):
+def test_report_of_a_sweep_and_bad_dir(tmp_path, capsys):
     for name in ("a", "b", "c"):
         (tmp_path / name).mkdir()
     with open(tmp_path / "a" / "results.json", "w") as f:
@@ -230,12 +245,13 @@ def test_report_of_a_sweep_and_bad_dir(tmp_path):
     page = out.read_text()
     assert "Step-down results" in page and "Bounding results" in page and "hyqjax bound --out b" in page
     assert "Sweep results" in page and "10 of 20 planned instances (incomplete)" in page and "0.181" in page
-    with pytest.raises(SystemExit, match="is not a directory"):
-        cli.main(["report", str(tmp_path / "missing")])
+    capsys.readouterr()
+    assert cli.main(["report", str(tmp_path / "missing")]) == 2
+    assert "is not a directory" in capsys.readouterr().err
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises(SystemExit, match="no results.json"):
-        cli.main(["report", str(empty)])
+    assert cli.main(["report", str(empty)]) == 2
+    assert "no results.json" in capsys.readouterr().err
 
 
 def test_help_explains_the_commands(capsys):
@@ -250,7 +266,9 @@ def test_help_explains_the_commands(capsys):
     (["--record-instances", "2-5"], r"--record-instances: '2-5' is outside the instances \[0, 1\]"),
     (["--record-every", "7"], r"--record-every must divide the number of ticks \(500"),
 ])
-def test_stepdown_recording_options_are_checked_before_compiling(tmp_path, argv, message):
-    with pytest.raises(SystemExit, match=message):
-        cli.main(["stepdown", "--heights", "0.2", "--reflex", "on", "--instances", "2", "--duration", "1",
-                  "--out", str(tmp_path), *argv])
+def test_stepdown_recording_options_are_checked_before_compiling(tmp_path, argv, message, capsys):
+    out = tmp_path / "out"
+    err = refused(capsys, ["stepdown", "--heights", "0.2", "--reflex", "on", "--instances", "2", "--duration", "1",
+                           "--out", str(out), *argv])
+    assert re.search(message, err)
+    assert not out.exists()  # refused before anything was written

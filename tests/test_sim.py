@@ -1,7 +1,7 @@
-"""Closed-loop batched simulation (hyqjax.sim) with the standing controller, in float32 MJX.
+"""Closed-loop batched simulation (hyqjax.sim.rollout) with the standing controller, in float32 MJX.
 
 One 10 s scenario (:func:`run_scenario`, batch 4 on flat ground) serves most tests: instances 0-2
-stand under joint PD (``hyqjax.stand``) on three friction values; instance 3 gets a 1 MN push at
+stand under joint PD (``hyqjax.control.stand``) on three friction values; instance 3 gets a 1 MN push at
 t = 0.5 s and must be flagged as diverged. The same scenario runs sharded over a 1-device mesh
 here and over a 2-device mesh in a subprocess (``--xla_force_host_platform_device_count=2``).
 The CPU deadlock regression runs in a subprocess with a timeout so a hang fails instead of blocking CI.
@@ -18,8 +18,11 @@ import pytest
 from conftest import start_python
 from mujoco import mjx
 
-from hyqjax import model as hmodel
-from hyqjax import robot, sim, spatial, stand
+from hyqjax.sim import model as hmodel
+from hyqjax.core import robot
+from hyqjax.sim import rollout as sim
+from hyqjax.core import spatial
+from hyqjax.control import stand
 
 BATCH = 4
 PUSHED = 3
@@ -78,7 +81,8 @@ import sys, time
 import numpy as np
 sys.path.insert(0, "tests")
 import hyqjax, jax
-from hyqjax import model as hmodel, sim
+from hyqjax.sim import model as hmodel
+from hyqjax.sim import rollout as sim
 from test_sim import run_scenario
 assert jax.device_count() == 2, jax.devices()
 m = hmodel.load_model(); ids = hmodel.model_ids(m)
@@ -99,7 +103,8 @@ import os, time
 import hyqjax  # sets the XLA:CPU flags before jax is imported
 import jax, numpy as np
 from mujoco import mjx
-from hyqjax import model as hmodel, sim
+from hyqjax.sim import model as hmodel
+from hyqjax.sim import rollout as sim
 print("XLA_FLAGS", os.environ.get("XLA_FLAGS", ""), flush=True)
 m = hmodel.load_model()
 mx = mjx.put_model(m)
@@ -337,3 +342,118 @@ def test_cpu_batch_512_step_twice_does_not_deadlock(deadlock_job):
     assert "call 1" in stdout
     flags = next(line for line in stdout.splitlines() if line.startswith("XLA_FLAGS"))
     assert "concurrency_optimized_scheduler" in flags, flags  # hyqjax's workaround is in place
+
+
+# ---------------------------------------------------------------- backend choice (impl), on CPU without warp-lang
+
+
+def test_impl_is_validated_with_a_clear_message():
+    from hyqjax.sim import backend
+
+    with pytest.raises(ValueError, match=r"impl must be one of auto, jax, warp, got 'cuda'"):
+        backend.resolve_impl("cuda")
+
+
+@pytest.mark.parametrize("warp, cuda, expected", [(False, False, "jax"), (True, False, "jax"), (False, True, "jax"),
+                                                  (True, True, "warp")])
+def test_auto_picks_warp_only_with_cuda_and_warp_lang(monkeypatch, warp, cuda, expected):
+    from hyqjax.sim import backend
+
+    monkeypatch.setattr(backend, "warp_installed", lambda: warp)
+    monkeypatch.setattr(backend, "cuda_available", lambda: cuda)
+    assert backend.resolve_impl("auto") == expected
+    assert backend.resolve_impl("jax") == "jax"
+
+
+def test_warp_without_warp_lang_names_the_install_extra(monkeypatch):
+    from hyqjax.sim import backend
+
+    monkeypatch.setattr(backend, "warp_installed", lambda: False)
+    with pytest.raises(ValueError, match=r"impl='warp' needs warp-lang.*hyqjax\[warp\]"):
+        backend.resolve_impl("warp")
+
+
+def test_warp_capacity_is_sized_from_batch_and_model(hyq):
+    from hyqjax.sim import backend
+
+    m, _ = hyq
+    n_limited = int(m.jnt_limited.sum())
+    assert n_limited == 12  # the leg joints; the free joint has no range
+    naconmax, njmax = backend.warp_capacity(n_limited, 4096)
+    assert naconmax == 4096 * backend.CONTACTS_PER_INSTANCE
+    # Every contact of an instance active (4 pyramid edges with condim 3) plus every joint limit.
+    assert njmax == 4 * backend.CONTACTS_PER_INSTANCE + 12
+    assert int(m.geom_condim[m.geom("lf_foot").id]) == 3
+    with pytest.raises(ValueError, match="batch"):
+        backend.warp_capacity(n_limited, 0)
+
+
+@pytest.mark.slow
+def test_a_derivative_through_warp_is_an_error_naming_impl():
+    from hyqjax.sim import backend
+
+    def f(x, impl):
+        return jnp.sum(backend.forbid_derivatives(x, impl) ** 2)
+
+    x = jnp.arange(3.0)
+    assert float(f(x, "warp")) == pytest.approx(5.0)  # forward evaluation is fine
+    np.testing.assert_allclose(jax.grad(f)(x, "jax"), 2 * x)
+    for diff in (jax.grad, jax.jacfwd):
+        with pytest.raises(ValueError, match=r"impl='warp' is not differentiable.*impl='jax'"):
+            diff(f)(x, "warp")
+    with pytest.raises(ValueError, match="impl='warp'"):
+        jax.vmap(jax.jacfwd(f), in_axes=(0, None))(jnp.ones((2, 3)), "warp")
+
+
+@pytest.mark.slow
+def test_importing_hyqjax_prints_no_warp_import_failure():
+    from conftest import run_python
+
+    code = """
+    import hyqjax
+    import mujoco.mjx
+    from hyqjax.sim import rollout
+    print("still printed")
+    """
+    r = run_python(code, timeout=SUBPROCESS_TIMEOUT)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "Failed to import" not in r.stdout + r.stderr
+    assert "still printed" in r.stdout
+
+
+# ---------------------------------------------------------------- the batch runner: chunks, progress, retrace guard
+
+
+@pytest.mark.slow
+def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(hyq, standing_run):
+    """The runner in chunks of 2.5 s (progress reported after each) gives exactly the one-scan result; a second
+    call with new values (another push) reuses the compiled programs."""
+    m, ids = hyq
+    mxb, d0, push, cfg = scenario(m, ids)
+    runner = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
+    seen = []
+    res = runner(mxb, d0, stand.StandParams.make(), push, progress=lambda done, total: seen.append((done, total)),
+                 chunk_seconds=2.5)
+    assert seen == [pytest.approx((2.5 * (k + 1), 10.0)) for k in range(4)]
+    r = dict(qpos=res.data.qpos, qvel=res.data.qvel, diverged_tick=res.diverged_tick, max_dz=res.metrics["max_dz"],
+             **{f"trace_{k}": v for k, v in res.trace.items()})
+    for k, v in r.items():
+        np.testing.assert_array_equal(np.asarray(v), standing_run[k], err_msg=k)
+    compiled = runner.n_compiles
+    assert compiled == 2  # the initial carry and one chunk program
+    push2 = sim.Push(push.force * 0.5, push.t_start + 0.1, push.duration)
+    res2 = runner(mxb, d0, stand.StandParams.make(), push2, chunk_seconds=2.5)
+    assert runner.n_compiles == compiled
+    assert not np.array_equal(np.asarray(res2.data.qpos)[PUSHED], standing_run["qpos"][PUSHED])
+    np.testing.assert_array_equal(np.asarray(res2.data.qpos)[STANDING], standing_run["qpos"][STANDING])
+
+
+def test_chunk_length_divides_the_run_and_the_trace_decimation():
+    cfg = sim.SimConfig(duration=24.0, record_every=10)
+    runner = sim.make_batch_runner(None, stand.stand_controller, cfg, record=record)
+    assert runner.chunk_ticks(None) == 12000
+    assert runner.chunk_ticks(1.0) == 500
+    k = runner.chunk_ticks(0.37)
+    assert 12000 % k == 0 and k % 10 == 0 and k * 0.002 <= 0.37
+    with pytest.raises(ValueError, match="chunk_seconds"):
+        runner.chunk_ticks(0.0)

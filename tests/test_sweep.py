@@ -1,4 +1,4 @@
-"""Robustness sweeps (hyqjax.sweep): spec validation, results store, resume, determinism, outcome counting.
+"""Robustness sweeps (hyqjax.studies.sweep): spec validation, results store, resume, determinism, outcome counting.
 
 One tiny step-down sweep (8 instances, 0.3 s each, chunks of 4) is compiled once per module and run
 twice: uninterrupted, and interrupted after its first chunk then resumed.
@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax import sim, sweep
+from hyqjax.sim import rollout as sim
+from hyqjax.studies import sweep
 
 SPEC = dict(seed=3, samples=2, duration=0.3,
             grid=dict(height=[0.16, 0.24], reflex=[False, True]),
@@ -42,6 +43,7 @@ def swept(tmp_path_factory):
     return spec, full, part, before
 
 
+@pytest.mark.slow
 def test_store_schema(swept):
     spec, full, _, _ = swept
     with open(os.path.join(full, "manifest.json")) as f:
@@ -62,6 +64,7 @@ def test_store_schema(swept):
     assert not [f for f in os.listdir(os.path.join(full, "chunks")) if ".tmp" in f]
 
 
+@pytest.mark.slow
 def test_resume_equals_uninterrupted_without_recompute(swept):
     spec, full, part, before = swept
     a = sweep.SweepStore(full, spec).load()
@@ -82,6 +85,39 @@ def test_resume_equals_uninterrupted_without_recompute(swept):
     assert os.stat(c0).st_mtime_ns == before["mtime"]
 
 
+@pytest.mark.slow
+def test_rows_independent_of_their_neighbours_and_padding(swept):
+    """One compiled program per chunk shape: a row's result does not depend on the other rows of its batch or
+    on the padding of a short last chunk (so it does not depend on how the sweep is split into chunks)."""
+    spec = swept[0]
+    rows = spec.instance_inputs(0, 8)
+    pick = lambda idx: {k: v[idx] for k, v in rows.items()}  # noqa: E731
+    a = sweep.run_rows(pick([0, 1, 2, 3]), spec, 4)
+    b = sweep.run_rows(pick([5, 2, 7]), spec, 4)  # row 2 in another position, padded with row 7
+    for k in a:
+        if a[k].dtype.kind == "f":
+            np.testing.assert_array_equal(a[k][2], b[k][1], err_msg=k)
+        else:
+            assert a[k][2] == b[k][1], k
+
+
+@pytest.mark.slow
+def test_other_device_layout_refused_in_a_two_device_process(swept):
+    """Resuming a store computed on one host device from a process with two is refused before any compile."""
+    import subprocess
+    import sys
+
+    _, full, _, _ = swept
+    code = ("import sys, jax; from hyqjax.studies import sweep; assert len(jax.local_devices()) == 2;"
+            f"spec = sweep.SweepSpec.from_dict({SPEC!r});"
+            f"sweep.run_sweep(spec, {full!r}, progress=False)")
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "PYTHONPATH": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert p.returncode != 0
+    assert "StoreMismatch" in p.stderr and "1 x cpu" in p.stderr and "2 x cpu" in p.stderr, p.stderr[-2000:]
+
+
 def test_same_seed_same_inputs_independent_of_chunking():
     spec = sweep.SweepSpec.from_dict(SPEC)
     again = sweep.SweepSpec.from_dict(json.loads(json.dumps(SPEC)))
@@ -98,6 +134,7 @@ def test_same_seed_same_inputs_independent_of_chunking():
     assert len(set(unpaired["friction"].tolist())) == 8
 
 
+@pytest.mark.slow
 def test_different_spec_refused(swept):
     _, full, _, _ = swept
     other = sweep.SweepSpec.from_dict({**SPEC, "seed": 99})
@@ -122,6 +159,7 @@ def test_diverged_and_nan_instances_are_failures_with_reason():
     assert s["by_reflex"]["on"]["n"] == 4 and s["by_reflex"]["on"]["successes"] == 1
 
 
+@pytest.mark.slow
 def test_summary_maps_and_outputs(swept):
     spec, full, _, _ = swept
     store = sweep.SweepStore(full, spec)
@@ -190,12 +228,12 @@ def test_spec_files(tmp_path):
 
 
 def test_cli_validation_before_compile(capsys):
-    from hyqjax import cli
+    from hyqjax.cli import app as cli
 
-    with pytest.raises(SystemExit, match="height=0.5 out of range"):
-        cli.main(["sweep", "--grid", "height=0.5", "--dry-run"])
+    assert cli.main(["sweep", "--grid", "height=0.5", "--dry-run"]) == 2
+    assert "height=0.5 out of range" in capsys.readouterr().err
     assert cli.main(["sweep", "--grid", "height=0.1,0.2", "--random", "friction=0.5,1", "--samples", "3",
-                     "--dry-run"]) == 0
+                     "--dry-run", "--no-cache"]) == 0
     assert "6 instances" in capsys.readouterr().out
 
 
@@ -224,3 +262,43 @@ def test_sensed_controller_delay_and_noise():
     assert seen(2, zero) == [0, 0, 1, 2, 3, 4]
     noisy = np.asarray(seen(0, jnp.asarray(0.01))) - np.arange(1, 7)
     assert np.all(np.abs(noisy) > 0) and np.all(np.abs(noisy) < 0.1)
+
+
+@pytest.mark.slow
+def test_real_sweep_killed_then_resumed_is_identical(swept, tmp_path):
+    """`hyqjax sweep` SIGKILLed at a random point after its first chunk, then run again: the store equals the
+    uninterrupted one row for row (the compiled program comes from the persistent cache the first run filled)."""
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    spec, full, _, _ = swept
+    path = tmp_path / "spec.json"
+    path.write_text(json.dumps(SPEC))
+    out = tmp_path / "out"
+    env = {**os.environ, "HYQJAX_CACHE_DIR": str(tmp_path / "cache"),
+           "PYTHONPATH": os.path.dirname(os.path.dirname(os.path.abspath(__file__)))}
+    cmd = [sys.executable, "-m", "hyqjax.cli.app", "sweep", str(path), "--out", str(out), "--chunk-size", "4",
+           "--no-progress"]
+    p = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    man = out / "manifest.json"
+    deadline = time.time() + 600
+    while time.time() < deadline and p.poll() is None:
+        if man.exists() and '"0"' in man.read_text():
+            break
+        time.sleep(0.05)
+    time.sleep(random.Random(1).uniform(0.0, 1.0))
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    r = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    got = sweep.SweepStore(str(out), spec)
+    assert got.problems == {} and got.done() == {0, 1}
+    a, b = sweep.SweepStore(full, spec).load(), got.load()
+    for k in a:
+        if a[k].dtype.kind == "f":
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert (a[k] == b[k]).all(), k

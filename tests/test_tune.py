@@ -1,4 +1,5 @@
-"""Gradient tuning of the height reflex (hyqjax.tune): gradients, optimisation, checkpoint/resume."""
+"""Tuning (hyqjax.studies.tune): parameter space, kinematic surrogate, Adam with resume, baselines' budgets,
+and the closed-loop objective through MJX (gradient vs central differences; a few steps lower it)."""
 from __future__ import annotations
 
 import json
@@ -9,102 +10,215 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax import reflex as hreflex, tune
+from hyqjax.crawl import controller as crawl
+from hyqjax.reflex import step as hreflex
+from hyqjax.studies.tune import baselines, kinematic, objective, optimize, study, windows
+from hyqjax.studies.tune import space as spmod
 
-SMALL_OBJ = tune.Objective(duration=0.5, t_lift=0.05, lift=0.02)
-
-
-def small_cfg(**kw):
-    return tune.TuneConfig(**{**dict(steps=4, batch=3, seed=0, lr=0.1, checkpoint_every=2, depth=(0.02, 0.06),
-                                     objective=SMALL_OBJ), **kw})
+SMALL_KIN = kinematic.Objective(duration=0.5, t_lift=0.05, lift=0.02)
 
 
-def test_gradient_matches_central_differences(x64):
-    sc = tune.make_scenarios(2, 5, depth=(0.02, 0.05), dtype=jnp.float64)
-    groups = ("k_base", "damping", "mobility", "k_x", "k_kl", "delta")
-    theta = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64),
-                                   tune.theta_from_reflex(hreflex.ReflexParams.table1(), groups))
-    # Start off Table I, inside the schedule's transition band, so every parameter matters.
-    theta = {**theta, "logit_m_max": theta["logit_m_max"] - 0.3}
-    f = jax.jit(lambda th: tune.loss_fn(th, sc, SMALL_OBJ)[0])
-    g = jax.jit(jax.grad(lambda th: tune.loss_fn(th, sc, SMALL_OBJ)[0]))(theta)
-    assert all(np.isfinite(float(v)) for v in g.values())
-    assert any(abs(float(v)) > 0 for v in g.values())
+def test_space_roundtrip_and_always_valid():
+    sp = spmod.ParamSpace.make(tuple(spmod.GROUPS))
+    th0 = spmod.table1_theta(sp)
+    vals = sp.describe(th0)
+    t1 = hreflex.ReflexParams.table1()
+    for k in ("k_base", "d_sw_min", "d_sw_max", "d_st_min", "d_st_max", "m_min", "m_max", "k_x", "delta", "k_kl"):
+        assert vals[k] == pytest.approx(float(getattr(t1, k)), rel=1e-5), k
+    assert vals["body_height"] == pytest.approx(0.56, rel=1e-5)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        p = sp.concrete(th0 + 3.0 * rng.standard_normal(sp.size))  # validates the reflex parameters
+        crawl.CrawlParams.make(body_height=float(p.body_height), max_step_length=float(p.max_step_length),
+                               step_height=float(p.step_height), search_speed=float(p.search_speed))
+        assert float(p.reflex.m_max) < spmod.M_NOMINAL
+    from hyqjax.core.params import param_ranges
+
+    ranges = param_ranges(hreflex.ReflexParams)
+    for c in sp.coords:
+        if c.owner == "reflex" and c.kind in ("log", "box"):
+            eps = 1e-9 * max(1.0, c.hi)  # sigmoid maps onto the open interval
+            assert ranges[c.name].in_range(np.asarray([c.lo + eps, c.hi - eps])).all(), c.name
+
+
+def test_kinematic_gradient_matches_central_differences(x64):
+    sp = spmod.ParamSpace.make(("k_base", "damping", "mobility", "k_x", "delta", "k_kl"))
+    sc = kinematic.make_scenarios(2, 5, depth=(0.02, 0.05), dtype=jnp.float64)
+    base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
+                                  else x, crawl.CrawlParams.make())
+    th = jnp.asarray(spmod.table1_theta(sp))
+    th = th.at[sp.names.index("m_max")].add(-0.3)  # inside the schedule's transition band
+    f = kinematic.make_value_and_grad(sp, sc, SMALL_KIN, base)
+    g = np.asarray(f(th)["grad"])
+    assert np.all(np.isfinite(g)) and np.any(g != 0)
     rng = np.random.default_rng(0)
     for _ in range(2):
-        v = {k: jnp.asarray(rng.standard_normal(), jnp.float64) for k in theta}
+        v = rng.standard_normal(sp.size)
         eps = 1e-5
-        fd = (float(f({k: theta[k] + eps * v[k] for k in theta})) -
-              float(f({k: theta[k] - eps * v[k] for k in theta}))) / (2 * eps)
-        ad = sum(float(g[k] * v[k]) for k in theta)
-        assert ad == pytest.approx(fd, rel=1e-4, abs=1e-8)
-
-
-def test_reparameterisation_stays_valid():
-    rng = np.random.default_rng(1)
-    groups = tuple(tune.GROUPS)
-    base = tune.theta_from_reflex(hreflex.ReflexParams.table1(), groups)
-    back = tune.reflex_values(tune.reflex_from_theta(base))
-    for k, v in tune.reflex_values(hreflex.ReflexParams.table1()).items():
-        assert back[k] == pytest.approx(v, rel=1e-5), k
-    for _ in range(20):
-        th = {k: v + 3.0 * rng.standard_normal() for k, v in base.items()}
-        vals = tune.reflex_values(tune.reflex_from_theta(th))
-        hreflex.ReflexParams(**vals).validate()  # raises if out of range
+        fd = (float(f(th + eps * v)["loss"]) - float(f(th - eps * v)["loss"])) / (2 * eps)
+        assert float(g @ v) == pytest.approx(fd, rel=1e-4, abs=1e-8)
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    cfg = small_cfg()
-    full = str(tmp_path_factory.mktemp("tune_full"))
-    part = str(tmp_path_factory.mktemp("tune_part"))
-    r_full = tune.run_tune(cfg, full, progress=False)
-    r_part = tune.run_tune(cfg, part, stop_after=2, progress=False)
+def kin_runs(tmp_path_factory):
+    sp = spmod.ParamSpace.make(("k_base", "damping", "mobility"))
+    sc = kinematic.make_scenarios(3, 0, depth=(0.02, 0.06))
+    f = kinematic.make_value_and_grad(sp, sc, SMALL_KIN, crawl.CrawlParams.make())
+    th0 = jnp.asarray(spmod.table1_theta(sp), jnp.float32)
+    cfg = optimize.AdamConfig(steps=4, lr=0.1, checkpoint_every=2)
+    conf = dict(kind="test")
+    full, part = (str(tmp_path_factory.mktemp(n)) for n in ("full", "part"))
+    r_full = optimize.run_adam(f, th0, cfg, full, conf, 7, sp.describe, progress=False)
+    r_part = optimize.run_adam(f, th0, cfg, part, conf, 7, sp.describe, stop_after=2, progress=False)
     assert r_part["step"] == 2
-    r_resumed = tune.run_tune(cfg, part, progress=False)
-    return cfg, full, part, r_full, r_resumed
+    r_res = optimize.run_adam(f, th0, cfg, part, conf, 7, sp.describe, progress=False)
+    return f, th0, cfg, conf, full, part, r_full, r_res, sp
 
 
-def test_loss_decreases_and_log(runs):
-    cfg, full, _, r_full, _ = runs
-    log = tune.read_log(full)
+def test_adam_lowers_loss_logs_and_counts_budget(kin_runs):
+    _, _, _, _, full, _, r_full, _, _ = kin_runs
+    log = optimize.read_log(full)
     assert [r["step"] for r in log] == [0, 1, 2, 3]
     assert log[-1]["loss"] < log[0]["loss"]
-    for r in log:
-        assert np.isfinite(r["loss"]) and np.isfinite(r["grad_norm"]) and r["grad_norm"] > 0
-        assert set(r["params"]) >= {"k_base", "d_sw_min", "d_sw_max", "d_st_min", "d_st_max", "m_min", "m_max"}
-        assert r["params"]["m_min"] < r["params"]["m_max"]
+    assert [r["spent"] for r in log] == [7, 14, 21, 28] and r_full["spent"] == 28
+    assert all(np.isfinite(r["grad_norm"]) and r["grad_norm"] > 0 for r in log)
     assert log[0]["params"]["k_base"] == pytest.approx(1500.0, rel=1e-5)
     assert os.path.exists(os.path.join(full, "checkpoint.npz"))
-    with open(os.path.join(full, "config.json")) as f:
-        assert json.load(f)["hash"] == cfg.hash
+    with open(os.path.join(full, "config.json")) as fh:
+        assert json.load(fh)["config"] == dict(kind="test")
 
 
-def test_resume_continues_and_matches_uninterrupted(runs):
-    cfg, full, part, r_full, r_resumed = runs
-    assert r_resumed["step"] == 4
-    for k in r_full["theta"]:
-        np.testing.assert_allclose(np.asarray(r_resumed["theta"][k]), np.asarray(r_full["theta"][k]), rtol=1e-6)
-    assert [r["step"] for r in tune.read_log(part)] == [0, 1, 2, 3]
-    np.testing.assert_allclose([r["loss"] for r in tune.read_log(part)],
-                               [r["loss"] for r in tune.read_log(full)], rtol=1e-6)
-    # Further steps continue the counter; another configuration is refused.
-    r6 = tune.run_tune(small_cfg(steps=6), part, progress=False)
-    assert r6["step"] == 6 and [r["step"] for r in tune.read_log(part)] == list(range(6))
+def test_resume_matches_uninterrupted_and_refuses_other_config(kin_runs):
+    f, th0, cfg, conf, _, part, r_full, r_res, sp = kin_runs
+    assert r_res["step"] == 4
+    np.testing.assert_allclose(r_res["theta"], r_full["theta"], rtol=1e-6)
+    assert [r["step"] for r in optimize.read_log(part)] == [0, 1, 2, 3]
     with pytest.raises(RuntimeError, match="another configuration"):
-        tune.run_tune(small_cfg(lr=0.2), part, progress=False)
+        optimize.run_adam(f, th0, optimize.AdamConfig(steps=4, lr=0.2), part, dict(kind="other"), 7, progress=False)
 
 
-def test_random_search_budget():
-    cfg = small_cfg()
-    rs = tune.random_search(cfg, 5, seed=3)
-    assert len(rs["curve"]) == 5
-    assert all(b <= a for a, b in zip(rs["curve"], rs["curve"][1:]))
-    hreflex.ReflexParams(**tune.reflex_values(rs["params"])).validate()
+def test_baselines_respect_budget_and_improve():
+    target = np.array([1.0, -2.0, 0.5])
+    calls = []
+
+    def f_pop(xs):
+        calls.append(len(xs))
+        return np.sum((np.asarray(xs) - target) ** 2, 1)
+
+    x0 = np.zeros(3)
+    cma = baselines.cma_es(f_pop, x0, budget=600, cost_per_eval=10, sigma=0.5, popsize=6, seed=0)
+    assert cma["budget_spent"] <= 600 and sum(calls) * 10 == cma["budget_spent"]
+    assert cma["value"] < 0.05 * float(np.sum(target ** 2))
+    best = [h["best"] for h in cma["history"]]
+    assert all(b <= a for a, b in zip(best, best[1:]))
+    calls.clear()
+    rs = baselines.random_search(f_pop, x0, budget=600, cost_per_eval=10, sigma=0.5, chunk=16, seed=0)
+    assert rs["budget_spent"] == 600 and rs["evaluations"] == 60
+    assert rs["value"] < float(np.sum(target ** 2))
 
 
-@pytest.mark.parametrize("kw, match", [(dict(steps=-1), "steps must be"), (dict(lr=0.0), "lr must be"),
-                                       (dict(groups=("k_base", "spring")), "groups must be")])
-def test_config_validation(kw, match):
+@pytest.mark.parametrize("kw, match", [(dict(objective="fancy"), "objective must be"),
+                                       (dict(groups=("k_base", "spring")), "groups must be"),
+                                       (dict(baselines=("pso",)), "baselines must be"),
+                                       (dict(train_heights=(0.6,)), "train_heights"),
+                                       (dict(heldout=-1), "heldout must be")])
+def test_study_config_validation(kw, match):
     with pytest.raises(ValueError, match=match):
-        small_cfg(**kw)
+        study.StudyConfig(**kw)
+
+
+def test_objective_and_window_validation():
+    with pytest.raises(ValueError, match="ticks must be"):
+        objective.ClosedLoopObjective(ticks=0)
+    with pytest.raises(ValueError, match="prefixes must be"):
+        objective.ClosedLoopObjective(ticks=10, prefixes=(20,))
+    with pytest.raises(ValueError, match="offset must be"):
+        windows.WindowSpec(offset=-1)
+
+
+def test_cli_bad_input_is_one_line():
+    from conftest import run_python
+
+    p = run_python("from hyqjax.cli.app import main; raise SystemExit(main(['tune', '--groups', 'k_base,spring']))", timeout=120)
+    assert p.returncode != 0 and "Traceback" not in p.stderr
+    assert "groups must be" in p.stderr.strip().splitlines()[-1]
+
+
+# ------------------------------------------------------------------ closed loop through MJX (CPU, slow)
+
+
+@pytest.fixture(scope="module")
+def cl64():
+    """Float64 windows of one 24 cm step-down (the swing leg searching over the edge with the reflex on) and
+    the jitted jacfwd objective of a short window."""
+    with jax.enable_x64(True):
+        su = windows.setup(dtype="float64")
+        from hyqjax.studies.tune import evaluate
+
+        sc, _ = evaluate.scenarios([0.24], 1, 3)
+        win = windows.make_windows(sc, windows.WindowSpec(per_scenario=1, lead=4.0, offset=330), su)
+        sp = spmod.ParamSpace.make(("k_base", "damping", "mobility", "body_height"))
+        base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(
+            jnp.asarray(x).dtype, jnp.floating) else x, crawl.CrawlParams.make())
+        obj = objective.ClosedLoopObjective(ticks=40)
+        vj = objective.make_value_and_jac(win, base, sp, obj, su)
+        yield win, sp, vj
+
+
+@pytest.mark.slow
+def test_closed_loop_gradient_matches_central_differences(cl64):
+    win, sp, vj = cl64
+    with jax.enable_x64(True):
+        assert bool(win.valid[0])
+        th = jnp.asarray(spmod.table1_theta(sp))
+        r = vj(th, win)
+        g = np.asarray(r["grad"])
+        assert np.all(np.isfinite(g)) and np.any(g != 0) and bool(r["ok"][0])
+        rng = np.random.default_rng(0)
+        for _ in range(2):
+            v = rng.standard_normal(sp.size)
+            eps = 1e-6
+            fd = (float(vj(th + eps * v, win)["loss"]) - float(vj(th - eps * v, win)["loss"])) / (2 * eps)
+            assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_closed_loop_gradient_steps_lower_objective(cl64):
+    win, sp, vj = cl64
+    with jax.enable_x64(True):
+        th = jnp.asarray(spmod.table1_theta(sp))
+        r0 = vj(th, win)
+        losses = [float(r0["loss"])]
+        g = np.asarray(r0["grad"])
+        for _ in range(3):  # normalised gradient steps with backtracking
+            step = 0.5
+            while step > 1e-3:
+                cand = th - step * g / (np.linalg.norm(g) + 1e-12)
+                rc = vj(cand, win)
+                if float(rc["loss"]) < losses[-1]:
+                    th, g = cand, np.asarray(rc["grad"])
+                    losses.append(float(rc["loss"]))
+                    break
+                step /= 4
+        assert len(losses) >= 3 and losses[-1] < losses[0]
+
+
+@pytest.mark.slow
+def test_per_robot_gradients_match_single_robot(cl64):
+    """Per-robot batched tuning: two robots with their own parameters on (copies of) the window get the
+    gradient each would get alone."""
+    win, sp, vj = cl64
+    with jax.enable_x64(True):
+        su = windows.setup(dtype="float64")
+        base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(
+            jnp.asarray(x).dtype, jnp.floating) else x, crawl.CrawlParams.make())
+        wins, axes = windows.grouped(win.take([0, 0]), 2)
+        f = objective.make_per_robot_value_and_jac(base, sp, objective.ClosedLoopObjective(ticks=40), su, axes)
+        th0 = jnp.asarray(spmod.table1_theta(sp))
+        thetas = jnp.stack([th0, th0 + 0.3])
+        r = f(thetas, wins)
+        for i in range(2):
+            alone = vj(thetas[i], win)
+            np.testing.assert_allclose(float(r["loss"][i]), float(alone["loss"]), rtol=1e-9)
+            np.testing.assert_allclose(np.asarray(r["grad"][i]), np.asarray(alone["grad"]), rtol=1e-6, atol=1e-12)
+        assert not np.allclose(np.asarray(r["grad"][0]), np.asarray(r["grad"][1]))

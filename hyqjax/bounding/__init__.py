@@ -1,0 +1,33 @@
+"""Impulse-based bounding and turning (Orsolino et al., "Turning maneuvers strategy for quadrupedal bounding gait").
+
+Modules, one concept each:
+  params      parameters (gait, gains, switches, command, the cycle) with declared ranges; the apex state ``Apex``
+  gait        clock, stance phases, impulse profiles, Park & Kim's impulse balance (Eqs. B1-B2)
+  estimator   IMU attitude and rates, leg-odometry height and velocity
+  kinematic   touchdown targets (B8), kinematic adjustment (Eqs. 1-2), joint references
+  controller  apex / stance feedback (B4, B5, B7), yaw control (B6), centrifugal compensation (Eqs. 3-4),
+              the controller ``bounding_controller``
+  state       the controller's state and per-tick ``BoundingInfo``
+  cycle       apex return map through MJX, Levenberg-Marquardt cycle optimisation (optimistix), gradient check
+  stability   linearised return map, apex feedback matrix and design, the stance reference table
+  defaults    the stored limit cycle (``default_cycle.json``)
+  experiment  batched randomised instances, one compiled rollout, device fall metrics, setting validation
+  summary     per-instance ``InstanceResult`` and per-group tracking metrics, ablation contributions
+  plots       figures
+"""
+from hyqjax.bounding.controller import bounding_controller, bounding_init, bounding_step
+from hyqjax.bounding.params import (
+    APEX_NAMES,
+    Apex,
+    BoundingCommand,
+    BoundingGains,
+    BoundingParams,
+    GaitParams,
+    Switches,
+    default_params,
+)
+from hyqjax.bounding.state import BoundingInfo, BoundingState
+
+__all__ = ["APEX_NAMES", "Apex", "BoundingCommand", "BoundingGains", "BoundingInfo", "BoundingParams",
+           "BoundingState", "GaitParams", "Switches", "bounding_controller", "bounding_init", "bounding_step",
+           "default_params"]

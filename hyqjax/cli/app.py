@@ -1,0 +1,118 @@
+"""The ``hyqjax`` command line: one subcommand per experiment.
+
+Each command module in :mod:`hyqjax.cli` defines ``NAME``, ``HELP``, ``add_arguments(parser)``, optionally
+``validate(args)`` (option checks and output directories, before JAX is imported or anything compiled)
+and ``run(args) -> int``; this file collects them.
+
+Exit status: 0 done, 2 a user error (one line naming the option and what is allowed, no traceback; the
+parser's own errors too), 1 any other error (one line; ``--debug`` shows the traceback), 130 interrupted.
+Every command takes ``--debug`` and ``--no-cache`` (JAX's persistent compilation cache is on by default in
+``~/.cache/hyqjax/jax``, see :func:`hyqjax.cli.common.cache_dir`).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import pkgutil
+import sys
+
+# XLA's C++ log lines (e.g. one "Assume version compatibility" warning per program loaded from the
+# persistent compilation cache) are not for users of the command line; errors still show.
+os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+
+import hyqjax  # noqa: E402
+import hyqjax.cli as _commands  # noqa: E402
+from hyqjax.cli.common import USAGE_EXIT, UsageError, enable_compilation_cache  # noqa: E402
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (``hyqjax sweep: argument --seed: invalid int value: 'x'``)."""
+
+    def error(self, message: str):
+        self.exit(USAGE_EXIT, f"{self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def _command_modules():
+    mods = []
+    for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda i: i.name):
+        if info.name.startswith("_") or info.name in ("app", "common"):
+            continue
+        mod = importlib.import_module(f"hyqjax.cli.{info.name}")
+        if hasattr(mod, "NAME") and hasattr(mod, "run"):
+            mods.append(mod)
+    return sorted(mods, key=lambda m: getattr(m, "ORDER", 100))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = Parser(
+        prog="hyqjax",
+        description="HyQ's height reflex, crawl and bounding gaits on MuJoCo MJX. "
+        "stepdown, sweep, tune and bound run batched experiments: each prints a summary and writes results.json "
+        "plus PNG figures; render, view and report show what an experiment recorded.",
+    )
+    parser.add_argument("--version", action="version", version=f"hyqjax {hyqjax.__version__}")
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show the traceback of an error")
+    common.add_argument("--no-cache", action="store_true",
+                        help="do not use JAX's persistent compilation cache (default: on, in ~/.cache/hyqjax/jax "
+                             "or $HYQJAX_CACHE_DIR)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
+    for mod in _command_modules():
+        p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.__doc__, parents=[common],
+                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+        mod.add_arguments(p)
+        p.set_defaults(_run=mod.run, _validate=getattr(mod, "validate", None))
+    return parser
+
+
+def _user_errors() -> tuple:
+    """Exception types that are the user's to fix (bad spec, busy or foreign store), besides UsageError."""
+    errs = [UsageError]
+    if "hyqjax.studies.sweep" in sys.modules:
+        from hyqjax.studies import sweep
+
+        errs += [sweep.SpecError, sweep.StoreMismatch, sweep.StoreBusy, sweep.StoreCorrupt]
+    return tuple(errs)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return USAGE_EXIT
+    prog = f"hyqjax {args.command}"
+    debug = args.debug or os.environ.get("HYQJAX_DEBUG") == "1"
+    try:
+        if args._validate is not None:
+            try:
+                args._validate(args)
+            except ValueError as e:  # raised while checking options: the user's to fix
+                raise UsageError(str(e)) from e
+        if not args.no_cache:
+            enable_compilation_cache()
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except SystemExit as e:
+        if isinstance(e.code, str):
+            print(f"{prog}: {e.code}", file=sys.stderr)
+            return USAGE_EXIT
+        raise
+    except _user_errors() as e:
+        if debug:
+            raise
+        print(f"{prog}: {e}", file=sys.stderr)
+        return USAGE_EXIT
+    except Exception as e:
+        if debug:
+            raise
+        print(f"{prog}: error: {type(e).__name__}: {e} (run again with --debug for the traceback)",
+              file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,107 @@
+"""Step-down comparison (Focchi et al. 2017, Section IV): HyQ crawls off a platform with the height reflex
+on and off, batched over instances with per-instance height, friction, payload, start position and seed.
+Prints the paper's table and writes DIR/results.json (one row per instance plus a summary per height and
+reflex setting) and the figures success.png, fig9_reflex.png, fig10_end_stop.png, fig11_pitch.png, and the
+traces of the --record-instances every --record-every ticks to DIR/traces.npz (format: hyqjax/io/recording.py;
+`hyqjax render DIR` makes a video of one)."""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+NAME = "stepdown"
+HELP = "step down from a platform with the height reflex on and off (the paper's headline experiment)"
+ORDER = 10
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--heights", type=float, nargs="+", default=[0.16, 0.21, 0.24], help="platform heights (m)")
+    p.add_argument("--reflex", nargs="+", choices=["on", "off"], default=["off", "on"], help="reflex settings")
+    p.add_argument("--instances", type=int, default=1, help="randomised instances per height and reflex setting")
+    p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
+    p.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
+    p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
+    p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
+    p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
+                   help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
+    p.add_argument("--record-instances", default="all", metavar="SPEC",
+                   help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
+                        "results.json); the file format is in hyqjax/io/recording.py")
+    p.add_argument("--out", default="out/stepdown", help="output directory")
+
+
+SEED_MAX = 2**32 - 1
+
+
+def validate(args) -> None:
+    """Every option checked, and the output directory created and probed, before JAX is imported."""
+    from hyqjax.cli.common import check_all, check_range, prepare_out
+
+    check_all("--heights", args.heights, 0.0, 0.45, "m")
+    check_range("--instances", args.instances, 1, 100000, integer=True)
+    check_range("--seed", args.seed, 0, SEED_MAX, integer=True)
+    check_range("--duration", args.duration, 0.1, 600.0, "s")
+    check_range("--speed", args.speed, -0.3, 0.3, "m/s")
+    if len(set(args.reflex)) != len(args.reflex):
+        raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
+    args.recorded = _recorded_instances(args)
+    prepare_out(args.out)
+    args._validated = True
+
+
+def run(args) -> int:
+    from hyqjax.crawl import controller as crawl
+    from hyqjax.io import atomic as io
+    from hyqjax.io import recording
+    from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown_figures
+
+    if not getattr(args, "_validated", False):
+        validate(args)
+    recorded = args.recorded
+    params = crawl.CrawlParams.make(forward_velocity=args.speed)
+    scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
+                                              args.seed, params=params)
+    record_every = 0 if args.no_figures else args.record_every
+    cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every)
+    n = scenario.batch_size
+    print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
+          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks; compiling and running...",
+          flush=True)
+    t0 = time.time()
+    from hyqjax.cli.common import sim_progress
+
+    with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
+        out, trace = stepdown.run_batch(scenario, cfg, progress=progress)
+    wall = time.time() - t0
+    rows = stepdown.summarize(table, out)
+    print(stepdown.format_table(rows))
+    print(f"wall time {wall:.1f} s (compile included), {n * cfg.sim_config().n_ticks / wall:,.0f} env-steps/s")
+    os.makedirs(args.out, exist_ok=True)
+    figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
+    instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
+    config = {k: v for k, v in vars(args).items() if not k.startswith("_") and k != "recorded"}
+    io.write_json(os.path.join(args.out, "results.json"), dict(
+        provenance=io.provenance(seed=args.seed), config=config, summary=rows,
+        instances=instances, figures=figs, wall_time_s=wall))
+    traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    if trace is not None and len(recorded):
+        recording.save(traces_path, trace, table, recorded, record_every, cfg.control_dt)
+    elif os.path.exists(traces_path):
+        os.remove(traces_path)  # a previous run's traces would not match this results.json
+    print(f"wrote {args.out}/results.json and figures")
+    return 0
+
+
+def _recorded_instances(args) -> np.ndarray:
+    """Rows to write to traces.npz, checked (with --record-every) before anything is compiled."""
+    from hyqjax.io import recording
+
+    n_ticks = int(round(args.duration / 0.002))
+    if not args.no_figures and not (1 <= args.record_every <= n_ticks and n_ticks % args.record_every == 0):
+        raise ValueError(f"--record-every must divide the number of ticks ({n_ticks} for --duration {args.duration}) "
+                         f"and be in [1, {n_ticks}], got {args.record_every}")
+    return recording.parse_instances(args.record_instances, len(args.heights) * len(args.reflex) * args.instances)

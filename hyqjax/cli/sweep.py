@@ -1,0 +1,205 @@
+"""Robustness sweep of the step-down experiment over a declarative grid / random sample (hyqjax.studies.sweep).
+
+The sweep is described by a TOML or JSON file (SPEC) and/or the flags --grid, --random, --fixed
+(AXIS=v1,v2,...; AXIS=lo,hi; AXIS=v), which override the file's entries; with neither, a CPU-sized
+default (3 heights x reflex on/off x 2 random draws of friction and payload, 12 instances). Axes:
+`hyqjax sweep --list-axes`. Instances run in chunks (--chunk-size; default 32 per CPU device, 4096
+per GPU) sharded over all local devices, or as Ray tasks over a cluster (--executor ray, see
+docs/cluster.md). Every finished chunk is stored in DIR/chunks/NNNNN.parquet and recorded with its
+SHA-256 in DIR/manifest.json, so running the same command again resumes where it stopped; one writer
+at a time holds DIR/.lock (--wait queues behind it). Writes DIR/instances.csv, DIR/summary.json,
+success_maps.png and success_height.png; DIR/chunks opens as one table in pandas, polars or DuckDB.
+
+Example spec (TOML):
+
+    seed = 0
+    samples = 4            # random draws per grid point
+    duration = 18.0        # simulated seconds per instance
+    blocks = [0, 0]        # rough-terrain block grid per level (needed for roughness > 0)
+    maps = [["height", "friction"], ["height", "payload_mass"]]
+    [grid]
+    height = [0.16, 0.21, 0.24]
+    reflex = [false, true]
+    [random]
+    friction = [0.5, 1.0]
+    payload_mass = [0.0, 10.0]
+    [fixed]
+    speed = 0.1
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+NAME = "sweep"
+HELP = "robustness sweep of the step-down (grid / random over terrain, payload, gains, pushes, reflex parameters)"
+ORDER = 20
+
+DEFAULT_SPEC = dict(
+    seed=0, samples=2, duration=18.0,
+    grid=dict(height=[0.16, 0.21, 0.24], reflex=[False, True]),
+    random=dict(friction=[0.6, 1.0], payload_mass=[0.0, 10.0]),
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", nargs="?", help="sweep spec file (.toml or .json); omit for the default or flags only")
+    p.add_argument("--out", default="out/sweep", help="results directory (resumed if it holds the same sweep)")
+    p.add_argument("--grid", action="append", default=[], metavar="AXIS=V1,V2,...", help="grid axis (repeatable)")
+    p.add_argument("--random", action="append", default=[], metavar="AXIS=LO,HI",
+                   help="random axis, uniform in [LO, HI] (or a list of options for a choice axis)")
+    p.add_argument("--fixed", action="append", default=[], metavar="AXIS=V", help="fixed axis value")
+    p.add_argument("--samples", type=int, help="random draws per grid point")
+    p.add_argument("--seed", type=int, help="sweep seed")
+    p.add_argument("--duration", type=float, help="simulated seconds per instance")
+    p.add_argument("--chunk-size", type=int, help="instances per chunk (default: 32 per CPU device, 4096 per GPU)")
+    p.add_argument("--max-chunks", type=int, help="stop after this many new chunks (resume later), >= 0")
+    p.add_argument("--wait", action="store_true", help="if another process is writing DIR, wait for it instead of "
+                                                       "stopping")
+    p.add_argument("--executor", choices=["local", "ray"], default="local",
+                   help="run chunks on this process's devices, or as Ray tasks (pip install 'hyqjax[cluster]')")
+    p.add_argument("--address", default=None,
+                   help="Ray cluster address (with --executor ray; default: $RAY_ADDRESS, else a local Ray instance)")
+    p.add_argument("--gpus-per-task", type=float, default=None,
+                   help="GPUs per Ray task (with --executor ray; default 1 if the cluster has GPUs, else 0)")
+    p.add_argument("--max-retries", type=int, default=3, help="retries of a Ray task whose worker died, in [0, 100]")
+    p.add_argument("--dry-run", action="store_true", help="validate and print the sweep's size, run nothing")
+    p.add_argument("--list-axes", action="store_true", help="print the axes with ranges and defaults, then exit")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _parse_value(s: str):
+    low = s.strip().lower()
+    if low in ("true", "on"):
+        return True
+    if low in ("false", "off"):
+        return False
+    try:
+        return float(s)
+    except ValueError:
+        return s.strip()
+
+
+def _parse_kv(items, what):
+    out = {}
+    for item in items:
+        if "=" not in item or not item.split("=", 1)[0].strip():
+            raise ValueError(f"--{what} expects AXIS=VALUES, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip()] = [_parse_value(x) for x in v.split(",") if x.strip()]
+        if not out[k.strip()]:
+            raise ValueError(f"--{what} {k.strip()}= needs at least one value")
+    return out
+
+
+def build_spec_dict(args) -> dict:
+    """The spec as a dict: the SPEC file (or the default when neither SPEC nor axis flags are given), then the
+    flags. File problems raise ``SpecError`` naming the file."""
+    import json
+
+    from hyqjax.studies import sweep
+
+    if args.spec:
+        d = sweep.load_spec_dict(args.spec)
+    elif args.grid or args.random or args.fixed:
+        d = {}
+    else:
+        d = json.loads(json.dumps(DEFAULT_SPEC))
+    for sec, items in (("grid", args.grid), ("random", args.random), ("fixed", args.fixed)):
+        for k, v in _parse_kv(items, sec).items():
+            for other in ("grid", "random", "fixed"):
+                if isinstance(d.get(other), dict):
+                    d[other].pop(k, None)
+            d.setdefault(sec, {})[k] = v[0] if sec == "fixed" and len(v) == 1 else v
+    for k in ("samples", "seed"):
+        if getattr(args, k) is not None:
+            d[k] = getattr(args, k)
+    if args.duration is not None:
+        d["duration"] = args.duration
+    return d
+
+
+def validate(args) -> None:
+    """The spec validated, the options checked and the output directory probed before anything compiles."""
+    from hyqjax.cli.common import check_out_free, check_range, prepare_out
+    from hyqjax.studies import sweep
+
+    if args.list_axes:
+        return
+    if args.chunk_size is not None:
+        check_range("--chunk-size", args.chunk_size, 1, 10**7, integer=True)
+    if args.max_chunks is not None:
+        check_range("--max-chunks", args.max_chunks, 0, 10**9, integer=True)
+    check_range("--max-retries", args.max_retries, 0, 100, integer=True)
+    if args.executor != "ray":
+        for opt, v in (("--address", args.address), ("--gpus-per-task", args.gpus_per_task)):
+            if v is not None:
+                raise ValueError(f"{opt} needs --executor ray")
+    elif args.gpus_per_task is not None:
+        check_range("--gpus-per-task", args.gpus_per_task, 0, 8)
+    args.spec_obj = sweep.SweepSpec.from_dict(build_spec_dict(args))
+    check_out_free(args.out)
+    if args.dry_run:
+        return
+    if os.path.exists(os.path.join(args.out, "manifest.json")):
+        # A different sweep there is refused now, not after a compile (read-only, writes nothing). A corrupt
+        # manifest is not an error here: the run sets it aside and rebuilds it from the chunk files.
+        try:
+            sweep.SweepStore(args.out, args.spec_obj)
+        except sweep.StoreCorrupt:
+            pass
+    if args.executor == "ray":
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            raise ValueError("--executor ray needs Ray: pip install 'hyqjax[cluster]'") from None
+    prepare_out(args.out)
+    args._validated = True
+
+
+def run(args) -> int:
+    from hyqjax.io import atomic as io
+    from hyqjax.studies import sweep
+
+    if args.list_axes:
+        for a in sweep.AXES.values():
+            rng = f"one of {list(a.options)}" if a.kind == "choice" else (
+                "true/false" if a.kind == "bool" else a.range_text)
+            print(f"{a.name:18s} {rng:34s} default {a.default!r:14s} {a.doc}")
+        return 0
+    if not hasattr(args, "spec_obj"):
+        validate(args)
+    spec = args.spec_obj
+    size = (f"hyqjax sweep: {spec.n_instances} instances (grid {dict((k, len(v)) for k, v in spec.grid)} x "
+            f"{spec.samples} samples), {spec.duration:g} s each, spec {spec.spec_hash[:12]}")
+    if args.dry_run:
+        print(size)
+        return 0
+    if args.executor == "ray":
+        from hyqjax.studies.sweep import cluster
+
+        executor = cluster.RayExecutor(address=args.address, gpus_per_task=args.gpus_per_task,
+                                       max_retries=args.max_retries)
+        where = executor.describe()
+    else:
+        import jax
+
+        executor = sweep.LocalExecutor()
+        devs = jax.local_devices()
+        where = f"{len(devs)} x {devs[0].platform} device(s)"
+    print(f"{size}, {where}", flush=True)
+    t0 = time.time()
+    store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
+                            wait=args.wait, executor=executor)
+    wall = time.time() - t0
+    summary = sweep.write_outputs(store)
+    summary["provenance"] = io.provenance(seed=spec.seed)
+    summary["wall_time_s_this_run"] = wall
+    summary["executor"] = args.executor
+    io.write_json(os.path.join(args.out, "summary.json"), summary)
+    print(sweep.format_summary(summary))
+    left = store.n_chunks - len(store.done())
+    print(f"wrote {args.out}/summary.json, instances.csv" + (", figures" if summary.get("figures") else "")
+          + (f"; {left} chunk(s) left: run the same command again to resume" if left else ""))
+    return 0

@@ -1,1 +1,0 @@
-"""Subcommands of the ``hyqjax`` CLI (see :mod:`hyqjax.cli`)."""

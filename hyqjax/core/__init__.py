@@ -1,0 +1,1 @@
+"""HyQ itself: constants (:mod:`.robot`), rotations (:mod:`.spatial`), kinematics (:mod:`.kinematics`)."""

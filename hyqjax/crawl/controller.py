@@ -1,0 +1,140 @@
+"""The statically stable crawl of Focchi et al. (2017), Section II, as a pure JAX controller.
+
+One control tick (:func:`crawl_step`), following Fig. 2:
+
+1. **plan** (:mod:`hyqjax.crawl.swing`): the desired feet ``x_f^d`` and velocities ``xd_f^d`` in the trunk
+   frame from the body / swing quintics of the current phase (:mod:`hyqjax.crawl.state`);
+2. **height reflex** (:mod:`hyqjax.reflex.step`, Fig. 3): during the downward part of the swing its corrected
+   feet ``x_f^r`` and velocities ``xd_f^r`` (Eq. 11) replace the plan;
+3. **inverse kinematics**: ``q^d = IK(x_f)`` (the reflex's own ``q^r`` while it is active) and
+   ``qd^d = J^-1 xd_f`` (:func:`hyqjax.crawl.swing.joint_velocities`);
+4. **trunk control** (:mod:`hyqjax.control.trunk`): a PD wrench on the trunk pose relative to ``H0`` (by leg
+   odometry), distributed over the stance feet by the friction-constrained QP; ``tau_ff = -J^T f``;
+5. **joint impedance** (:mod:`hyqjax.control.impedance`): ``tau = Kp (q^d - q) + Kd (qd^d - qd) + tau_ff``;
+6. **phase logic**: after the nominal ``t_swing`` the foot keeps *searching* at ``search_speed`` until the
+   estimated ground reaction force along the normal exceeds ``touchdown_force`` (haptic touchdown, footnote 1:
+   30 N) or a limit is reached — the leg's extension ``max_leg_extension``, an end stop of the swing leg's
+   joints (only without the reflex: with it the end-stop springs of Eq. 9 keep the joints off their limits and
+   hand the motion to the stance legs) or ``max_search_depth`` — and stance is triggered anyway so the machine
+   never gets stuck (Section IV). With ``shin_remedy`` the next swing leg and the search direction follow
+   :mod:`hyqjax.crawl.remedy`.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hyqjax.control import impedance
+from hyqjax.control import trunk as trunk_control
+from hyqjax.core import kinematics
+from hyqjax.core import robot
+from hyqjax.core import spatial
+from hyqjax.crawl import footholds
+from hyqjax.crawl import remedy
+from hyqjax.crawl import swing
+from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, CrawlParams  # noqa: F401  (re-exported)
+from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
+    LIMIT_DEPTH, LIMIT_END_STOP, LIMIT_EXTENSION, LIMIT_NONE, PHASE_BODY, PHASE_SWING,
+    CrawlInfo, CrawlState, crawl_init, start_body_phase, start_swing_phase,
+)
+from hyqjax.reflex import step as reflex
+from hyqjax.sim import rollout as sim
+
+
+def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: sim.Observation, rp_meas, p_des, v_des, rp_des):
+    """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP, as joint torques ``(12,)``."""
+    dtype = p_des.dtype
+    h_r_b = footholds.rp_rot(rp_meas)
+    x_meas_b = kinematics.foot_positions(obs.q)
+    r_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b - jnp.asarray(COM_OFFSET_B, dtype))
+    # Trunk pose relative to H0 by leg odometry: stance feet are fixed in H0.
+    feet_now_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b)
+    w = st.stance / jnp.sum(st.stance)
+    p_meas = jnp.sum(w[:, None] * (st.feet_h0 - feet_now_h), 0)
+    v_feet_b = kinematics.foot_velocities(obs.q, obs.qd)
+    v_meas = -jnp.sum(w[:, None] * jnp.einsum("ij,lj->li", h_r_b, v_feet_b + jnp.cross(obs.gyro, x_meas_b)), 0)
+    up_h = jnp.array([0.0, 0.0, 1.0], dtype)
+    force = p.mass * robot.GRAVITY * up_h + p.k_com * (p_des - p_meas) + p.d_com * (v_des - v_meas)
+    rp_err = jnp.concatenate([rp_des - rp_meas, jnp.zeros(1, dtype)])
+    torque = p.k_rot * rp_err - p.d_rot * (h_r_b @ obs.gyro)
+    f_qp = trunk_control.distribute_wrench(r_h, st.stance, force, torque, p.mu)
+    f_clip = trunk_control.clipped_least_norm(r_h, st.stance, force, torque, p.mu)
+    f_h = jnp.where(p.weight_qp > 0.5, f_qp, f_clip)
+    return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
+
+
+def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
+    """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
+    rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
+    in_swing = st.phase == PHASE_SWING
+    searching = in_swing & (st.t_phase >= p.t_swing)
+    x_plan, xd_plan, swing_down, leg, p_des, v_des, rp_des, r_des = swing.planned_feet(
+        p, st, rp_meas, jnp.where(searching, p.search_speed, 0.0))
+    # --- height reflex (Fig. 2/3): active in the downward part of the swing.
+    up_b = r_des.T @ jnp.array([0.0, 0.0, 1.0], x_plan.dtype)
+    normal_b = r_des.T @ st.normal_h0
+    active = swing_down & (p.use_reflex > 0.5)
+    rin = reflex.ReflexInputs(x_des=x_plan, swing_leg=leg, active=active, n_t_des=normal_b, up=up_b)
+    rstate, rout = reflex.reflex_step(st.reflex, rin, p.reflex, dt)
+    x_cmd = jnp.where(active, rout.x_r, x_plan)
+    xd_cmd = jnp.where(active, rout.xd_r, xd_plan)
+    q_ik = kinematics.inverse_kinematics(x_cmd).reshape(12)
+    q_min, q_max = jnp.asarray(robot.Q_MIN, q_ik.dtype), jnp.asarray(robot.Q_MAX, q_ik.dtype)
+    q_cmd = jnp.clip(jnp.where(active, rout.q_r, q_ik), q_min + p.joint_margin, q_max - p.joint_margin)
+    qd_cmd = p.velocity_feedforward * swing.joint_velocities(q_cmd, xd_cmd)
+    # A reference held at a joint limit does not move further out.
+    qd_cmd = jnp.where(((q_cmd <= q_min + p.joint_margin) & (qd_cmd < 0))
+                       | ((q_cmd >= q_max - p.joint_margin) & (qd_cmd > 0)), 0.0, qd_cmd)
+    tau_ff = trunk_feedforward(p, st, obs, rp_meas, p_des, v_des, rp_des)
+    tau = impedance.joint_impedance(p.gains, q_cmd, qd_cmd, obs.q, obs.qd, tau_ff)
+
+    # --- mobility of every leg along the terrain normal (Eq. 12), at the measured configuration.
+    jac = kinematics.foot_jacobians(obs.q)
+    mob = jax.vmap(lambda j: reflex.velocity_transformation_ratio(j, normal_b)[0])(jac)
+
+    # --- phase logic.
+    t_new = st.t_phase + dt
+    nominal_done = t_new >= p.t_swing
+    search_depth = jnp.where(in_swing & nominal_done, st.search_depth + p.search_speed * dt, st.search_depth)
+    force_n = jnp.dot(obs.foot_force[leg], normal_b)
+    touchdown = in_swing & (t_new >= 0.5 * p.t_swing) & (force_n > p.touchdown_force)
+    ext_limit = kinematics.leg_extension(q_cmd)[leg] > p.max_leg_extension
+    q_leg = jax.lax.dynamic_slice(q_cmd, (3 * leg,), (3,))
+    lo = jax.lax.dynamic_slice(q_min, (3 * leg,), (3,))
+    hi = jax.lax.dynamic_slice(q_max, (3 * leg,), (3,))
+    # While the reflex is active its end-stop springs (Eq. 9) keep the swing joints off their limits and hand
+    # the motion to the stance legs, so the search goes on; without it, an end stop ends the swing (Section IV).
+    near = p.joint_margin + 0.01  # the reference is held joint_margin inside the range
+    end_stop = jnp.any((q_leg - lo < near) | (hi - q_leg < near)) & ~active
+    depth_limit = search_depth > p.max_search_depth
+    limit = in_swing & nominal_done & (ext_limit | end_stop | depth_limit)
+    limit_kind = jnp.where(ext_limit, LIMIT_EXTENSION, jnp.where(end_stop, LIMIT_END_STOP, LIMIT_DEPTH))
+    limit_kind = jnp.where(limit & ~touchdown, limit_kind, LIMIT_NONE)
+    swing_end = touchdown | limit
+    body_end = (~in_swing) & (t_new >= p.t_body)
+
+    st1 = dataclasses.replace(st, t_phase=t_new, search_depth=search_depth, reflex=rstate, q_cmd=q_cmd)
+    # After a swing: next leg (the remedy may bring the partner forward), body phase from the actual state.
+    deep_leg = search_depth > p.deep_search
+    sequence = remedy.follow_up(p, st.sequence, st.seq_index, leg, deep_leg, st.deep)
+    st_after_swing = dataclasses.replace(st1, seq_index=(st.seq_index + 1) % 4, sequence=sequence,
+                                         deep=st.deep.at[leg].set(deep_leg), n_steps=st.n_steps + 1,
+                                         n_touchdowns=st.n_touchdowns + touchdown.astype(jnp.int32),
+                                         n_limit_stops=st.n_limit_stops + (limit & ~touchdown).astype(jnp.int32))
+    st_after_swing = start_body_phase(p, st_after_swing, obs)
+    st_after_body = start_swing_phase(p, st1, obs)
+    pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
+    st_next = pick(swing_end, st_after_swing, pick(body_end, st_after_body, st1))
+    reflex_failed = (p.use_reflex > 0.5) & rout.failed
+    info = CrawlInfo(phase=st.phase, swing_leg=leg, swing_down=swing_down, reflex_active=active, reflex_failed=reflex_failed,
+                     mobility=mob, x_plan_b=x_plan, x_cmd_b=x_cmd, q_cmd=q_cmd, qd_cmd=qd_cmd, damping=rout.d_diag,
+                     touchdown=touchdown, limit_stop=limit & ~touchdown, limit_kind=limit_kind,
+                     search_depth=search_depth, tilt_rp=rp_meas)
+    return st_next, tau, info
+
+
+def crawl_controller(dt: float) -> sim.Controller:
+    """The crawl as a :class:`hyqjax.sim.rollout.Controller` ticking every ``dt`` seconds."""
+    return sim.Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt))

@@ -1,0 +1,71 @@
+"""A remedy against shin strikes when the blind crawl steps down (beyond the paper).
+
+The crawl is blind (Section II): it learns about a step down only when a swing foot searches past its
+nominal foothold. Two shin strikes follow from that in the step-down experiment, both on a front leg:
+
+* **the stance foot on the edge**: the front foot that has not stepped down yet stands within a couple of
+  centimetres of the edge; the body phase that follows the other front leg's step down loads it while the
+  trunk moves forward and down, it slides off the edge and its shin lands on the edge;
+* **the searched foothold close to the edge**: the search runs along the normal of the stance feet's plane
+  (Eq. 7), which tilts backward as soon as one foot is below, so the foot lands a few centimetres closer to
+  the edge than planned and the backward-pointing front shin rests on the edge while the trunk moves over it.
+
+With ``shin_remedy`` on, still using only proprioception, for the front legs (the hind knees point forward,
+their shins do not reach the edge):
+
+* **follow-up** (:func:`follow_up`): when a front swing ends deeper than ``deep_search`` below its nominal
+  foothold (a step down was found) and the other front leg has not stepped down, that leg swings next: the
+  foot near the edge is lifted before a body phase can load it. The rest of the cycle keeps the order; the
+  next cycle returns to ``foot_sequence``;
+* **forward search** (:func:`search_direction`, with the height reflex on): below the nominal foothold the
+  search moves a front foot ``search_forward`` metres forward (along the step) per metre of depth, vertically
+  rather than along the tilted normal, so the foothold lands further past the edge; the reflex's squat gives
+  the leg the reach this needs.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from hyqjax.crawl.params import CrawlParams
+
+
+def is_front(leg):
+    """LF (0) and RF (1) are the front legs."""
+    return leg < 2
+
+
+def search_direction(p: CrawlParams, leg, n, step_vec):
+    """Direction ``d`` (H0) with the search at depth ``s`` placing the foot at ``foothold - s d``.
+
+    ``d = n`` (the paper) without the remedy or the reflex and for hind legs; for a front leg with both,
+    ``d = e_z - search_forward * u`` with ``u`` the horizontal unit step direction (the trunk's x when the step
+    is shorter than 1 cm).
+    """
+    dtype = n.dtype
+    fwd = jnp.stack([step_vec[0], step_vec[1], jnp.zeros((), dtype)])
+    norm = jnp.linalg.norm(fwd)
+    u = jnp.where(norm > 0.01, fwd / jnp.maximum(norm, 1e-9), jnp.array([1.0, 0.0, 0.0], dtype))
+    d_remedy = jnp.array([0.0, 0.0, 1.0], dtype) - p.search_forward * u
+    on = (p.shin_remedy > 0.5) & (p.use_reflex > 0.5) & is_front(leg)
+    return jnp.where(on, d_remedy, n)
+
+
+def partner(leg):
+    """The other leg of the same pair: LF <-> RF, LH <-> RH."""
+    return jnp.bitwise_xor(leg, 1)
+
+
+def follow_up(p: CrawlParams, sequence, seq_index, leg, deep_leg, deep):
+    """Sequence after ``leg`` (at ``seq_index``) ended its swing: the other front leg next after a step down.
+
+    Returns the ``(4,)`` sequence for the next swing, ``sequence[(seq_index + 1) % 4]``: ``foot_sequence`` at the
+    start of a cycle, the current one with the partner swapped forward after a deep front swing.
+    """
+    mate = partner(leg)
+    nxt = (seq_index + 1) % 4
+    at = jnp.argmax(sequence == mate)
+    swap = (p.shin_remedy > 0.5) & is_front(leg) & deep_leg & ~deep[mate] & (nxt != 0)
+    sequence = jnp.where(nxt == 0, jnp.asarray(p.foot_sequence, sequence.dtype), sequence)
+    a, b = sequence[nxt], sequence[at]
+    swapped = sequence.at[nxt].set(b).at[at].set(a)
+    return jnp.where(swap, swapped, sequence)

@@ -1,0 +1,139 @@
+"""The crawl state machine (Section II, Fig. 2): its memory, its diagnostics and its two phase starts.
+
+A state machine alternates two phases:
+
+* **body motion** (``PHASE_BODY``): the trunk moves, on a quintic of duration ``t_body``, so that the
+  centre of mass enters the future support triangle, its height above the feet returns to ``body_height``
+  and its roll and pitch follow the plane of the feet (:mod:`hyqjax.crawl.footholds`). Targets are
+  recomputed at the start of every phase from the *actual* state, so slips and reflex motions do not
+  accumulate.
+* **swing** (``PHASE_SWING``): one leg, in the order ``sequence``, follows a quintic in the terrain frame to
+  a foothold one step ahead, then searches until a haptic touchdown or a limit (:mod:`hyqjax.crawl.swing`).
+
+Frames: the plan lives in ``H0``, the horizontal frame at the start of the current phase. Stance feet are
+fixed in ``H0``; the desired trunk pose relative to ``H0`` is ``(p_des(t), R_des(t))``.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from hyqjax.core import kinematics
+from hyqjax.core import robot
+from hyqjax.core import spatial
+from hyqjax.crawl import footholds
+from hyqjax.crawl import remedy
+from hyqjax.crawl.params import COM_OFFSET_B, CrawlParams
+from hyqjax.reflex import step as reflex
+from hyqjax.sim import rollout as sim
+
+PHASE_BODY = 0
+PHASE_SWING = 1
+
+#: Why a swing ended without touchdown (``CrawlInfo.limit_kind``).
+LIMIT_NONE, LIMIT_EXTENSION, LIMIT_END_STOP, LIMIT_DEPTH = 0, 1, 2, 3
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CrawlState:
+    """The crawl state machine's memory (one instance)."""
+
+    phase: jax.Array  # PHASE_BODY or PHASE_SWING
+    seq_index: jax.Array  # index into `sequence` of the current / next swing leg
+    sequence: jax.Array  # (4,) leg order (foot_sequence; the remedy may swap entries)
+    t_phase: jax.Array  # time in the current phase (s)
+    feet_h0: jax.Array  # (4, 3) feet in H0 at the phase start (stance feet stay there)
+    body_delta: jax.Array  # (3,) trunk displacement target of the body phase, in H0
+    rp_start: jax.Array  # (2,) roll, pitch at the phase start (actual)
+    rp_target: jax.Array  # (2,) roll, pitch target of the body phase
+    swing_target: jax.Array  # (3,) nominal foothold of the swing foot in H0
+    normal_h0: jax.Array  # (3,) terrain normal in H0 sampled at the swing start (Eq. 7)
+    search_dir: jax.Array  # (3,) the search moves the foot along -search_dir per metre of depth (H0)
+    search_depth: jax.Array  # depth searched past the nominal foothold (m)
+    stance: jax.Array  # (4,) 1.0 for stance legs
+    deep: jax.Array  # (4,) bool: the leg's last swing searched deeper than deep_search (a step down)
+    reflex: reflex.ReflexState
+    q_cmd: jax.Array  # (12,) last joint reference
+    n_steps: jax.Array  # completed swings
+    n_touchdowns: jax.Array  # swings ended by haptic touchdown
+    n_limit_stops: jax.Array  # swings ended by a workspace / end-stop / depth limit
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CrawlInfo:
+    """Per-tick diagnostics (for metrics and figures)."""
+
+    phase: jax.Array
+    swing_leg: jax.Array
+    swing_down: jax.Array  # c_sd of footnote 8: swing leg in the downward part of its swing
+    reflex_active: jax.Array
+    reflex_failed: jax.Array  # the reflex's internal failure (ReflexOutput.failed) while the reflex is on
+    mobility: jax.Array  # (4,) velocity transformation ratio of each leg along the terrain normal
+    x_plan_b: jax.Array  # (4, 3) planned feet (trunk frame)
+    x_cmd_b: jax.Array  # (4, 3) commanded feet after the reflex (trunk frame)
+    q_cmd: jax.Array  # (12,) joint references
+    qd_cmd: jax.Array  # (12,) joint velocity references
+    damping: jax.Array  # (12,) reflex damping diagonal
+    touchdown: jax.Array  # a touchdown happened this tick
+    limit_stop: jax.Array  # stance was triggered by a limit this tick
+    limit_kind: jax.Array  # LIMIT_* of that stop (LIMIT_NONE otherwise)
+    search_depth: jax.Array  # depth searched below the nominal foothold (m)
+    tilt_rp: jax.Array  # (2,) measured roll, pitch
+
+
+def feet_h(obs: sim.Observation):
+    """Feet in the current horizontal frame from the actual joints and IMU roll/pitch, and that roll/pitch."""
+    rpy = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))
+    rp = rpy[:2]
+    x_b = kinematics.foot_positions(obs.q)
+    return jnp.einsum("ij,lj->li", footholds.rp_rot(rp), x_b), rp
+
+
+def start_body_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
+    """Body phase toward the support triangle of the next swing leg, from the actual state."""
+    feet, rp = feet_h(obs)
+    leg = st.sequence[st.seq_index]
+    com_h = footholds.rp_rot(rp) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
+    delta = footholds.body_target(feet, leg, com_h, p.stability_margin, p.body_height)
+    rp_target = jnp.clip(p.terrain_adaptation * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
+    return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
+                               body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
+
+
+def start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
+    """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7)."""
+    feet, rp = feet_h(obs)
+    leg = st.sequence[st.seq_index]
+    n = reflex.terrain_normal(feet[jnp.asarray(footholds.STANCE_OF)[leg]])
+    t_cycle = 4.0 * (p.t_body + p.t_swing)
+    step = jnp.clip(p.forward_velocity * t_cycle, -p.max_step_length, p.max_step_length)
+    nominal_h = footholds.rp_rot(rp) @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg]
+    lift = feet[leg]
+    target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
+    target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
+    search_dir = remedy.search_direction(p, leg, n, target - lift)
+    stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
+    return dataclasses.replace(st, phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
+                               body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
+                               normal_h0=n, search_dir=search_dir, search_depth=jnp.zeros_like(st.search_depth),
+                               stance=stance)
+
+
+def crawl_init(p: CrawlParams, obs: sim.Observation) -> CrawlState:
+    """Initial state: a body phase toward the first swing leg's support triangle."""
+    feet, rp = feet_h(obs)
+    dtype = feet.dtype
+    z = jnp.zeros((), dtype)
+    up = jnp.array([0.0, 0.0, 1.0], dtype)
+    st = CrawlState(
+        phase=jnp.asarray(PHASE_BODY), seq_index=jnp.asarray(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
+        t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
+        normal_h0=up, search_dir=up, search_depth=z, stance=jnp.ones(4, dtype), deep=jnp.zeros(4, bool),
+        reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
+        n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
+    )
+    return start_body_phase(p, st, obs)

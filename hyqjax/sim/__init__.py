@@ -1,0 +1,1 @@
+"""Simulation: the HyQ + terrain model (:mod:`.model`) and the batched closed-loop rollout (:mod:`.rollout`)."""

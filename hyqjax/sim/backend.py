@@ -1,0 +1,163 @@
+"""Which MJX implementation simulates: ``impl`` = ``"auto" | "jax" | "warp"``.
+
+* ``jax``: MJX's pure-JAX physics. Differentiable (forward mode, see README), runs everywhere.
+* ``warp``: MuJoCo Warp kernels called from JAX (``mjx.put_model(m, impl="warp")``), several times faster
+  on a GPU, forward only. Needs ``warp-lang`` (``pip install "hyqjax[warp]"``). Its contacts live in one
+  buffer of ``naconmax`` contacts shared by all worlds of a batch and at most ``njmax`` constraint rows per
+  world; :func:`warp_capacity` sizes both from the batch and the model, and a full buffer is reported per
+  run (:func:`hyqjax.sim.contacts.overflow`), never silent.
+* ``auto``: ``warp`` when a CUDA device and warp-lang are both available, ``jax`` otherwise.
+
+Asking for a derivative through a ``warp`` simulation raises a ``ValueError`` naming ``impl``
+(:func:`forbid_derivatives`), instead of silently falling back.
+
+This module imports no JAX or MuJoCo at import time (``import hyqjax`` stays light), and warp is imported
+only when ``warp`` is chosen. :func:`install_quiet_warp_import` removes the two lines MJX prints on stdout
+when warp-lang is absent ("Failed to import warp: No module named 'warp'", the same for mujoco_warp); any
+other output of that import, and every other warning, passes through.
+"""
+from __future__ import annotations
+
+import contextlib
+import importlib.abc
+import importlib.util
+import io
+import sys
+
+IMPLS = ("auto", "jax", "warp")
+#: Contacts per instance that the Warp contact buffer holds: each foot on two terrain geoms at once
+#: (a platform edge and the ground: 8), up to about 18 with shins and trunk down (benchmarks/probe_warp.py),
+#: with margin. A run needing more is flagged (contact_overflow), never silent.
+CONTACTS_PER_INSTANCE = 24
+#: mujoco_warp's overflow bits that mean a buffer was full (contacts or constraint rows dropped); the
+#: higher bits (ITERATIONS, LS_ITERATIONS, ...) only say that the solver used all its iterations.
+BUFFER_OVERFLOW_MASK = (1 << 9) - 1
+#: Overflow bits that mujoco_warp should not print every step: the solver's iteration limits (bits 9, 10),
+#: routine with hyqjax's Newton 4 / 8 settings.
+_QUIET_OVERFLOW = 0xFFF & ~((1 << 9) | (1 << 10))
+#: Constraint rows per contact of a pyramidal friction cone with condim 3: 2 (condim - 1).
+ROWS_PER_CONTACT = 4
+
+
+def validate_impl(impl: str) -> str:
+    if impl not in IMPLS:
+        raise ValueError(f"impl must be one of {', '.join(IMPLS)}, got {impl!r}")
+    return impl
+
+
+def warp_installed() -> bool:
+    """warp-lang can be imported (checked without importing it)."""
+    return importlib.util.find_spec("warp") is not None
+
+
+def cuda_available() -> bool:
+    import jax
+
+    try:
+        return any(d.platform == "gpu" for d in jax.devices())
+    except RuntimeError:
+        return False
+
+
+def resolve_impl(impl: str) -> str:
+    """``"jax"`` or ``"warp"`` for a requested ``impl`` (see the module docstring for ``auto``)."""
+    validate_impl(impl)
+    if impl == "auto":
+        return "warp" if warp_installed() and cuda_available() else "jax"
+    if impl == "warp" and not warp_installed():
+        raise ValueError("impl='warp' needs warp-lang, which is not installed: pip install \"hyqjax[warp]\" "
+                         "(or choose impl='jax')")
+    return impl
+
+
+def warp_capacity(njnt_limited: int, batch: int, contacts_per_instance: int = CONTACTS_PER_INSTANCE) -> tuple[int, int]:
+    """``(naconmax, njmax)`` for a Warp batch: ``naconmax = batch * contacts_per_instance`` contacts shared by
+    all worlds; ``njmax = ROWS_PER_CONTACT * contacts_per_instance + njnt_limited`` rows per world (every
+    contact plus every joint-limit row active at once)."""
+    if batch < 1:
+        raise ValueError(f"batch must be >= 1, got {batch}")
+    if contacts_per_instance < 1:
+        raise ValueError(f"contacts_per_instance must be >= 1, got {contacts_per_instance}")
+    return batch * contacts_per_instance, ROWS_PER_CONTACT * contacts_per_instance + njnt_limited
+
+
+def put_model(m, impl: str):
+    """``mjx.put_model(m, impl=...)`` for a resolved ``impl`` (``"jax"`` or ``"warp"``)."""
+    from mujoco import mjx
+
+    if impl not in ("jax", "warp"):
+        raise ValueError(f"put_model needs a resolved impl ('jax' or 'warp'), got {impl!r}; see resolve_impl")
+    mx = mjx.put_model(m, impl=impl)
+    if impl == "warp":  # keep the buffer-overflow warnings, drop the per-step iteration-limit printout
+        mx = mx.replace(opt=mx.opt.replace(_impl=mx.opt._impl.replace(warn_overflow=_QUIET_OVERFLOW)))
+    return mx
+
+
+def forbid_derivatives(tree, impl: str):
+    """Identity on ``tree``; under ``impl="warp"`` a derivative (``jax.jvp``, ``jacfwd``, ``grad``) through it
+    raises ``ValueError`` naming ``impl``."""
+    if impl != "warp":
+        return tree
+    import jax
+
+    @jax.custom_jvp
+    def guard(x):
+        return x
+
+    @guard.defjvp
+    def _jvp(primals, tangents):
+        raise ValueError("impl='warp' is not differentiable (MuJoCo Warp is forward only); use impl='jax' for "
+                         "gradients")
+
+    return guard(tree)
+
+
+_WARP_MISSING = ("Failed to import warp: No module named 'warp'",
+                 "Failed to import mujoco_warp: No module named 'warp'")
+
+
+class _QuietLoader(importlib.abc.Loader):
+    def __init__(self, inner):
+        self.inner = inner
+
+    def create_module(self, spec):
+        return self.inner.create_module(spec)
+
+    def exec_module(self, module):
+        buf = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(buf):
+                self.inner.exec_module(module)
+        finally:
+            kept = [ln for ln in buf.getvalue().splitlines(keepends=True) if ln.rstrip("\n") not in _WARP_MISSING]
+            sys.stdout.write("".join(kept))
+
+
+class _QuietFinder(importlib.abc.MetaPathFinder):
+    NAME = "mujoco.mjx.warp"
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.NAME:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None:
+                if spec.loader is not None:
+                    spec.loader = _QuietLoader(spec.loader)
+                return spec
+        return None
+
+
+def install_quiet_warp_import() -> None:
+    """Drop MJX's "Failed to import warp" lines (printed when warp-lang is absent) from ``mujoco.mjx.warp``'s
+    import; idempotent, and a no-op once that module is imported."""
+    if "mujoco.mjx.warp" in sys.modules or any(isinstance(f, _QuietFinder) for f in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _QuietFinder())
+
+
+def is_warp_model(mx) -> bool:
+    """``mx`` is an ``mjx.Model`` of the Warp implementation."""
+    return str(getattr(mx, "impl", "")).lower().endswith("warp")

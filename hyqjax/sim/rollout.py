@@ -1,0 +1,317 @@
+"""Closed-loop simulation of one instance: ``lax.scan`` over control ticks of
+``controller(params, state, observation) -> joint torques -> mjx.step``.
+
+The simulation is split the way MJX splits physics: a static :class:`SimConfig` (rates and
+horizon), an ``mjx.Model`` (batched per instance by :func:`hyqjax.sim.model.batch_model`), and
+pure functions. A controller is a :class:`Controller`, a pair of pure functions::
+
+    init(params, obs) -> ctrl_state
+    step(params, ctrl_state, obs) -> (ctrl_state, torques (12,), info)
+
+Metrics are accumulated on the device by a :class:`Metrics` pair (``init``, ``update``) so a
+long sweep keeps only summaries; traces are recorded every ``record_every`` ticks.
+
+Observations (:class:`Observation`) hold what HyQ measures: joint positions, velocities and
+torques, the IMU's orientation and angular velocity, and foot forces estimated from joint
+torques. Ground truth (``mjx.Data``) stays available to metrics, never to controllers.
+
+Batches run through :mod:`hyqjax.sim.runner` (``vmap`` + ``jit`` + sharding + chunked progress), whose
+names are also reachable from this module.
+
+An instance whose state becomes non-finite or whose speed exceeds ``SimConfig.max_speed`` is
+*diverged*: its state is frozen at the last finite tick and the flag is returned, so a sweep
+counts it as a failure instead of averaging NaN.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from hyqjax.core import kinematics
+from hyqjax.sim import backend
+from hyqjax.sim import model as hmodel
+from hyqjax.core import robot
+
+
+@dataclasses.dataclass(frozen=True)
+class SimConfig:
+    """Static simulation settings (changing them recompiles).
+
+    Attributes:
+      control_dt: controller period (s). HyQ's loop runs at 1 kHz; hyqjax defaults to 500 Hz.
+      substeps: physics steps per control tick; the physics timestep is ``control_dt / substeps``.
+      duration: simulated time (s).
+      record_every: record a trace sample every this many ticks (0: no trace).
+      max_speed: a generalized velocity above this (m/s or rad/s) flags divergence.
+    """
+
+    control_dt: float = 0.002
+    substeps: int = 1
+    duration: float = 2.0
+    record_every: int = 10
+    max_speed: float = 100.0
+
+    def __post_init__(self):
+        if not (0.0 < self.control_dt <= 0.02):
+            raise ValueError(f"control_dt must be in (0, 0.02] s, got {self.control_dt}")
+        if not (isinstance(self.substeps, int) and 1 <= self.substeps <= 100):
+            raise ValueError(f"substeps must be an int in [1, 100], got {self.substeps}")
+        if not (0.0 < self.duration <= 600.0):
+            raise ValueError(f"duration must be in (0, 600] s, got {self.duration}")
+        if not (isinstance(self.record_every, int) and self.record_every >= 0):
+            raise ValueError(f"record_every must be an int >= 0, got {self.record_every}")
+        if self.record_every and self.n_ticks % self.record_every:
+            raise ValueError(f"record_every ({self.record_every}) must divide the number of ticks ({self.n_ticks})")
+
+    @property
+    def physics_dt(self) -> float:
+        return self.control_dt / self.substeps
+
+    @property
+    def n_ticks(self) -> int:
+        return int(round(self.duration / self.control_dt))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Observation:
+    """What the robot measures at one control tick (all in the trunk frame ``B`` unless noted).
+
+    Attributes:
+      q, qd, tau: joint positions, velocities, applied torques, (12,).
+      quat: IMU orientation ``W_q_B`` (w, x, y, z).
+      gyro: trunk angular velocity in ``B``, (3,).
+      foot_force: ground reaction forces at the feet estimated from joint torques, (4, 3), in ``B``:
+        ``f = J_f^{-T} (h - tau)`` per leg with ``h`` the leg's bias torques (gravity, Coriolis).
+      time: seconds since the start.
+    """
+
+    q: jax.Array
+    qd: jax.Array
+    tau: jax.Array
+    quat: jax.Array
+    gyro: jax.Array
+    foot_force: jax.Array
+    time: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Push:
+    """A lateral push on the trunk: ``force`` (3,) N in the world frame, applied at the trunk's
+    centre of mass during ``[t_start, t_start + duration)``. Per instance under ``vmap``."""
+
+    force: jax.Array
+    t_start: jax.Array
+    duration: jax.Array
+
+    @staticmethod
+    def none(dtype=jnp.float32) -> "Push":
+        return Push(jnp.zeros(3, dtype), jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype))
+
+
+class Controller(NamedTuple):
+    init: Callable[[Any, Observation], Any]
+    step: Callable[[Any, Any, Observation], tuple[Any, jax.Array, Any]]
+
+
+class Metrics(NamedTuple):
+    """Metrics accumulated on the device: ``init(d) -> m``, ``update(m, d, obs, info) -> m``."""
+
+    init: Callable[[mjx.Data], Any]
+    update: Callable[[Any, mjx.Data, Observation, Any], Any]
+
+
+def no_metrics() -> Metrics:
+    return Metrics(lambda d: (), lambda m, d, o, i: ())
+
+
+def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | None = None) -> Observation:
+    """Build an :class:`Observation` from MJX data (the sensors HyQ has).
+
+    Foot forces come from the joint-space dynamics of each leg, ``tau = M_l qdd + h_l - J_f^T f``:
+    ``f = J_f^{-T} (M_l qdd + h_l - tau)`` with ``h_l`` the leg rows of the bias forces (gravity,
+    Coriolis) and, when ``mx`` is given, ``M_l qdd`` the leg rows of the mass matrix times the
+    accelerations of the last physics step (what a robot gets by differentiating its encoder
+    velocities, one tick late; under MuJoCo Warp the same product from the equation of motion,
+    ``M qdd = qfrc_smooth + qfrc_constraint``). Without the inertial term a fast swing leg reads tens of newtons of
+    phantom contact force, enough to trigger a haptic touchdown in mid-air.
+    """
+    qadr = np.asarray(ids.qpos_joints)
+    vadr = np.asarray(ids.dof_joints)
+    q = d.qpos[qadr]
+    qd = d.qvel[vadr]
+    quat = d.qpos[robot.QPOS_BASE_QUAT]
+    gyro = d.qvel[robot.QVEL_BASE_ANG]  # MuJoCo's free-joint angular velocity is in the body frame.
+    gen = d.qfrc_bias
+    if mx is not None and backend.is_warp_model(mx):
+        # M qacc = qfrc_smooth + qfrc_constraint (the equation of motion of the last step; mujoco_warp's
+        # mass matrix is not in the layout mjx.mul_m reads). External forces act on the free joint only.
+        gen = gen + d.qfrc_smooth + d.qfrc_constraint
+    elif mx is not None:
+        gen = gen + mjx.mul_m(mx, d, d.qacc)
+    bias = gen[vadr].reshape(4, 3)
+    jac = kinematics.foot_jacobians(q)
+    rhs = (bias - tau.reshape(4, 3))[..., None]
+    reg = 1e-6 * jnp.eye(3, dtype=q.dtype)
+    jt = jnp.swapaxes(jac, -1, -2)
+    force = jnp.linalg.solve(jt + reg, rhs)[..., 0]
+    return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
+
+
+def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, substeps: int,
+             push: Push | None) -> mjx.Data:
+    d = d.replace(ctrl=tau)
+    if push is not None:
+        on = (d.time >= push.t_start) & (d.time < push.t_start + push.duration)
+        wrench = jnp.concatenate([jnp.where(on, push.force, 0.0), jnp.zeros(3, push.force.dtype)])
+        d = d.replace(xfrc_applied=d.xfrc_applied.at[ids.trunk_body].set(wrench.astype(d.xfrc_applied.dtype)))
+    return jax.lax.fori_loop(0, substeps, lambda _, dd: mjx.step(mx, dd), d)
+
+
+def _finite_tree(tree) -> jax.Array:
+    leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
+              if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+class RolloutCarry(NamedTuple):
+    """The scan carry of one instance between control ticks (what a chunked run hands from chunk to chunk)."""
+
+    data: mjx.Data
+    ctrl_state: Any
+    metrics: Any
+    tau: jax.Array
+    diverged: jax.Array
+    diverged_tick: jax.Array
+    tick: jax.Array
+
+
+class RolloutResult(NamedTuple):
+    data: mjx.Data
+    ctrl_state: Any
+    metrics: Any
+    diverged: jax.Array
+    diverged_tick: jax.Array
+    trace: Any
+
+
+def rollout_init(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
+                 metrics: Metrics = no_metrics()) -> RolloutCarry:
+    """The carry before the first tick: ``controller.init`` on the first observation (zero torques)."""
+    tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
+    obs0 = observe(ids, d0, tau0, mx)
+    carry = RolloutCarry(d0, controller.init(params, obs0), metrics.init(d0), tau0, jnp.array(False),
+                         jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32))
+    # Strong types (as the scan's output carry has them), so the chunks after the first reuse its program.
+    return jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
+
+
+def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, controller: Controller, params: Any,
+                    cfg: SimConfig, n_ticks: int, metrics: Metrics = no_metrics(),
+                    record: Callable[[mjx.Data, Observation, Any], Any] | None = None,
+                    push: Push | None = None) -> tuple[RolloutCarry, Any]:
+    """``n_ticks`` control ticks from ``carry`` (``lax.scan``); returns the new carry and the trace of these ticks.
+
+    Per tick: observe, ``controller.step``, clip torques to ``robot.TORQUE_LIMIT``, ``cfg.substeps`` calls of
+    ``mjx.step``, divergence check (non-finite state or ``|qvel| >= cfg.max_speed`` freezes the instance at its
+    last finite state), metric update. With ``record``, ``n_ticks`` must be a multiple of ``cfg.record_every``.
+    """
+    def tick(c: RolloutCarry, _):
+        d, cs, ms, tau_prev, div, div_tick, k = c
+        obs = observe(ids, d, tau_prev, mx)
+        cs_new, tau, info = controller.step(params, cs, obs)
+        tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+        d_new = _physics(mx, d, tau, ids, cfg.substeps, push)
+        ok = _finite_tree((d_new.qpos, d_new.qvel, tau)) & (jnp.max(jnp.abs(d_new.qvel)) < cfg.max_speed)
+        newly = (~div) & (~ok)
+        div = div | ~ok
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
+        d_new = d_new.where(div, d)  # mjx.Data.where: the same select, valid for Warp's shared contact buffers
+        cs_new = keep(cs_new, cs)
+        tau = jnp.where(div, tau_prev, tau)
+        ms_new = keep(metrics.update(ms, d_new, obs, info), ms)
+        div_tick = jnp.where(newly, k, div_tick)
+        out = record(d_new, obs, info) if record is not None else None
+        return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1), out
+
+    if record is not None and cfg.record_every:
+        if n_ticks % cfg.record_every:
+            raise ValueError(f"n_ticks ({n_ticks}) must be a multiple of record_every ({cfg.record_every})")
+
+        def block(c, _):
+            c, outs = jax.lax.scan(tick, c, None, length=cfg.record_every)
+            return c, jax.tree_util.tree_map(lambda x: x[-1], outs)
+
+        return jax.lax.scan(block, carry, None, length=n_ticks // cfg.record_every)
+    carry, _ = jax.lax.scan(lambda c, x: (tick(c, x)[0], None), carry, None, length=n_ticks)
+    return carry, None
+
+
+def rollout_result(carry: RolloutCarry, trace: Any = None) -> RolloutResult:
+    return RolloutResult(carry.data, carry.ctrl_state, carry.metrics, carry.diverged, carry.diverged_tick, trace)
+
+
+def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
+            cfg: SimConfig, metrics: Metrics = no_metrics(),
+            record: Callable[[mjx.Data, Observation, Any], Any] | None = None,
+            push: Push | None = None) -> RolloutResult:
+    """Simulate ONE instance for ``cfg.n_ticks`` control ticks (``vmap`` it for a batch; pure, differentiable).
+
+    :func:`rollout_init` then :func:`rollout_advance` over all ticks. Returns the final state, metrics, the
+    divergence flag and tick, and the decimated trace (``record(d, obs, info)`` every ``cfg.record_every``
+    ticks). ``push`` optionally applies an external force to the trunk.
+    """
+    carry = rollout_init(mx, ids, d0, controller, params, metrics)
+    rec = record if cfg.record_every else None
+    carry, trace = rollout_advance(mx, ids, carry, controller, params, cfg, cfg.n_ticks, metrics, rec, push)
+    return rollout_result(carry, trace)
+
+
+def initial_data(mx: mjx.Model, qpos: jax.Array, batch: int | None = None, m: mujoco.MjModel | None = None,
+                 contacts_per_instance: int = backend.CONTACTS_PER_INSTANCE) -> mjx.Data:
+    """MJX data at ``qpos`` with zero velocity. With ``batch``, ``qpos`` is ``(batch, nq)`` (or broadcast)
+    and every field gets a leading batch axis.
+
+    Under MJX's Warp implementation (``mx`` from ``put_model(m, impl="warp")``, ``m`` required) the data is
+    made from ``m`` inside a ``vmap`` (one world per instance) with the contact buffer sized for the batch
+    (:func:`hyqjax.sim.backend.warp_capacity`), and the terrain geoms' world positions are written from
+    ``mx.geom_pos`` (per instance after :func:`hyqjax.sim.model.batch_model`): mujoco_warp computes the pose
+    of geoms welded to the world once, in ``make_data``, never from the model again.
+    """
+    if backend.is_warp_model(mx):
+        if m is None:
+            raise ValueError("initial_data under impl='warp' needs the MuJoCo model m (mujoco.MjModel)")
+        b = batch or 1
+        naconmax, njmax = backend.warp_capacity(int(np.sum(m.jnt_limited)), b, contacts_per_instance)
+        qpos = jnp.broadcast_to(jnp.asarray(qpos, jnp.float32), (b, m.nq))
+        d = jax.vmap(lambda q: mjx.make_data(m, impl="warp", naconmax=naconmax, njmax=njmax).replace(qpos=q))(qpos)
+        static = np.array([g for g in range(m.ngeom) if m.body_weldid[m.geom_bodyid[g]] == 0], int)
+        gpos = jnp.asarray(mx.geom_pos)
+        gpos = gpos[:, static] if gpos.ndim == 3 else jnp.broadcast_to(gpos[static], (b, len(static), 3))
+        d = d.replace(geom_xpos=d.geom_xpos.at[:, static].set(gpos.astype(d.geom_xpos.dtype)))
+        return d if batch is not None else jax.tree_util.tree_map(lambda x: x[0], d)
+    d = mjx.make_data(mx)
+    if batch is None:
+        return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype))
+    qpos = jnp.broadcast_to(jnp.asarray(qpos, d.qpos.dtype), (batch, d.qpos.shape[0]))
+    db = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), d)
+    return db.replace(qpos=qpos)
+
+
+_RUNNER_NAMES = ("BatchRunner", "Progress", "make_batch_runner", "batch_rollout", "batch_rollout_fn", "batch_mesh",
+                 "pad_batch")
+
+
+def __getattr__(name):  # the batch runner lives in hyqjax.sim.runner (it imports this module)
+    if name in _RUNNER_NAMES:
+        from hyqjax.sim import runner
+
+        return getattr(runner, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

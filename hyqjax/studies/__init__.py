@@ -1,0 +1,1 @@
+"""The experiments: the step-down (Section IV), parameter sweeps and reflex tuning."""

@@ -1,0 +1,293 @@
+"""The step-down experiment of Focchi et al. (2017), Section IV: HyQ crawls off a platform.
+
+HyQ starts on a platform of height ``h`` (front feet ``start_distance`` before the edge) and crawls
+forward; the experiment runs the same batch with the height reflex on and off.
+
+Entry points:
+
+* :func:`make_stepdown_rollout` ``(cfg) -> StepdownRollout``, compiled once per static config (cached):
+  ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX (``jax.jit``,
+  ``jax.vmap``, ``jax.jacfwd`` reach every parameter), and ``rollout.run(scenario)`` for a batch through the
+  one jitted, sharded, chunked runner (:func:`hyqjax.sim.rollout.make_batch_runner`).
+* :func:`run_batch`: the same batch as NumPy columns (a thin layer on ``rollout.run``), and
+  :func:`hyqjax.studies.stepdown_table.summarize` for the paper's table.
+
+Outcomes (completed / clean, boolean failure reasons) and metrics are defined in
+:mod:`hyqjax.studies.stepdown_outcome`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from hyqjax.core import robot
+from hyqjax.crawl import controller as crawl
+from hyqjax.sim import backend
+from hyqjax.sim import model as hmodel
+from hyqjax.sim import rollout as sim
+from hyqjax.studies import stepdown_outcome as so
+from hyqjax.studies.stepdown_outcome import FAILURE_REASONS, StepdownOutcome, failure_labels  # noqa: F401
+from hyqjax.studies.stepdown_table import format_table, summarize, wilson_interval  # noqa: F401
+
+
+@dataclasses.dataclass(frozen=True)
+class StepdownConfig:
+    """Static settings of a step-down batch (changing them recompiles).
+
+    Attributes:
+      duration: simulated time (s).
+      control_dt: controller period (s).
+      record_every: trace decimation in ticks (0: no traces).
+      max_tilt: bound on |roll| and |pitch| (rad) for a completed run.
+      min_progress: a completed run advances the trunk at least this far (m).
+      strike_force: a shin or trunk contact pressing on the terrain harder than this (N) is a strike.
+      layout: terrain structure (rough blocks).
+      impl: MJX implementation, ``auto | jax | warp`` (:mod:`hyqjax.sim.backend`).
+    """
+
+    duration: float = 24.0
+    control_dt: float = 0.002
+    record_every: int = 0
+    max_tilt: float = 0.4
+    min_progress: float = 0.5
+    strike_force: float = 100.0
+    layout: hmodel.TerrainLayout = hmodel.TerrainLayout()
+    impl: str = "auto"
+
+    def __post_init__(self):
+        backend.validate_impl(self.impl)
+        self.sim_config()  # validates duration, control_dt, record_every
+        for name, lo, hi in (("max_tilt", 0.0, np.pi), ("min_progress", 0.0, 100.0), ("strike_force", 0.0, 1e5)):
+            v = getattr(self, name)
+            if not (lo < v <= hi):
+                raise ValueError(f"{name} must be in ({lo}, {hi}], got {v}")
+
+    def sim_config(self) -> sim.SimConfig:
+        return sim.SimConfig(control_dt=self.control_dt, duration=self.duration, record_every=self.record_every)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    """Per-instance inputs (every field has a leading batch axis in a batch, none for one instance).
+
+    Attributes:
+      terrain: platform height, friction, payload, blocks.
+      start_distance: distance of the front feet from the platform edge at the start (m).
+      lateral_offset: initial lateral offset of the trunk (m).
+      yaw: initial heading (rad).
+      params: crawl parameters (with ``use_reflex`` and the reflex parameters); what :meth:`StepdownRollout.run`
+        runs. The single-instance ``rollout(params, scenario)`` takes its parameters as ``params`` instead.
+      push: lateral push on the trunk.
+    """
+
+    terrain: hmodel.InstanceTerrain
+    start_distance: jax.Array
+    lateral_offset: jax.Array
+    yaw: jax.Array
+    params: crawl.CrawlParams
+    push: sim.Push
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.start_distance.shape[0])
+
+    def replace(self, **kwargs) -> "Scenario":
+        """A copy with fields replaced, e.g. ``scenario.replace(params=batch_params(...))``."""
+        return dataclasses.replace(self, **kwargs)
+
+    def instance(self, i: int) -> "Scenario":
+        """Instance ``i`` of a batch (leaves without the batch axis)."""
+        return jax.tree_util.tree_map(lambda x: x[i], self)
+
+
+@dataclasses.dataclass(frozen=True)
+class StepdownSetup:
+    """The compiled model of a static config: ``m`` (C MuJoCo), ``mx`` (MJX, implementation ``impl``), ``ids``."""
+
+    m: mujoco.MjModel
+    mx: mjx.Model
+    ids: hmodel.ModelIds
+    impl: str
+
+
+def setup(cfg: StepdownConfig) -> StepdownSetup:
+    """Model, MJX model and ids for ``cfg`` (cached per layout, control period, resolved ``impl`` and JAX's
+    float width: under ``jax.enable_x64`` the MJX model is float64)."""
+    return _setup_cached(cfg.layout, cfg.control_dt, backend.resolve_impl(cfg.impl), bool(jax.config.jax_enable_x64))
+
+
+@functools.lru_cache(maxsize=8)
+def _setup_cached(layout: hmodel.TerrainLayout, control_dt: float, impl: str, x64: bool) -> StepdownSetup:
+    m = hmodel.load_model(layout, timestep=control_dt)
+    return StepdownSetup(m, backend.put_model(m, impl), hmodel.model_ids(m), impl)
+
+
+def start_qpos(stand_qpos, start_distance, lateral_offset, yaw, platform_height, xp=np):
+    """Standing keyframe on the platform, front feet ``start_distance`` before the edge, heading ``yaw``.
+
+    Any leading batch shape; ``xp`` is ``numpy`` (the batch path) or ``jax.numpy`` (traceable).
+    """
+    front_x = float(robot.B_P_HIP[0, 0])
+    zero = xp.zeros_like(start_distance)
+    base = xp.stack([-start_distance - front_x, lateral_offset + zero, robot.STANDING_BASE_Z + platform_height + zero,
+                     xp.cos(yaw / 2), zero, zero, xp.sin(yaw / 2)], -1)
+    joints = xp.broadcast_to(xp.asarray(stand_qpos)[7:], base.shape[:-1] + (robot.N_JOINTS,))
+    return xp.concatenate([base, joints.astype(base.dtype)], -1)
+
+
+def initial_qpos(m: mujoco.MjModel, scenario: Scenario) -> np.ndarray:
+    """:func:`start_qpos` of every instance of a batch, ``(B, nq)``, in the scenario's float width (the
+    arithmetic is that of the scenario's arrays, so a float32 scenario gives the float32 start it always had)."""
+    return start_qpos(hmodel.standing_qpos(m), np.asarray(scenario.start_distance), np.asarray(scenario.lateral_offset),
+                      np.asarray(scenario.yaw), np.asarray(scenario.terrain.platform_height))
+
+
+def record_trace(d, obs: sim.Observation, info: crawl.CrawlInfo, sites=None):
+    """What figures need: trunk pose, joints, commanded/planned feet, reflex activity, damping, mobility."""
+    from hyqjax.core import spatial
+
+    return dict(time=d.time, base_pos=d.qpos[robot.QPOS_BASE_POS],
+                rpy=spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT])),
+                q=obs.q, qd=obs.qd, q_cmd=info.q_cmd, x_plan_b=info.x_plan_b, x_cmd_b=info.x_cmd_b,
+                reflex_active=info.reflex_active, swing_down=info.swing_down, swing_leg=info.swing_leg,
+                phase=info.phase, damping=info.damping, mobility=info.mobility, foot_force=obs.foot_force,
+                feet_world=d.site_xpos[sites] if sites is not None else d.site_xpos, qpos=d.qpos)
+
+
+def make_metrics(ids: hmodel.ModelIds, cfg: StepdownConfig) -> sim.Metrics:
+    """The step-down metrics of :mod:`hyqjax.studies.stepdown_outcome` for ``cfg``."""
+    return so.make_metrics(ids, cfg.strike_force)
+
+
+class StepdownRollout:
+    """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`).
+
+    ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)``: ONE instance (``scenario`` without batch
+    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``; a
+    derivative under ``impl="warp"`` is a ``ValueError``). ``rollout.run(scenario)``: a batch through the
+    jitted, sharded, chunked runner, compiled once per batch shape and mesh.
+    """
+
+    def __init__(self, cfg: StepdownConfig):
+        self.cfg = cfg
+        self.setup = setup(cfg)
+        self.sim_config = cfg.sim_config()
+        self.controller = crawl.crawl_controller(cfg.control_dt)
+        self.metrics = make_metrics(self.setup.ids, cfg)
+        sites = np.asarray(self.setup.ids.foot_sites)
+        self.record = (lambda d, o, i: record_trace(d, o, i, sites)) if cfg.record_every else None
+        self._runners: dict = {}
+        self._outcomes = jax.jit(jax.vmap(self.outcome))
+
+    def outcome(self, res: sim.RolloutResult) -> StepdownOutcome:
+        """The outcome of one instance's rollout result (pure JAX)."""
+        return so.outcome(res._replace(trace=None), self.setup.ids, self.cfg.max_tilt, self.cfg.min_progress)
+
+    def __call__(self, params: crawl.CrawlParams, scenario: Scenario) -> tuple[StepdownOutcome, mjx.Data]:
+        st = self.setup
+        params, scenario = backend.forbid_derivatives((params, scenario), st.impl)
+        mx1 = hmodel.instance_model(st.mx, st.ids, scenario.terrain)
+        q0 = start_qpos(jnp.asarray(hmodel.standing_qpos(st.m), st.mx.qpos0.dtype), scenario.start_distance,
+                        scenario.lateral_offset, scenario.yaw, scenario.terrain.platform_height, xp=jnp)
+        d0 = sim.initial_data(mx1, q0, m=st.m)
+        cfg = dataclasses.replace(self.sim_config, record_every=0)
+        res = sim.rollout(mx1, st.ids, d0, self.controller, params, cfg, self.metrics, None, scenario.push)
+        return self.outcome(res), res.data
+
+    def runner(self, mesh=None) -> sim.BatchRunner:
+        """The batch runner (one per mesh), built once and kept."""
+        key = None if mesh is None else (tuple(mesh.devices.flat), mesh.axis_names)
+        if key not in self._runners:
+            self._runners[key] = sim.make_batch_runner(self.setup.ids, self.controller, self.sim_config, self.metrics,
+                                                       self.record, params_axes=0, mesh=mesh)
+        return self._runners[key]
+
+    def run(self, scenario: Scenario, mesh=None, progress: Callable[[float, float], None] | None = None,
+            chunk_seconds: float | None = None) -> tuple[StepdownOutcome, sim.RolloutResult]:
+        """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, metrics, trace)."""
+        st = self.setup
+        b = scenario.batch_size
+        mb = hmodel.batch_model(st.mx, st.ids, scenario.terrain)
+        # Warp needs the per-instance terrain poses in the data (sim.rollout.initial_data).
+        d0 = sim.initial_data(mb if st.impl == "warp" else st.mx, initial_qpos(st.m, scenario), b, m=st.m)
+        res = self.runner(mesh)(mb, d0, scenario.params, scenario.push, progress=progress, chunk_seconds=chunk_seconds)
+        return self._outcomes(res._replace(trace=None)), res
+
+
+def make_stepdown_rollout(cfg: StepdownConfig = StepdownConfig()) -> StepdownRollout:
+    """The :class:`StepdownRollout` of ``cfg`` (cached: one per static config and float width, so one compile
+    per batch shape)."""
+    return _rollout_cached(cfg, bool(jax.config.jax_enable_x64))
+
+
+@functools.lru_cache(maxsize=8)
+def _rollout_cached(cfg: StepdownConfig, x64: bool) -> StepdownRollout:
+    return StepdownRollout(cfg)
+
+
+def run_batch(scenario: Scenario, cfg: StepdownConfig = StepdownConfig(), mesh=None,
+              progress: Callable[[float, float], None] | None = None) -> tuple[dict[str, np.ndarray], Any]:
+    """Run one batch of step-down instances; returns ``(outcome columns as numpy arrays, trace or None)``
+    (:func:`hyqjax.studies.stepdown_outcome.to_columns`). ``progress(sim_s_done, sim_s_total)`` is called
+    between chunks of simulated time."""
+    out, res = make_stepdown_rollout(cfg).run(scenario, mesh=mesh, progress=progress)
+    trace = jax.tree_util.tree_map(np.asarray, res.trace) if cfg.record_every else None
+    return so.to_columns(out), trace
+
+
+def summarize_instances(res: sim.RolloutResult, scenario: Scenario, cfg: StepdownConfig, ids=None) -> dict[str, np.ndarray]:
+    """Outcome columns (numpy) of a batch rollout made with :func:`make_metrics` (e.g. by a sweep's runner)."""
+    return so.to_columns(make_stepdown_rollout(cfg)._outcomes(res._replace(trace=None)))
+
+
+def make_scenarios(heights, reflex_modes, instances: int, seed: int, *, friction=(0.7, 1.0), payload=(0.0, 10.0),
+                   start_distance=(0.0, 0.04), lateral=(-0.03, 0.03), yaw=(-0.05, 0.05), params: crawl.CrawlParams | None = None,
+                   n_blocks: int = 0) -> tuple[Scenario, dict[str, np.ndarray]]:
+    """A batch over ``heights x reflex_modes x instances`` with per-instance randomisation from ``seed``.
+
+    The same seed gives every (height, reflex) pair the same randomised instances, so reflex on and off
+    are compared on identical scenarios. Returns the scenario and a table of the inputs.
+    """
+    heights = [float(h) for h in heights]
+    modes = [bool(r) for r in reflex_modes]
+    if instances < 1:
+        raise ValueError(f"instances must be >= 1, got {instances}")
+    rng = np.random.default_rng(seed)
+    n = instances
+    inst = dict(
+        friction=rng.uniform(*friction, n), payload_mass=rng.uniform(*payload, n),
+        payload_com=np.stack([rng.uniform(-0.1, 0.1, n), rng.uniform(-0.05, 0.05, n), np.zeros(n)], -1),
+        start_distance=rng.uniform(*start_distance, n), lateral_offset=rng.uniform(*lateral, n),
+        yaw=rng.uniform(*yaw, n),
+    )
+    rows = {k: [] for k in ["height", "reflex", "instance", *inst]}
+    for h in heights:
+        for r in modes:
+            for i in range(n):
+                rows["height"].append(h)
+                rows["reflex"].append(r)
+                rows["instance"].append(i)
+                for k, v in inst.items():
+                    rows[k].append(v[i])
+    table = {k: np.asarray(v) for k, v in rows.items()}
+    base = params or crawl.CrawlParams.make()
+    b = len(table["height"])
+    terrain = hmodel.InstanceTerrain.make(table["height"], table["friction"], table["payload_mass"],
+                                          table["payload_com"], n_blocks=n_blocks)
+    bparams = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), base)
+    bparams = dataclasses.replace(bparams, use_reflex=jnp.asarray(table["reflex"], jnp.float32))
+    scenario = Scenario(terrain=terrain, start_distance=jnp.asarray(table["start_distance"]),
+                        lateral_offset=jnp.asarray(table["lateral_offset"]), yaw=jnp.asarray(table["yaw"]),
+                        params=bparams,
+                        push=jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), sim.Push.none()))
+    return scenario, table
+
+

@@ -1,0 +1,399 @@
+"""The sweep results store: ``DIR/manifest.json`` + one Parquet file per chunk, locked and verified.
+
+Layout of ``DIR``::
+
+    manifest.json          schema, canonical spec and its SHA-256, chunk size, device layout, per chunk:
+                           file, row range [start, stop), row count, SHA-256 and size of the file, wall time
+    chunks/00000.parquet   the chunk's rows: inputs and outcome columns (one Parquet file per chunk)
+    .lock                  the writer's exclusive lock (:class:`hyqjax.io.lock.DirLock`)
+
+The chunks directory is one Parquet dataset: ``pandas.read_parquet("DIR/chunks")``,
+``polars.read_parquet("DIR/chunks/*.parquet")`` or DuckDB's ``SELECT * FROM 'DIR/chunks/*.parquet'``
+read the whole sweep as one table (``index`` is the instance number).
+
+Guarantees:
+
+* **One writer.** A writer holds ``DIR/.lock`` for its whole run; a second one is refused with the
+  holder's pid and host, or waits (``wait=True``, ``hyqjax sweep --wait``). The kernel drops the lock
+  when its holder dies. The manifest is re-read and merged under the lock before every write, and a
+  chunk already recorded with a valid file is never written again (a chunk lands once).
+* **Atomic files.** Chunk and manifest are written to a temporary and renamed; a writer killed at any
+  point leaves the old or the new file, never a part. Temporaries of dead writers are removed when the
+  next writer takes the lock. A chunk file written but not yet recorded (a kill between the two renames)
+  is adopted after its embedded metadata and row range check out.
+* **Verified on load.** Each recorded chunk's size and SHA-256 must match the manifest, its embedded
+  metadata must name this sweep's spec hash and chunk number, and its ``index`` column must be exactly
+  ``start..stop-1``. A chunk that fails (truncated, replaced by another chunk, from another sweep) is
+  named in :attr:`SweepStore.problems`, left out of :meth:`SweepStore.load`, and recomputed by the next run.
+* **Strict JSON** (no bare NaN) in the manifest and summary; a corrupt manifest is named, set aside and,
+  for a writer that has the spec, rebuilt from the chunk files.
+* **Device layout.** The results of an instance depend on the batch shape each device compiles for
+  (XLA's vectorisation and fusion), not on which rows share a chunk. The manifest records the layout
+  (platform, device kind, devices per program, chunk size); a resume with another layout is refused
+  (:class:`StoreMismatch`), so a store never mixes rows computed under two layouts.
+
+Stores of schema ``hyqjax.sweep/1`` (``.npz`` chunks, no hashes) are converted in place by the first
+writer that opens them with the same spec (rows kept, row ranges checked, hashes computed).
+"""
+from __future__ import annotations
+
+import datetime
+import hashlib
+import json
+import os
+
+import numpy as np
+
+from hyqjax.io.atomic import atomic_write, clean_temporaries, write_json
+from hyqjax.io.lock import Busy, DirLock
+from hyqjax.studies.sweep.chunkfile import META_KEY, parquet_to_rows, rows_to_parquet
+from hyqjax.studies.sweep.spec import SweepSpec
+
+SCHEMA = "hyqjax.sweep/2"
+OLD_SCHEMAS = ("hyqjax.sweep/1",)
+MANIFEST = "manifest.json"
+
+
+class StoreMismatch(RuntimeError):
+    """The output directory holds a sweep of a different specification, schema or device layout."""
+
+
+class StoreCorrupt(RuntimeError):
+    """A store file cannot be read (the message names it and what to do)."""
+
+
+StoreBusy = Busy
+
+
+def _now() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
+
+
+def sha256_bytes(b: bytes) -> str:
+    return hashlib.sha256(b).hexdigest()
+
+
+class SweepStore:
+    """A sweep's store in ``out_dir`` (see the module docstring).
+
+    Opening reads and checks the manifest (spec hash, schema, layout) and verifies every recorded chunk;
+    it writes nothing unless the directory is new (the manifest is then created under the lock). Writers
+    call :meth:`lock` and :meth:`write_chunk`; readers call :meth:`load`.
+
+    Args:
+      out_dir: the sweep directory.
+      spec: the validated spec; None opens the stored spec read-only (``hyqjax report``).
+      chunk_size: instances per chunk for a new store (ignored with a note when resuming).
+      layout: the device layout of this run (:func:`hyqjax.studies.sweep.runner.device_layout`); a stored
+        layout that differs is refused. None: do not check (readers).
+    """
+
+    def __init__(self, out_dir: str, spec: SweepSpec | None, chunk_size: int | None = None,
+                 layout: dict | None = None, writer: bool = False, wait: bool = False,
+                 timeout: float | None = None, default_chunk_size: int | None = None):
+        self.dir = out_dir
+        self.path = os.path.join(out_dir, MANIFEST)
+        self.chunks_dir = os.path.join(out_dir, "chunks")
+        self.problems: dict[int, str] = {}
+        self._lock: DirLock | None = None
+        self._verified: dict[int, dict[str, np.ndarray]] = {}
+        self._requested = dict(chunk_size=chunk_size, layout=layout, default_chunk_size=default_chunk_size)
+        if chunk_size is not None and chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        if spec is None:
+            man = self._read_manifest()
+            if man is None:
+                raise StoreCorrupt(f"{out_dir} holds no sweep ({MANIFEST} missing)")
+            spec = SweepSpec.from_dict(man["spec"])
+        self.spec = spec
+        if writer:
+            self._lock = DirLock(out_dir, wait=wait, timeout=timeout, what=f"sweep {spec.spec_hash[:12]}").acquire()
+            try:
+                self._refresh()
+            except BaseException:
+                self.close()
+                raise
+            return
+        man = self._read_manifest()
+        if man is None:  # nothing stored yet: an empty store, nothing written
+            man = self._new_manifest(chunk_size, layout)
+        self._check(man, chunk_size, layout)
+        self.manifest = man
+        self.verify()
+
+    def close(self) -> None:
+        """Release the writer's lock (a reader has none)."""
+        if self._lock is not None:
+            self._lock.release()
+            self._lock = None
+
+    def __enter__(self) -> "SweepStore":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ---------------------------------------------------------------- manifest
+    def _new_manifest(self, chunk_size, layout) -> dict:
+        from hyqjax.studies.sweep.runner import default_chunk_size
+
+        cs = int(chunk_size or self._requested["default_chunk_size"] or default_chunk_size())
+        return dict(schema=SCHEMA, spec_hash=self.spec.spec_hash, spec=self.spec.to_dict(),
+                    n_instances=self.spec.n_instances, chunk_size=cs, n_chunks=-(-self.spec.n_instances // cs),
+                    layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=_now())
+
+    def _read_manifest(self) -> dict | None:
+        try:
+            with open(self.path, "rb") as f:
+                man = json.loads(f.read().decode("utf-8"))
+            if not isinstance(man, dict) or not isinstance(man.get("chunks"), dict):
+                raise ValueError("not a sweep manifest (no 'chunks' table)")
+            return man
+        except FileNotFoundError:
+            return None
+        except (ValueError, UnicodeDecodeError) as e:
+            raise StoreCorrupt(f"{self.path} is corrupt ({str(e)[:120]}); run the same `hyqjax sweep` command "
+                               f"again to rebuild it from the chunk files, or remove {self.dir}") from None
+
+    def _check(self, man: dict, chunk_size, layout) -> None:
+        if man.get("schema") in OLD_SCHEMAS:
+            return  # converted by the next writer (upgrade), read as is
+        if man.get("schema") != SCHEMA:
+            raise StoreMismatch(f"{self.path} has schema {man.get('schema')!r}, expected {SCHEMA!r}")
+        if man.get("spec_hash") != self.spec.spec_hash:
+            raise StoreMismatch(
+                f"{self.dir} holds a different sweep (spec hash {str(man.get('spec_hash', '?'))[:12]}, this spec "
+                f"{self.spec.spec_hash[:12]}); use another --out directory or remove {self.dir}")
+        if chunk_size is not None and chunk_size != man["chunk_size"]:
+            print(f"note: resuming with the stored chunk size {man['chunk_size']} (ignoring {chunk_size})")
+        stored = man.get("layout")
+        if layout is not None and stored is not None:
+            want = dict(layout, chunk_size=man["chunk_size"])
+            keys = ("platform", "device_kind", "devices", "chunk_size")
+            if any(stored.get(k) != want.get(k) for k in keys):
+                fmt = lambda lo: (f"{lo.get('devices')} x {lo.get('device_kind')} ({lo.get('platform')}), "  # noqa: E731
+                                  f"chunks of {lo.get('chunk_size')}")
+                raise StoreMismatch(
+                    f"{self.dir} was computed on {fmt(stored)}; this run has {fmt(want)}. An instance's result "
+                    f"depends on the batch each device compiles for, so a store never mixes layouts: resume "
+                    f"with the same devices (e.g. CUDA_VISIBLE_DEVICES / --executor), or use another --out")
+
+    @property
+    def chunk_size(self) -> int:
+        return int(self.manifest["chunk_size"])
+
+    @property
+    def n_chunks(self) -> int:
+        return int(self.manifest["n_chunks"])
+
+    @property
+    def layout(self) -> dict | None:
+        return self.manifest.get("layout")
+
+    def chunk_range(self, c: int) -> tuple[int, int]:
+        return c * self.chunk_size, min((c + 1) * self.chunk_size, self.spec.n_instances)
+
+    def chunk_file(self, c: int) -> str:
+        return os.path.join(self.chunks_dir, f"{c:05d}.parquet")
+
+    def done(self) -> set[int]:
+        """Recorded chunks whose files passed verification."""
+        return set(self._verified)
+
+    def todo(self) -> list[int]:
+        return [c for c in range(self.n_chunks) if c not in self._verified]
+
+    # ---------------------------------------------------------------- verification
+    def _meta(self, c: int) -> dict:
+        start, stop = self.chunk_range(c)
+        return dict(schema=SCHEMA, spec_hash=self.spec.spec_hash, chunk=c, start=start, stop=stop)
+
+    def _check_rows(self, c: int, rows: dict, meta: dict) -> str | None:
+        want = self._meta(c)
+        for k in ("spec_hash", "chunk", "start", "stop"):
+            if meta.get(k) != want[k]:
+                return f"its metadata has {k}={meta.get(k)!r}, expected {want[k]!r} (a file of another chunk or sweep)"
+        idx = rows.get("index")
+        if idx is None or not np.array_equal(idx, np.arange(want["start"], want["stop"])):
+            return f"its index column is not the row range [{want['start']}, {want['stop']})"
+        return None
+
+    def _verify_chunk(self, c: int, entry: dict) -> tuple[dict | None, str | None]:
+        path = os.path.join(self.dir, entry.get("file", ""))
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except OSError:
+            return None, f"{path} is missing"
+        if entry.get("bytes") is not None and len(data) != entry["bytes"]:
+            return None, f"{path} has {len(data)} bytes, the manifest {entry['bytes']} (truncated or replaced)"
+        if entry.get("sha256") is not None and sha256_bytes(data) != entry["sha256"]:
+            return None, f"{path} does not match its SHA-256 in the manifest (corrupt or replaced)"
+        try:
+            rows, meta = parquet_to_rows(data)
+        except Exception as e:  # pyarrow raises several types for a damaged file
+            return None, f"{path} is not a readable Parquet file ({type(e).__name__})"
+        why = self._check_rows(c, rows, meta)
+        return (None, f"{path}: {why}") if why else (rows, None)
+
+    def verify(self) -> dict[int, str]:
+        """Check every recorded chunk; returns (and keeps in :attr:`problems`) ``{chunk: reason}`` of bad ones."""
+        self._verified, self.problems = {}, {}
+        if self.manifest.get("schema") in OLD_SCHEMAS:
+            for key, entry in self.manifest["chunks"].items():
+                rows = self._load_v1(int(key), entry)
+                if rows is not None:
+                    self._verified[int(key)] = rows
+            return self.problems
+        for key, entry in sorted(self.manifest["chunks"].items(), key=lambda t: int(t[0])):
+            c = int(key)
+            if not 0 <= c < self.n_chunks:
+                self.problems[c] = f"chunk {c} is outside the sweep's {self.n_chunks} chunks"
+                continue
+            rows, why = self._verify_chunk(c, entry)
+            if why:
+                self.problems[c] = why
+            else:
+                self._verified[c] = rows
+        return self.problems
+
+    # ---------------------------------------------------------------- writing (under the lock)
+    def _refresh(self) -> None:
+        """Under the lock: remove dead writers' temporaries, read (or rebuild a corrupt) manifest, check it,
+        convert an old schema, adopt written-but-unrecorded chunks, re-verify, write the manifest."""
+        for d in (self.dir, self.chunks_dir):
+            for p in clean_temporaries(d, all_writers=True):
+                print(f"note: removed {p}, the temporary file of a writer that stopped")
+        try:
+            man = self._read_manifest()
+        except StoreCorrupt:
+            bad = f"{self.path}.corrupt-{datetime.datetime.now().strftime('%Y%m%dT%H%M%S')}"
+            os.replace(self.path, bad)
+            print(f"note: {self.path} was corrupt: kept as {bad}, rebuilding the manifest from the chunk files")
+            man = None
+        if man is None:
+            man = self._new_manifest(self._requested["chunk_size"], self._requested["layout"])
+        self._check(man, self._requested["chunk_size"], self._requested["layout"])
+        if man.get("layout") is None and self._requested["layout"] is not None:
+            man["layout"] = dict(self._requested["layout"], chunk_size=man["chunk_size"])
+        self.manifest = man
+        os.makedirs(self.chunks_dir, exist_ok=True)
+        if man.get("schema") in OLD_SCHEMAS:
+            self.verify()
+            self._upgrade_v1()
+        self._adopt_unlisted()
+        self.verify()
+        for c, why in sorted(self.problems.items()):
+            print(f"note: chunk {c} failed verification and is recomputed: {why}")
+            self.manifest["chunks"].pop(str(c), None)
+        write_json(self.path, self.manifest)
+
+    def _adopt_unlisted(self) -> None:
+        """Chunk files not in the manifest (a writer killed between the chunk's and the manifest's rename)."""
+        for name in sorted(os.listdir(self.chunks_dir)):
+            if not (name.endswith(".parquet") and name[:-8].isdigit()):
+                continue
+            c = int(name[:-8])
+            if str(c) in self.manifest["chunks"] or not 0 <= c < self.n_chunks:
+                continue
+            path = os.path.join(self.chunks_dir, name)
+            with open(path, "rb") as f:
+                data = f.read()
+            try:
+                rows, meta = parquet_to_rows(data)
+                why = self._check_rows(c, rows, meta)
+            except Exception as e:
+                why = f"not a readable Parquet file ({type(e).__name__})"
+            if why:
+                print(f"note: ignoring {path}: {why}; the chunk is recomputed")
+                continue
+            self.manifest["chunks"][str(c)] = self._entry(c, data, wall_s=meta.get("wall_s"), adopted=True)
+            print(f"note: {path} was written but not recorded (the writer stopped in between): verified and kept")
+
+    def _entry(self, c: int, data: bytes, wall_s=None, worker=None, adopted=False) -> dict:
+        start, stop = self.chunk_range(c)
+        e = dict(file=os.path.relpath(self.chunk_file(c), self.dir), start=start, stop=stop, rows=stop - start,
+                 bytes=len(data), sha256=sha256_bytes(data), wall_s=None if wall_s is None else round(wall_s, 3),
+                 finished=_now())
+        if worker:
+            e["worker"] = worker
+        if adopted:
+            e["adopted"] = True
+        return e
+
+    def write_chunk(self, c: int, rows: dict[str, np.ndarray], wall_s: float, worker: str | None = None) -> bool:
+        """Record chunk ``c`` (its rows must be exactly the chunk's row range). Needs the lock. Returns False,
+        writing nothing, when the chunk is already recorded with a valid file (a chunk lands once)."""
+        if self._lock is None or not self._lock.held:
+            raise RuntimeError("SweepStore.write_chunk needs a writer: SweepStore(..., writer=True)")
+        man = self._read_manifest() or self.manifest  # merge what is on disk (under the lock)
+        entry = man["chunks"].get(str(c))
+        if entry is not None and self._verify_chunk(c, entry)[1] is None:
+            self.manifest = man
+            return False
+        meta = dict(self._meta(c), wall_s=wall_s)
+        why = self._check_rows(c, rows, meta)
+        if why:
+            raise ValueError(f"rows given for chunk {c}: {why}")
+        data = rows_to_parquet(rows, meta)
+        atomic_write(self.chunk_file(c), lambda f: f.write(data))
+        man["chunks"][str(c)] = self._entry(c, data, wall_s, worker)
+        man["columns"] = sorted(rows)
+        write_json(self.path, man)
+        self.manifest = man
+        self._verified[c] = parquet_to_rows(data)[0]
+        self.problems.pop(c, None)
+        return True
+
+    # ---------------------------------------------------------------- reading
+    def load(self) -> dict[str, np.ndarray]:
+        """All verified rows, in instance order (bad chunks are in :attr:`problems`, not here)."""
+        parts = [self._verified[c] for c in sorted(self._verified)]
+        if not parts:
+            return {}
+        return {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]}
+
+    # ---------------------------------------------------------------- schema 1 (.npz chunks)
+    def _load_v1(self, c: int, entry: dict) -> dict[str, np.ndarray] | None:
+        path = os.path.join(self.dir, entry.get("file", f"chunks/{c:05d}.npz"))
+        try:
+            with np.load(path, allow_pickle=False) as z:
+                rows = {k: z[k] for k in z.files}
+        except Exception as e:
+            self.problems[c] = f"{path} is not readable ({type(e).__name__})"
+            return None
+        start, stop = self.chunk_range(c)
+        if not np.array_equal(rows.get("index"), np.arange(start, stop)):
+            self.problems[c] = f"{path}: its index column is not the row range [{start}, {stop})"
+            return None
+        return rows
+
+    def _upgrade_v1(self) -> None:
+        old = self.manifest
+        man = dict(old, schema=SCHEMA, chunks={}, layout=old.get("layout") or self._requested["layout"])
+        self.manifest = man
+        for key in sorted(old["chunks"], key=int):
+            c = int(key)
+            rows = self._verified.get(c)
+            if rows is None:
+                print(f"note: {self.problems.get(c)}; chunk {c} is recomputed")
+                continue
+            data = rows_to_parquet(rows, dict(self._meta(c), wall_s=old["chunks"][key].get("wall_s")))
+            atomic_write(self.chunk_file(c), lambda f: f.write(data))
+            man["chunks"][key] = self._entry(c, data, old["chunks"][key].get("wall_s"))
+        write_json(self.path, man)
+        for e in old["chunks"].values():
+            p = os.path.join(self.dir, e.get("file", ""))
+            if p.endswith(".npz") and os.path.exists(p):
+                os.remove(p)
+        print(f"note: converted {self.dir} from {old.get('schema')} (.npz chunks) to {SCHEMA} (Parquet chunks)")
+
+
+def open_store(out_dir: str) -> SweepStore:
+    """Open a sweep directory read-only with its stored spec (for reports and analysis)."""
+    return SweepStore(out_dir, None)
+
+
+__all__ = ["MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt", "StoreMismatch", "SweepStore", "open_store",
+           "parquet_to_rows", "rows_to_parquet"]
+

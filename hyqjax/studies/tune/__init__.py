@@ -1,0 +1,1 @@
+"""Tuning of the height reflex and the crawl for the step-down (see docs/tuning.md)."""

@@ -1,0 +1,84 @@
+"""The study's figure: held-out clean success against simulation budget, and the gradient's statistics."""
+from __future__ import annotations
+
+import numpy as np
+
+LABELS = {"gradient": "gradient (jacfwd, Adam)", "cma_es": "CMA-ES (window objective)",
+          "random_search": "random search (window objective)", "cma_es_success": "CMA-ES (success)",
+          "random_search_success": "random search (success)"}
+
+
+def plot_study(res: dict, path: str) -> str:
+    """Left: held-out clean success (Wilson 95%) vs physics steps per method (budget-curve points and the
+    final held-out evaluation), Table I as a band. Right: median gradient norm and mean SNR vs window length."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.4))
+    ho = res.get("heldout", {}).get("methods", {})
+    budget = res["budget_physics_steps"]
+    if "table1" in ho:
+        lo, hi = ho["table1"]["clean_ci95"]
+        a1.axhspan(lo, hi, color="0.8", label=f"Table I ({ho['table1']['clean']:.2f})")
+    for i, m in enumerate(LABELS):
+        pts = [(p["budget"], p["clean"], *p["clean_ci95"]) for p in res.get("budget_curve", []) if p["method"] == m]
+        if m in ho:
+            spent = res.get(m, {}).get("budget_spent", budget)
+            pts.append((spent, ho[m]["clean"], *ho[m]["clean_ci95"]))
+        if not pts:
+            continue
+        pts.sort()
+        x, y, lo, hi = (np.asarray(v, float) for v in zip(*pts))
+        a1.errorbar(x, y, yerr=[y - lo, hi - y], fmt="o-", color=f"C{i}", capsize=3, label=LABELS[m])
+    a1.set_xlabel("simulation budget [physics steps, tangents counted]")
+    a1.set_ylabel("held-out clean success")
+    a1.grid(alpha=0.3)
+    a1.legend(fontsize=8)
+    gs = res.get("gradient_stats")
+    if gs:
+        n = [p["ticks"] for p in gs["per_length"]]
+        a2.semilogy(n, [p["median_norm"] for p in gs["per_length"]], "o-", label="median |grad| per window")
+        a2.semilogy(n, [float(np.mean(p["snr"])) for p in gs["per_length"]], "s-", label="mean SNR over parameters")
+        a2.set_xlabel("window length [control ticks, 2 ms]")
+        a2.grid(alpha=0.3)
+        a2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def summary_markdown(res: dict) -> str:
+    """Markdown tables of a study's ``results.json``: held-out clean / completed success per method (Wilson
+    95%), at 24 cm, largest heights; costs; gradient statistics per window length."""
+    lines = []
+    ho = res.get("heldout", {}).get("methods", {})
+    if ho:
+        lines += ["| method | budget (physics steps) | clean success [95%] | at 24 cm [95%] | completed [95%] | "
+                  "shin strike | largest h, >= 90% completed | largest h, >= 95% clean |",
+                  "|---|---:|---|---|---|---:|---:|---:|"]
+        for m, r in ho.items():
+            h24 = next((c for c in r["per_height"] if abs(c["height"] - 0.24) < 1e-6), None)
+            spent = res.get(m, {}).get("budget_spent", res["budget_physics_steps"] if m == "gradient" else 0)
+            f = lambda v, ci: f"{v:.3f} [{ci[0]:.3f}, {ci[1]:.3f}]"
+            lines.append(f"| {m} | {spent:,} | {f(r['clean'], r['clean_ci95'])} | "
+                         f"{f(h24['clean'], h24['clean_ci95']) if h24 else '-'} | "
+                         f"{f(r['completed'], r['completed_ci95'])} | {r['shin_strike']:.3f} | "
+                         f"{r['largest_h_completed_90']} | {r['largest_h_clean_95']} |")
+        lines.append("")
+    if "cost" in res:
+        c = res["cost"]
+        lines.append(f"one tuning step (jacfwd, {c['tangents']} tangents): {c['t_step_s']:.3f} s; "
+                     f"{c['population']} forward evaluations of the same windows: {c['t_population_s']:.3f} s "
+                     f"(step / forward = {c['step_over_forward']:.2f}); budget {res['budget_physics_steps']:,} steps")
+    gs = res.get("gradient_stats")
+    if gs:
+        lines += ["", "| window (ticks) | median per-window norm | max norm | mean SNR | min / max SNR |",
+                  "|---:|---:|---:|---:|---|"]
+        for p in gs["per_length"]:
+            snr = np.asarray(p["snr"])
+            lines.append(f"| {p['ticks']} | {p['median_norm']:.3g} | {p['max_norm']:.3g} | {snr.mean():.2f} | "
+                         f"{snr.min():.2f} / {snr.max():.2f} |")
+    return "\n".join(lines)

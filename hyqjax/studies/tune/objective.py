@@ -1,0 +1,228 @@
+"""The closed-loop objective: a smooth cost of a step-down window through MJX, differentiable by ``jax.jacfwd``.
+
+A window (:mod:`.windows`) runs ``n`` control ticks of the full closed loop (crawl + height reflex + joint
+impedance + ``mjx.step``, ``impl=jax``) from a snapshot, with the tuned parameters ``theta`` mapped by
+:class:`.space.ParamSpace`. Per tick ``k`` (``d_c`` the signed distance of MJX contact slot ``c``, ``s`` a
+softness, ``sp(x) = s softplus(x / s)`` a smooth ``max(x, 0)``):
+
+* clearance (shin and trunk vs. the terrain, i.e. the platform edge):
+  ``C_k = sum_{c in shin, trunk} sp_{s_c}(c_0 - d_c)`` (m), zero while every shin and the trunk keep ``c_0``;
+* joint-range margin: ``J_k = sum_j sp_{s_q}(q_j - (q_max,j - q_0)) + sp_{s_q}((q_min,j + q_0) - q_j)`` (rad);
+* workspace margin: ``E_k = sum_i sp_{s_e}(e_i - (e_max - e_0))`` with ``e_i`` the HFE-to-foot distance
+  (``kinematics.leg_extension``) and ``e_max`` the crawl's ``max_leg_extension`` (m);
+* lost foothold: ``F_k = 1[stance triggered at k] relu(min_c d_c^{foot(i)} - f_0)``, the swing foot's
+  distance to the ground at the tick its stance is triggered (touchdown or limit), a smooth proxy of a
+  foothold lost in the air (m);
+* orientation: ``O_k = roll_k^2 + pitch_k^2`` (rad^2);
+* mobility: ``m_bar = sum_k c_sd(k) sum_i m_i(k) / max(1, sum_k c_sd(k))`` (Eq. 12, footnote 8, per
+  swing-down tick as ``stepdown``'s ``mean_mobility``);
+* progress: ``v = (x_trunk(n) - x_trunk(0)) / (n dt)`` (m/s), so that shorter steps are not free;
+* stability: ``S = relu(sigma - 0.9)^2`` with ``sigma = dt lambda_max / 2`` the reflex's explicit-integration
+  stability number (``reflex.params.stability_number``, stable below 1), per window.
+
+The window cost is
+
+.. math:: L = w_C \\bar C + w_J \\bar J + w_E \\bar E + w_F \\sum_k F_k + w_O \\bar O - w_m \\bar m - w_v v + w_S S
+
+(bars: means over the window's ticks), and the objective of ``theta`` is the mean of ``L`` over the valid
+windows. A window whose state becomes non-finite gets no gradient and is counted (``non_finite``), never
+silently averaged.
+
+Gradients: ``jax.jacfwd`` over ``theta`` (``P`` tangents; forward mode runs through ``mjx.step``'s
+solver ``while_loop``). The per-window Jacobian rows give the gradient variance across scenarios. The
+crawl's phase switches are ``jnp.where`` selects, so the gradient is that of the current contact /
+phase sequence: it ignores how ``theta`` moves the switching times (the bias of any pathwise gradient of
+a hybrid system); short windows keep the number of switches small.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hyqjax.core import kinematics, robot, spatial
+from hyqjax.crawl import controller as crawl
+from hyqjax.reflex import params as rparams
+from hyqjax.studies.tune import windows as wmod
+from hyqjax.studies.tune.space import ParamSpace
+
+
+@dataclasses.dataclass(frozen=True)
+class ClosedLoopObjective:
+    """Window length and the objective's margins, softnesses and weights (see the module docstring)."""
+
+    ticks: int = 750
+    clearance: float = 0.03
+    clearance_soft: float = 0.005
+    joint_margin: float = 0.1
+    joint_soft: float = 0.02
+    ext_margin: float = 0.02
+    ext_soft: float = 0.005
+    foothold_tol: float = 0.01
+    w_clearance: float = 100.0
+    w_joint: float = 10.0
+    w_workspace: float = 50.0
+    w_foothold: float = 20.0
+    w_tilt: float = 10.0
+    w_mobility: float = 1.0
+    w_progress: float = 2.0
+    w_stability: float = 10.0
+    prefixes: tuple = ()
+
+    def __post_init__(self):
+        if not (isinstance(self.ticks, int) and 1 <= self.ticks <= 20000):
+            raise ValueError(f"ticks must be an int in [1, 20000], got {self.ticks!r}")
+        for k in ("clearance_soft", "joint_soft", "ext_soft"):
+            if not (0.0 < getattr(self, k) <= 0.2):
+                raise ValueError(f"{k} must be in (0, 0.2], got {getattr(self, k)}")
+        if any(not (isinstance(n, int) and 1 <= n <= self.ticks) for n in self.prefixes):
+            raise ValueError(f"prefixes must be ints in [1, ticks={self.ticks}], got {self.prefixes}")
+
+    @property
+    def lengths(self) -> tuple:
+        """Window lengths (ticks) of ``prefix_loss``: ``prefixes`` and ``ticks``."""
+        return tuple(sorted(set(self.prefixes) | {self.ticks}))
+
+    def weights(self) -> dict[str, float]:
+        return dict(clearance=self.w_clearance, joint=self.w_joint, workspace=self.w_workspace,
+                    foothold=self.w_foothold, tilt=self.w_tilt, mobility=-self.w_mobility,
+                    progress=-self.w_progress, stability=self.w_stability)
+
+
+TERMS = ("clearance", "joint", "workspace", "foothold", "tilt", "mobility", "progress", "stability")
+
+
+def _sp(x, s):
+    return s * jax.nn.softplus(x / s)
+
+
+def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpace, obj: ClosedLoopObjective,
+                 su: wmod.Setup) -> dict[str, jax.Array]:
+    """Terms of ONE window (``vmap`` over windows; ``mx`` that window's model)."""
+    p = space.crawl_params(theta, base)
+    ids, slots = su.ids, su.slots
+    dt = float(su.m.opt.timestep)
+    dtype = d.qpos.dtype
+    qadr = np.asarray(ids.qpos_joints)
+    q_lo = jnp.asarray(robot.Q_MIN, dtype) + obj.joint_margin
+    q_hi = jnp.asarray(robot.Q_MAX, dtype) - obj.joint_margin
+    strike_slots = np.concatenate([slots.shin, slots.trunk]).astype(int)
+
+    def body(carry, _):
+        d, cs, tau = carry
+        d1, cs1, tau1, info = wmod.tick(mx, ids, p, d, cs, tau, dt)
+        dist = d1._impl.contact.dist
+        clear = jnp.sum(_sp(obj.clearance - dist[strike_slots], obj.clearance_soft))
+        q = d1.qpos[qadr]
+        joint = jnp.sum(_sp(q - q_hi, obj.joint_soft) + _sp(q_lo - q, obj.joint_soft))
+        ext = kinematics.leg_extension(q)
+        work = jnp.sum(_sp(ext - (p.max_leg_extension - obj.ext_margin), obj.ext_soft))
+        foot_d = jnp.stack([jnp.min(dist[s]) for s in slots.feet])
+        trig = (info.touchdown | info.limit_stop).astype(dtype)
+        foot = trig * jax.nn.relu(foot_d[info.swing_leg] - obj.foothold_tol)
+        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d1.qpos[3:7]))
+        sd = info.swing_down.astype(dtype)
+        y = dict(clearance=clear, joint=joint, workspace=work, foothold=foot, tilt=rpy[0] ** 2 + rpy[1] ** 2,
+                 mobility=sd * jnp.sum(info.mobility), sd=sd, x=d1.qpos[0])
+        return (d1, cs1, tau1), y
+
+    _, ys = jax.lax.scan(body, (d, cs, tau), None, length=obj.ticks)
+    stab = jax.nn.relu(rparams.stability_number(p.reflex, dt) - 0.9) ** 2
+    cum = {k: jnp.cumsum(v) for k, v in ys.items() if k != "x"}
+
+    def at(n):
+        i = n - 1
+        out = {k: cum[k][i] / n for k in ("clearance", "joint", "workspace", "tilt")}
+        out["foothold"] = cum["foothold"][i]
+        out["mobility"] = cum["mobility"][i] / jnp.maximum(cum["sd"][i], 1.0)
+        out["progress"] = (ys["x"][i] - d.qpos[0]) / (n * dt)
+        out["stability"] = stab
+        return out
+
+    terms = at(obj.ticks)
+    terms["prefix_loss"] = jnp.stack([combine(at(n), obj) for n in obj.lengths])
+    return terms
+
+
+def combine(terms: dict, obj: ClosedLoopObjective):
+    """``L`` of the module docstring from (per-window) terms."""
+    return sum(w * terms[k] for k, w in obj.weights().items())
+
+
+def window_losses(theta, win: wmod.Windows, base, space, obj, su):
+    """Per-window ``(L, terms, finite)``: ``(W,)`` losses with non-finite ones replaced by 0."""
+    axes = wmod.hmodel.model_in_axes(win.model)
+    terms = jax.vmap(lambda mm, dd, cc, tt: window_terms(theta, mm, dd, cc, tt, base, space, obj, su),
+                     in_axes=(axes, 0, 0, 0))(win.model, win.data, win.ctrl, win.tau)
+    loss = combine({k: v for k, v in terms.items() if k != "prefix_loss"}, obj)
+    finite = jnp.isfinite(loss)
+    return jnp.where(finite, loss, 0.0), terms, finite
+
+
+def batch_objective(theta, win: wmod.Windows, base, space, obj, su):
+    """``(mean L over valid finite windows, per-window L)``; differentiable in ``theta``."""
+    loss, _, finite = window_losses(theta, win, base, space, obj, su)
+    w = (win.valid & finite).astype(loss.dtype)
+    return jnp.sum(w * loss) / jnp.maximum(jnp.sum(w), 1.0), loss
+
+
+def make_value_and_jac(win_example: wmod.Windows, base, space: ParamSpace, obj: ClosedLoopObjective,
+                       su: wmod.Setup):
+    """A jitted ``f(theta, windows) -> dict(loss, grad, per_window_loss, per_window_grad, terms, finite)``.
+
+    One ``jax.jacfwd`` of the per-window loss vector: ``P`` tangents carried with one primal rollout; the
+    mean gradient and the per-window Jacobian rows (for the variance across scenarios) come together.
+    """
+    del win_example
+
+    def f(theta, win):
+        def per_window(th):
+            loss, terms, finite = window_losses(th, win, base, space, obj, su)
+            return (loss, terms["prefix_loss"]), (loss, terms, finite)
+
+        (jac, jac_prefix), (loss, terms, finite) = jax.jacfwd(per_window, has_aux=True)(theta)
+        terms = {k: v for k, v in terms.items() if k != "prefix_loss"}
+        ok = win.valid & finite & jnp.all(jnp.isfinite(jac), -1)
+        w = ok.astype(loss.dtype)
+        nw = jnp.maximum(jnp.sum(w), 1.0)
+        jac = jnp.where(ok[:, None], jac, 0.0)
+        return dict(loss=jnp.sum(w * loss) / nw, grad=jnp.sum(w[:, None] * jac, 0) / nw, per_window_loss=loss,
+                    per_window_grad=jac, per_window_prefix_grad=jac_prefix, ok=ok, terms={k: jnp.sum(w * v) / nw for k, v in terms.items()})
+
+    return jax.jit(f)
+
+
+def make_value(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup):
+    """A jitted ``f(thetas (N, P), windows) -> (N,) objective`` (a population on the same windows: CMA-ES,
+    random search)."""
+
+    def f(thetas, win):
+        return jax.vmap(lambda th: batch_objective(th, win, base, space, obj, su)[0])(thetas)
+
+    return jax.jit(f)
+
+
+def make_per_robot_value_and_jac(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup,
+                                 win_axes: wmod.Windows):
+    """Per-robot batched tuning: a jitted ``f(thetas (R, P), windows (R, W_r, ...)) -> dict(loss (R,),
+    grad (R, P))``, robot ``r``'s own parameters on its own windows (``windows.grouped``), ``P`` tangents per
+    robot. ``win_axes`` are the ``vmap`` axes ``windows.grouped`` returns."""
+
+    def one(theta, win):
+        def mean_loss(th):
+            return batch_objective(th, win, base, space, obj, su)[0]
+
+        return mean_loss(theta), jax.jacfwd(mean_loss)(theta)
+
+    def f(thetas, wins):
+        loss, grad = jax.vmap(one, in_axes=(0, win_axes))(thetas, wins)
+        return dict(loss=loss, grad=grad)
+
+    return jax.jit(f)
+
+
+def physics_steps(n_windows: int, obj: ClosedLoopObjective, tangents: int = 0) -> int:
+    """Simulation budget of one evaluation: ``windows x ticks x (1 + tangents)`` physics steps."""
+    return int(n_windows) * obj.ticks * (1 + int(tangents))

@@ -1,0 +1,242 @@
+"""A whole tuning study: gradient through the closed loop, baselines at equal budget, held-out evaluation.
+
+:func:`run_study` (what ``hyqjax tune`` runs):
+
+1. training scenarios (``evaluate.TRAIN_HEIGHTS`` x ``train_per_height``, seed ``seed``) and their
+   snapshot windows (:mod:`.windows`, Table I parameters);
+2. the gradient method: optionally ``warm_start`` steps of the kinematic surrogate (:mod:`.kinematic`),
+   then Adam on the closed-loop objective (:mod:`.objective`, ``jax.jacfwd``), checkpointed
+   (:mod:`.optimize`); with ``objective="kinematic"`` Adam on the surrogate alone (the former tuner);
+3. the cost of one tuning step against one forward evaluation of the same windows (wall time, jitted,
+   after compilation) and the simulation budget ``B = steps x W x n x (1 + P)`` physics steps;
+4. baselines with budget ``B``: CMA-ES and random search on the same window objective, and CMA-ES and
+   random search on closed-loop clean success of full runs on the training scenarios (:mod:`.baselines`),
+   population ``1 + P``; with ``baseline_wall_s`` a baseline also stops at that wall time (recorded as
+   ``stopped_by_wall_limit`` with the budget it spent);
+5. held-out evaluation (:mod:`.evaluate`) of Table I and every method on ``heldout`` instances, and of each
+   method's best point at fractions of the budget on ``curve_instances`` instances (the figure);
+6. ``results.json`` and ``tuning.png``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hyqjax.crawl import controller as crawl
+from hyqjax.io.atomic import atomic_write, provenance
+from hyqjax.studies.tune import baselines, evaluate, kinematic, optimize, windows
+from hyqjax.studies.tune import objective as clobj
+from hyqjax.studies.tune import space as spmod
+
+METHODS = ("gradient", "cma_es", "random_search", "cma_es_success", "random_search_success")
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyConfig:
+    objective: str = "closed_loop"
+    groups: tuple = spmod.DEFAULT_GROUPS
+    seed: int = 0
+    train_per_height: int = 4
+    train_heights: tuple = evaluate.TRAIN_HEIGHTS
+    window: windows.WindowSpec = windows.WindowSpec()
+    loss: clobj.ClosedLoopObjective = clobj.ClosedLoopObjective()
+    adam: optimize.AdamConfig = optimize.AdamConfig()
+    warm_start: int = 0
+    baselines: tuple = METHODS[1:]
+    sigma: float = 0.5
+    success_instances: int = 8
+    success_duration: float = 24.0
+    heldout: int = 2000
+    heldout_seed: int = 7777
+    heldout_duration: float = 24.0
+    curve_instances: int = 0
+    curve_fractions: tuple = (0.25, 0.5)
+    baseline_wall_s: float = 0.0
+
+    def __post_init__(self):
+        if self.objective not in ("closed_loop", "kinematic"):
+            raise ValueError(f"objective must be 'closed_loop' or 'kinematic', got {self.objective!r}")
+        spmod.ParamSpace.make(self.groups)
+        bad = [b for b in self.baselines if b not in METHODS[1:]]
+        if bad:
+            raise ValueError(f"baselines must be a subset of {list(METHODS[1:])}, got {list(self.baselines)}")
+        for k, lo, hi in (("train_per_height", 1, 100000), ("heldout", 0, 10**6), ("warm_start", 0, 10000),
+                          ("success_instances", 1, 100000), ("curve_instances", 0, 10**6)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if any(not 0.0 <= h <= 0.45 for h in self.train_heights) or not self.train_heights:
+            raise ValueError(f"train_heights must be in [0, 0.45] m, got {self.train_heights}")
+        if not (0.0 < self.sigma <= 5.0):
+            raise ValueError(f"sigma must be in (0, 5], got {self.sigma}")
+        for k in ("success_duration", "heldout_duration"):
+            if not (1.0 <= getattr(self, k) <= 120.0):
+                raise ValueError(f"{k} must be in [1, 120] s, got {getattr(self, k)}")
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self), default=list))
+
+
+def _timed(fn, *args, repeats=2):
+    jax.block_until_ready(fn(*args))
+    ts = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) -> dict:
+    """Run (or resume the gradient part of) a study into ``out_dir``; returns the results dict."""
+    t_start = time.time()
+    os.makedirs(out_dir, exist_ok=True)
+
+    def save(r):  # after every stage, so an interrupted study keeps what it measured
+        r["wall_s"] = time.time() - t_start
+        atomic_write(os.path.join(out_dir, "results.json"),
+                     lambda fh: fh.write(json.dumps(r, indent=1, default=float).encode()))
+
+    space = spmod.ParamSpace.make(cfg.groups)
+    base = crawl.CrawlParams.make()
+    theta0 = spmod.table1_theta(space)
+    su = windows.setup()
+    sc, _ = evaluate.scenarios(cfg.train_heights, cfg.train_per_height, cfg.seed)
+    t = time.time()
+    win = windows.make_windows(sc, cfg.window, su)
+    valid = np.asarray(win.valid)
+    log(f"windows: {int(valid.sum())} of {valid.size} triggered ({time.time() - t:.1f} s incl. compile)")
+    n_win, n_tan = win.size, space.size
+    step_cost = clobj.physics_steps(n_win, cfg.loss, n_tan)
+    eval_cost = clobj.physics_steps(n_win, cfg.loss)
+    budget = cfg.adam.steps * step_cost
+    res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
+                     config=cfg.to_dict(), params=list(space.names), theta_table1=theta0.tolist(),
+                     windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
+                                  heights=np.asarray(win.height)[valid].tolist()),
+                     budget_physics_steps=budget, step_physics_steps=step_cost, eval_physics_steps=eval_cost)
+    # ---- gradient method
+    vj = clobj.make_value_and_jac(win, base, space, cfg.loss, su)
+    fval = clobj.make_value(base, space, cfg.loss, su)
+    if cfg.warm_start or cfg.objective == "kinematic":
+        ksc = kinematic.make_scenarios(64, cfg.seed)
+        kf = kinematic.make_value_and_grad(space, ksc, kinematic.Objective(), base)
+        kcfg = optimize.AdamConfig(steps=cfg.warm_start or cfg.adam.steps, lr=cfg.adam.lr, clip=cfg.adam.clip)
+        kres = optimize.run_adam(kf, jnp.asarray(theta0, jnp.float32), kcfg, os.path.join(out_dir, "kinematic"),
+                                 dict(kind="kinematic", groups=list(cfg.groups), seed=cfg.seed), 0,
+                                 space.describe, progress=progress)
+        res["kinematic"] = dict(theta=kres["theta"].tolist(), params=space.describe(kres["theta"]))
+        theta_start = kres["theta"]
+    else:
+        theta_start = theta0
+    snaps: dict[str, list] = {m: [] for m in METHODS}
+    fracs = sorted(cfg.curve_fractions)
+
+    def on_step(step, th, spent):
+        for f in fracs:
+            if step == max(1, round(f * cfg.adam.steps)):
+                snaps["gradient"].append((spent, th.tolist()))
+
+    t = time.time()
+    if cfg.objective == "closed_loop":
+        gres = optimize.run_adam(lambda th: vj(th, win), jnp.asarray(theta_start, jnp.float32), cfg.adam,
+                                 os.path.join(out_dir, "gradient"), cfg.to_dict(), step_cost, space.describe,
+                                 progress=progress, on_step=on_step)
+        theta_grad = gres["theta"]
+    else:
+        theta_grad = theta_start
+    res["gradient"] = dict(theta=np.asarray(theta_grad).tolist(), params=space.describe(theta_grad),
+                           wall_s=time.time() - t, log_dir="gradient")
+    save(res)
+    # ---- cost of a tuning step vs forward evaluations of the same windows: a population of 1 + P candidates
+    # (the same physics budget; one CMA-ES generation) and, per candidate, one forward evaluation.
+    th32 = jnp.asarray(theta0, jnp.float32)
+    pop_n = 1 + n_tan
+    t_step = _timed(vj, th32, win)
+    t_pop = _timed(fval, jnp.tile(th32[None], (pop_n, 1)), win)
+    res["cost"] = dict(t_step_s=t_step, t_population_s=t_pop, population=pop_n, t_forward_per_candidate_s=t_pop / pop_n,
+                       step_over_population=t_step / t_pop, step_over_forward=t_step / (t_pop / pop_n), tangents=n_tan)
+    log(f"one tuning step {t_step:.3f} s; {pop_n} forward evaluations of the same windows {t_pop:.3f} s "
+        f"({t_step / t_pop:.2f}x); budget {budget:,} physics steps")
+    # ---- gradient statistics across windows and window lengths, at Table I
+    r0 = vj(th32, win)
+    res["gradient_stats"] = gradient_stats(r0, cfg.loss.lengths, list(space.names))
+    save(res)
+    # ---- baselines
+    found = {"table1": theta0, "gradient": np.asarray(theta_grad)}
+    pop = lambda xs: np.asarray(fval(jnp.asarray(xs, jnp.float32), win))
+    for name in cfg.baselines:
+        t = time.time()
+        if name.endswith("_success"):
+            per = max(1, cfg.success_instances // len(cfg.train_heights))
+            ssc, _ = evaluate.scenarios(cfg.train_heights, per, cfg.seed + 1)
+            cost = ssc.batch_size * int(round(cfg.success_duration / 0.002))
+            f = lambda xs, ssc=ssc: -evaluate.success_objective(xs, space, base, ssc, cfg.success_duration)
+        else:
+            f, cost = pop, eval_cost
+        if cost > budget:
+            log(f"{name}: one candidate costs {cost:,} > budget {budget:,}; skipped")
+            continue
+        # One population size for every baseline (1 + P: a generation costs what a gradient step costs on the
+        # windows), so each objective compiles once.
+        lam = int(min(pop_n, max(2, budget // cost)))
+        if name.startswith("cma_es"):
+            out = baselines.cma_es(f, theta0, budget, cost, cfg.sigma, popsize=lam, seed=cfg.seed,
+                                   max_wall_s=cfg.baseline_wall_s)
+        else:
+            out = baselines.random_search(f, theta0, budget, cost, cfg.sigma, chunk=lam, seed=cfg.seed,
+                                          max_wall_s=cfg.baseline_wall_s)
+        found[name] = out["theta"]
+        for fr in fracs:
+            h = [r for r in out["history"] if r["budget"] <= fr * budget]
+            if h:
+                snaps[name].append((h[-1]["budget"], h[-1]["theta"]))
+        res[name] = dict(theta=np.asarray(out["theta"]).tolist(), params=space.describe(out["theta"]),
+                         value=out["value"], budget_spent=out["budget_spent"], wall_s=time.time() - t,
+                         objective="clean success (negated)" if name.endswith("_success") else "window objective",
+                         stopped_by_wall_limit=out["budget_spent"] + lam * cost <= budget, popsize=lam,
+                         cost_per_candidate=cost,
+                         history=[{k: v for k, v in r.items() if k != "theta"} for r in out["history"]])
+        save(res)
+        log(f"{name}: best {out['value']:.4f} after {out['budget_spent']:,} physics steps ({time.time() - t:.1f} s)")
+    # ---- held-out evaluation (the budget-curve points on a subset, in the same batch)
+    if cfg.heldout:
+        params = {k: space.concrete(v, base) for k, v in found.items()}
+        pts = [(m, b, th) for m, v in snaps.items() for b, th in v] if cfg.curve_instances else []
+        extra = {f"{m}@{b}": space.concrete(np.asarray(th), base) for m, b, th in pts}
+        ho = evaluate.evaluate(params, cfg.heldout, cfg.heldout_seed, duration=cfg.heldout_duration, extra=extra,
+                               n_extra=cfg.curve_instances)
+        res["heldout"] = {k: v for k, v in ho.items() if k != "extra"}
+        res["budget_curve"] = [dict(method=m, budget=b, n=ho["extra"][f"{m}@{b}"]["n"],
+                                    clean=ho["extra"][f"{m}@{b}"]["clean"],
+                                    clean_ci95=ho["extra"][f"{m}@{b}"]["clean_ci95"]) for m, b, _ in pts]
+        for k, r in res["heldout"]["methods"].items():
+            log(f"held-out {k:>22}: clean {r['clean']:.3f} [{r['clean_ci95'][0]:.3f}, {r['clean_ci95'][1]:.3f}], "
+                f"completed {r['completed']:.3f}, shin strike {r['shin_strike']:.3f} (n={r['n']})")
+    res["wall_s"] = time.time() - t_start
+    res["complete"] = True
+    save(res)
+    return res
+
+
+def gradient_stats(r: dict, lengths, names) -> dict:
+    """Across-window mean, standard deviation and signal-to-noise ratio ``|mean| / (std / sqrt(W))`` of the
+    gradient per parameter and window length, and the median gradient norm per length (its growth with the
+    length is the closed loop's sensitivity: a chaos horizon shows as exponential growth)."""
+    ok = np.asarray(r["ok"], bool)
+    g = np.asarray(r["per_window_prefix_grad"], np.float64)[ok]  # (W, L, P)
+    out = dict(windows=int(ok.sum()), lengths=list(lengths), names=names, per_length=[])
+    for i, n in enumerate(lengths):
+        gi = g[:, i]
+        mean, std = gi.mean(0), gi.std(0, ddof=1) if len(gi) > 1 else np.zeros(gi.shape[1])
+        snr = np.abs(mean) / np.maximum(std / np.sqrt(max(len(gi), 1)), 1e-30)
+        out["per_length"].append(dict(ticks=int(n), mean=mean.tolist(), std=std.tolist(), snr=snr.tolist(),
+                                      median_norm=float(np.median(np.linalg.norm(gi, axis=1))),
+                                      max_norm=float(np.max(np.linalg.norm(gi, axis=1)))))
+    return out

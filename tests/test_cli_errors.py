@@ -1,0 +1,275 @@
+"""Bad inputs to every command and to the sweep API: one line naming the parameter, exit status 2, no
+traceback, nothing compiled and nothing written.
+
+Each case runs ``hyqjax.cli.app.main`` in this process with the working directory in an empty temporary
+directory (so default output directories would land there), counts XLA compilations with a
+``jax.monitoring`` listener, and compares the directory tree before and after.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import jax.monitoring
+import numpy as np
+import pytest
+
+from hyqjax.cli import app as cli
+
+COMPILES: list[str] = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: COMPILES.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
+
+
+def _tree(root) -> dict:
+    out = {}
+    for d, _, files in os.walk(root):
+        for f in files:
+            p = os.path.join(d, f)
+            with open(p, "rb") as fh:
+                out[os.path.relpath(p, root)] = fh.read()
+        out[os.path.relpath(d, root) + "/"] = b""
+    return out
+
+
+@pytest.fixture
+def ws(tmp_path, monkeypatch):
+    """An empty working directory with a few prepared inputs (a file, broken spec files, a damaged store)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HYQJAX_CACHE_DIR", str(tmp_path / "cache-must-not-appear"))
+    (tmp_path / "afile").write_text("not a directory\n")
+    (tmp_path / "bad.toml").write_text("[grid\nheight = [0.1]\n")
+    (tmp_path / "bad.json").write_text('{"grid": {"height": [0.1]}')
+    (tmp_path / "list.json").write_text("[1, 2, 3]")
+    (tmp_path / "latin1.toml").write_bytes("# caf\xe9\nseed = 1\n".encode("latin-1"))
+    (tmp_path / "spec.yaml").write_text("seed: 1\n")
+    (tmp_path / "unknown.toml").write_text("seed = 1\nchunks = 3\n")
+    (tmp_path / "range.toml").write_text("[grid]\nheight = [0.1, 0.6]\n")
+    (tmp_path / "specdir.toml").mkdir()
+    exp = tmp_path / "exp"
+    exp.mkdir()
+    (exp / "results.json").write_text('{"summary": [1, 2')  # truncated
+    (exp / "traces.npz").write_bytes(b"\x80\x04\x95 not a zip archive")
+    half = tmp_path / "half"
+    half.mkdir()
+    (half / "traces.npz").write_bytes(b"PK\x03\x04" + bytes(40))  # a zip header, then nothing
+    other = tmp_path / "other_sweep"
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps(dict(
+        schema="hyqjax.sweep/2", spec_hash="0" * 64, spec={}, n_instances=1, chunk_size=1, n_chunks=1, chunks={})))
+    (tmp_path / "empty").mkdir()
+    return tmp_path
+
+
+def run_cli(argv):
+    try:
+        return cli.main(argv)
+    except SystemExit as e:  # the argument parser's own errors
+        return e.code
+
+
+CASES = [
+    # stepdown
+    (["stepdown", "--heights", "0.5"], "--heights"),
+    (["stepdown", "--heights", "-0.1"], "--heights"),
+    (["stepdown", "--heights", "nan"], "--heights"),
+    (["stepdown", "--instances", "0"], "--instances"),
+    (["stepdown", "--instances", "100001"], "--instances"),
+    (["stepdown", "--instances", "x"], "--instances"),
+    (["stepdown", "--seed", "-1"], "--seed"),
+    (["stepdown", "--duration", "-1"], "--duration"),
+    (["stepdown", "--duration", "nan"], "--duration"),
+    (["stepdown", "--duration", "1e9"], "--duration"),
+    (["stepdown", "--speed", "nan"], "--speed"),
+    (["stepdown", "--speed", "5"], "--speed"),
+    (["stepdown", "--record-every", "0"], "--record-every"),
+    (["stepdown", "--record-every", "7"], "--record-every"),
+    (["stepdown", "--record-instances", "99"], "--record-instances"),
+    (["stepdown", "--record-instances", "abc"], "--record-instances"),
+    (["stepdown", "--reflex", "maybe"], "--reflex"),
+    (["stepdown", "--reflex", "on", "on"], "--reflex"),
+    (["stepdown", "--out", "afile"], "--out"),
+    (["stepdown", "--out", "afile/sub"], "--out"),
+    # bound
+    (["bound", "--speed", "5"], "--speed"),
+    (["bound", "--speed", "nan"], "--speed"),
+    (["bound", "--yaw-rate", "-2"], "--yaw-rate"),
+    (["bound", "--lateral-speed", "1"], "--lateral-speed"),
+    (["bound", "--ramp-time", "-1"], "--ramp-time"),
+    (["bound", "--instances", "0"], "--instances"),
+    (["bound", "--instances", "5000"], "--instances"),
+    (["bound", "--duration", "1.3"], "--duration"),
+    (["bound", "--duration", "0"], "--duration"),
+    (["bound", "--friction", "2", "1"], "--friction"),
+    (["bound", "--friction", "0", "1"], "--friction"),
+    (["bound", "--payload", "nan"], "--payload"),
+    (["bound", "--payload", "-1"], "--payload"),
+    (["bound", "--push", "1e5"], "--push"),
+    (["bound", "--push-time", "-1"], "--push-time"),
+    (["bound", "--push-duration", "11"], "--push-duration"),
+    (["bound", "--seed", "-1"], "--seed"),
+    (["bound", "--out", "afile"], "--out"),
+    # tune
+    (["tune", "--seed", "-1"], "--seed"),
+    (["tune", "--steps", "-1"], "--steps"),
+    (["tune", "--lr", "0"], "--lr"),
+    (["tune", "--lr", "nan"], "--lr"),
+    (["tune", "--groups", "k_base,foo"], "--groups"),
+    (["tune", "--groups", ","], "--groups"),
+    (["tune", "--baselines", "grid_search"], "--baselines"),
+    (["tune", "--objective", "fast"], "--objective"),
+    (["tune", "--checkpoint-every", "0"], "--checkpoint-every"),
+    (["tune", "--train-heights", "0.1,0.9"], "--train-heights"),
+    (["tune", "--train-per-height", "0"], "--train-per-height"),
+    (["tune", "--windows-per-scenario", "9"], "--windows-per-scenario"),
+    (["tune", "--lead", "0"], "--lead"),
+    (["tune", "--window-ticks", "0"], "--window-ticks"),
+    (["tune", "--sigma", "0"], "--sigma"),
+    (["tune", "--success-duration", "0.5"], "--success-duration"),
+    (["tune", "--heldout", "-1"], "--heldout"),
+    (["tune", "--heldout-duration", "nan"], "--heldout-duration"),
+    (["tune", "--out", "afile"], "--out"),
+    # sweep
+    (["sweep", "--max-chunks", "-1"], "--max-chunks"),
+    (["sweep", "--chunk-size", "0"], "--chunk-size"),
+    (["sweep", "--samples", "0"], "samples"),
+    (["sweep", "--seed", "-1"], "seed"),
+    (["sweep", "--duration", "-1"], "duration"),
+    (["sweep", "--duration", "nan"], "duration"),
+    (["sweep", "--grid", "height=0.9"], "height"),
+    (["sweep", "--grid", "hieght=0.1"], "hieght"),
+    (["sweep", "--grid", "height"], "--grid"),
+    (["sweep", "--grid", "height="], "--grid"),
+    (["sweep", "--random", "friction=1,0.5"], "friction"),
+    (["sweep", "--fixed", "reflex_m_min=0.3"], "reflex_m_min"),
+    (["sweep", "--fixed", "foot_sequence=lf-lf-rh-rf"], "foot_sequence"),
+    (["sweep", "missing.toml"], "SPEC"),
+    (["sweep", "specdir.toml"], "SPEC"),
+    (["sweep", "latin1.toml"], "SPEC"),
+    (["sweep", "bad.toml"], "SPEC"),
+    (["sweep", "bad.json"], "SPEC"),
+    (["sweep", "list.json"], "SPEC"),
+    (["sweep", "spec.yaml"], "SPEC"),
+    (["sweep", "unknown.toml"], "chunks"),
+    (["sweep", "range.toml"], "height"),
+    (["sweep", "--out", "afile"], "--out"),
+    (["sweep", "--out", "afile/sub"], "--out"),
+    (["sweep", "--out", "other_sweep"], "different sweep"),
+    (["sweep", "--address", "auto"], "--address"),
+    (["sweep", "--max-retries", "-1"], "--max-retries"),
+    (["sweep", "--executor", "slurm"], "--executor"),
+    # report
+    (["report", "nowhere"], "DIR"),
+    (["report", "empty"], "DIR"),
+    (["report", "exp"], "results.json"),
+    (["report", "exp", "--max-embed-mb", "-1"], "--max-embed-mb"),
+    (["report", "exp", "--out", "r.txt"], "--out"),
+    # render / view
+    (["render", "nowhere"], "SOURCE"),
+    (["render", "exp"], "traces.npz"),
+    (["render", "half"], "traces.npz"),
+    (["render", "exp", "--width", "5"], "--width"),
+    (["render", "exp", "--speed", "0"], "--speed"),
+    (["render", "exp", "--stills", "101"], "--stills"),
+    (["render", "exp", "--out", "x.avi"], "--out"),
+    (["render", "exp", "--camera", "0.1", "0", "0"], "--camera"),
+    (["view", "nowhere"], "SOURCE"),
+    (["view", "exp"], "traces.npz"),
+    (["view", "exp", "--speed", "0"], "--speed"),
+    (["view", "exp", "--force-scale", "1"], "--force-scale"),
+    # no command, unknown command
+    (["simulate"], "simulate"),
+]
+
+
+@pytest.mark.parametrize("argv, name", CASES, ids=[" ".join(a) for a, _ in CASES])
+def test_bad_option_is_one_line_exit_2_nothing_compiled_or_written(ws, capsys, argv, name):
+    before = _tree(ws)
+    n_compiles = len(COMPILES)
+    code = run_cli(argv)
+    err = capsys.readouterr().err
+    assert code == 2, (code, err)
+    lines = [ln for ln in err.splitlines() if ln.strip() and "warp" not in ln]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    assert name in lines[0], lines[0]
+    assert lines[0].startswith("hyqjax"), lines[0]
+    assert len(COMPILES) == n_compiles, "compiled before refusing"
+    assert _tree(ws) == before, "wrote files for a refused command"
+
+
+def test_at_least_sixty_bad_inputs():
+    assert len(CASES) + len(API_CASES) >= 60
+    assert {a[0] for a, _ in CASES} >= {"stepdown", "bound", "tune", "sweep", "report", "render", "view"}
+
+
+def test_debug_shows_the_traceback(ws, capsys):
+    from hyqjax.cli.common import UsageError
+
+    with pytest.raises(UsageError, match="--seed"):
+        cli.main(["stepdown", "--seed", "-1", "--debug"])
+
+
+def test_refused_tune_leaves_no_config_and_the_corrected_command_is_accepted(ws, capsys):
+    assert run_cli(["tune", "--seed", "-1", "--out", "t"]) == 2
+    assert not os.path.exists("t")
+    # The corrected command passes validation (run only up to the checks: nothing simulated here).
+    args = cli.build_parser().parse_args(["tune", "--seed", "1", "--out", "t"])
+    args._validate(args)
+    assert os.path.isdir("t") and os.listdir("t") == []
+
+
+# ------------------------------------------------------------------------------------------------
+# The sweep API: same contract (an exception naming the parameter, nothing compiled or written)
+# ------------------------------------------------------------------------------------------------
+
+API_CASES = [
+    (dict(grid=dict(height=[0.6])), "height"),
+    (dict(grid=dict(height=[float("nan")])), "height"),
+    (dict(grid=dict(friction=["a"])), "friction"),
+    (dict(grid=dict(reflex=["maybe"])), "reflex"),
+    (dict(grid=dict(height=[0.1, 0.1])), "height"),
+    (dict(random=dict(payload_mass=[0.0])), "payload_mass"),
+    (dict(random=dict(foot_sequence=[])), "foot_sequence"),
+    (dict(fixed=dict(kp_haa=0.0)), "kp_haa"),
+    (dict(fixed=dict(push_t_start=30.0), duration=10.0), "push_t_start"),
+    (dict(blocks=[1, 0]), "blocks"),
+    (dict(blocks=[-1, 2]), "blocks"),
+    (dict(maps=[["height"]]), "maps"),
+    (dict(maps=[["height", "nope"]]), "nope"),
+    (dict(paired="yes"), "paired"),
+    (dict(bins=0), "bins"),
+    (dict(control_dt=1.0), "control_dt"),
+    (dict(grid=[0.1]), "grid"),
+    (dict(samples=2.5), "samples"),
+    (dict(fixed=dict(reflex_delta=0.5)), "reflex_delta"),
+    # parameters inside every range whose reflex integration would blow up (dt lambda_max >= 2)
+    (dict(fixed=dict(reflex_k_x=2e4, reflex_d_sw_min=0.01, reflex_d_sw_max=0.02)), "reflex_d_sw_min"),
+    (dict(grid=dict(reflex_k_x=[1000.0, 5000.0]), fixed=dict(reflex_d_sw_min=0.5, reflex_d_sw_max=1.0)),
+     "reflex_d_sw_min"),
+]
+
+
+@pytest.mark.parametrize("bad, name", API_CASES, ids=[str(b) for b, _ in API_CASES])
+def test_sweep_spec_api_errors(ws, bad, name):
+    from hyqjax.studies import sweep
+
+    before, n_compiles = _tree(ws), len(COMPILES)
+    with pytest.raises(sweep.SpecError, match=name):
+        sweep.SweepSpec.from_dict(bad)
+    assert len(COMPILES) == n_compiles and _tree(ws) == before
+
+
+def test_sweep_runner_api_errors(ws):
+    from hyqjax.studies import sweep
+
+    spec = sweep.SweepSpec.from_dict(dict(grid=dict(height=[0.1])))
+    before, n_compiles = _tree(ws), len(COMPILES)
+    with pytest.raises(ValueError, match="max_chunks"):
+        sweep.run_sweep(spec, "s", max_chunks=-1, progress=False)
+    with pytest.raises(ValueError, match="chunk_size"):
+        sweep.SweepStore("s", spec, chunk_size=0)
+    with pytest.raises(ValueError, match="instance range"):
+        spec.instance_inputs(0, 5)
+    assert len(COMPILES) == n_compiles and _tree(ws) == before
+    assert np.asarray(spec.instance_inputs(0, 1)["height"]).tolist() == [0.1]

@@ -1,0 +1,68 @@
+"""Rotation helpers of hyqjax.core.spatial: round trips, group properties and MuJoCo (float64)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hyqjax.core import spatial
+
+unit_quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda v: np.linalg.norm(v) > 1e-3).map(
+    lambda v: np.asarray(v) / np.linalg.norm(v))
+rpys = st.tuples(st.floats(-3.1, 3.1), st.floats(-1.55, 1.55), st.floats(-3.1, 3.1)).map(np.asarray)
+
+f = jax.jit(lambda q, r, v, p: dict(
+    R=spatial.quat_to_rot(q), q_back=spatial.rot_to_quat(spatial.quat_to_rot(q)),
+    rpy_back=spatial.rot_to_rpy(spatial.rpy_to_rot(r)), q_rpy=spatial.rpy_to_quat(r), R_rpy=spatial.rpy_to_rot(r),
+    rpy_q=spatial.quat_to_rpy(spatial.rpy_to_quat(r)), qv=spatial.rotvec_to_quat(v), qp=spatial.quat_mul(q, p),
+    Rp=spatial.quat_to_rot(p), Rqp=spatial.quat_to_rot(spatial.quat_mul(q, p)),
+    qc=spatial.quat_mul(q, spatial.quat_conj(q)), zyx=spatial.rot_z(r[2]) @ spatial.rot_y(r[1]) @ spatial.rot_x(r[0]),
+    skew=spatial.skew(v) @ r, cross=jnp.cross(v, r)))
+
+
+@settings(max_examples=200, deadline=None)
+@given(unit_quats, rpys, st.lists(st.floats(-3, 3), min_size=3, max_size=3).map(np.asarray), unit_quats)
+def test_round_trips_and_group_properties(q, rpy, v, p):
+    with jax.enable_x64(True):
+        o = {k: np.asarray(a) for k, a in f(q, rpy, v, p).items()}
+    r = o["R"]
+    np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+    assert abs(np.linalg.det(r) - 1) < 1e-12
+    # q and -q are the same rotation: the round trip returns one of them, with w >= 0.
+    assert min(np.abs(o["q_back"] - q).max(), np.abs(o["q_back"] + q).max()) < 1e-9 and o["q_back"][0] >= 0
+    np.testing.assert_allclose(o["rpy_back"], rpy, atol=1e-7)
+    np.testing.assert_allclose(o["rpy_q"], rpy, atol=1e-7)
+    np.testing.assert_allclose(spatial_np_rot(o["q_rpy"]), o["R_rpy"], atol=1e-12)
+    np.testing.assert_allclose(o["zyx"], o["R_rpy"], atol=1e-12)
+    np.testing.assert_allclose(o["Rqp"], r @ o["Rp"], atol=1e-12)
+    np.testing.assert_allclose(o["qc"], [1, 0, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(o["skew"], o["cross"], atol=1e-12)
+    # Against MuJoCo: quaternion -> matrix and rotation vector -> quaternion.
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, q)
+    np.testing.assert_allclose(r, mat.reshape(3, 3), atol=1e-12)
+    qv = np.zeros(4)
+    angle = np.linalg.norm(v)
+    mujoco.mju_axisAngle2Quat(qv, v / angle if angle > 0 else np.array([1.0, 0, 0]), angle)
+    np.testing.assert_allclose(o["qv"], qv, atol=1e-12)
+
+
+def spatial_np_rot(q):
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, np.asarray(q, np.float64))
+    return mat.reshape(3, 3)
+
+
+def test_rot_to_quat_half_turns_and_batches():
+    """Shepperd's branches: half turns about every axis and a batch of random rotations (float32)."""
+    rots = np.stack([np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0]), np.diag([-1.0, -1.0, 1.0]), np.eye(3)])
+    q = np.asarray(jax.jit(spatial.rot_to_quat)(jnp.asarray(rots, jnp.float32)))
+    np.testing.assert_allclose(np.abs(q), [[0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1], [1, 0, 0, 0]], atol=1e-6)
+    rng = np.random.default_rng(0)
+    qs = rng.normal(size=(256, 4))
+    qs /= np.linalg.norm(qs, axis=1, keepdims=True)
+    back = np.asarray(jax.jit(lambda a: spatial.rot_to_quat(spatial.quat_to_rot(a)))(jnp.asarray(qs, jnp.float32)))
+    np.testing.assert_allclose(back, qs * np.sign(qs[:, :1]), atol=2e-6)

@@ -1,0 +1,269 @@
+"""The sweep store's guarantees, without simulating: lock, verification, repair, conversion, kills, two writers.
+
+The rows written here are the sweep's real input rows (``SweepSpec.instance_inputs``) plus an outcome
+column derived from them by :func:`inputs_outcome`; what is tested is the store's bookkeeping, which
+does not look at what the columns mean. The end-to-end runs with MJX are in test_sweep.py.
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from hyqjax.io.lock import Busy, DirLock
+from hyqjax.studies import sweep
+
+SPEC = dict(seed=5, samples=3, grid=dict(height=[0.1, 0.2, 0.3], reflex=[False, True]),
+            random=dict(friction=[0.5, 1.0], payload_mass=[0.0, 10.0]))
+LAYOUT = dict(platform="cpu", device_kind="cpu", devices=1)
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def inputs_outcome(spec, start, stop):
+    rows = spec.instance_inputs(start, stop)
+    ok = rows["friction"] * (1 + rows["height"]) > 0.8
+    out = dict(success=ok, failure_reason=np.where(ok, "", "tilt"), diverged=rows["payload_mass"] > 9.5,
+               peak_pitch=np.where(ok, rows["payload_mass"] / 100, np.nan), mean_mobility=rows["friction"] / 2)
+    return {**rows, **sweep.count_outcomes(out)}
+
+
+def fill(out, spec, chunk_size=5, chunks=None):
+    with sweep.SweepStore(str(out), spec, chunk_size, LAYOUT, writer=True) as st:
+        for c in (st.todo() if chunks is None else chunks):
+            st.write_chunk(c, inputs_outcome(spec, *st.chunk_range(c)), 0.1)
+    return st
+
+
+def same_rows(a, b):
+    assert sorted(a) == sorted(b)
+    for k in a:
+        if a[k].dtype.kind == "f":
+            np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        else:
+            assert (a[k] == b[k]).all(), k
+
+
+@pytest.fixture
+def spec():
+    return sweep.SweepSpec.from_dict(SPEC)
+
+
+def test_parquet_chunks_open_as_one_table_and_round_trip(tmp_path, spec):
+    import pyarrow.dataset as ds
+
+    st = fill(tmp_path, spec)
+    assert st.n_chunks == 4 and st.done() == {0, 1, 2, 3}
+    table = ds.dataset(str(tmp_path / "chunks"), format="parquet").to_table().sort_by("index")
+    assert table.num_rows == spec.n_instances == 18
+    assert table.column("index").to_pylist() == list(range(18))
+    rows = sweep.SweepStore(str(tmp_path), spec).load()
+    same_rows(rows, inputs_outcome(spec, 0, 18))
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    assert man["schema"] == sweep.SCHEMA and man["layout"] == dict(LAYOUT, chunk_size=5)
+    assert [man["chunks"][str(c)]["start"] for c in range(4)] == [0, 5, 10, 15]
+    assert all(len(e["sha256"]) == 64 for e in man["chunks"].values())
+
+
+def test_second_writer_refused_or_waits(tmp_path, spec):
+    st = sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True)
+    with pytest.raises(Busy, match=f"pid {os.getpid()}.*--wait"):
+        sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True)
+    got = {}
+
+    def second():
+        with sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True, wait=True) as s2:
+            got["done"] = s2.done()
+
+    th = threading.Thread(target=second)
+    th.start()
+    time.sleep(0.5)
+    assert "done" not in got  # still waiting
+    st.write_chunk(0, inputs_outcome(spec, *st.chunk_range(0)), 0.1)
+    st.close()
+    th.join(10)
+    assert got["done"] == {0}
+
+
+def test_chunk_lands_once(tmp_path, spec):
+    with sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True) as st:
+        rows = inputs_outcome(spec, *st.chunk_range(1))
+        assert st.write_chunk(1, rows, 0.1) is True
+        sha = st.manifest["chunks"]["1"]["sha256"]
+        assert st.write_chunk(1, rows, 0.1) is False
+        assert st.manifest["chunks"]["1"]["sha256"] == sha
+        with pytest.raises(ValueError, match="row range"):
+            st.write_chunk(2, rows, 0.1)  # rows of chunk 1 offered as chunk 2
+
+
+def test_corrupt_truncated_and_foreign_chunks_named_and_recomputed(tmp_path, spec):
+    fill(tmp_path, spec)
+    ch = tmp_path / "chunks"
+    (ch / "00001.parquet").write_bytes((ch / "00001.parquet").read_bytes()[:200])  # truncated
+    (ch / "00002.parquet").write_bytes((ch / "00000.parquet").read_bytes())  # a copy of another chunk
+    other = sweep.SweepSpec.from_dict({**SPEC, "seed": 6})
+    fill(tmp_path / "o", other)
+    (ch / "00003.parquet").write_bytes((tmp_path / "o" / "chunks" / "00003.parquet").read_bytes())  # other sweep
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert set(ro.problems) == {1, 2, 3}
+    assert "00001.parquet" in ro.problems[1] and "00002.parquet" in ro.problems[2]
+    assert ro.load()["index"].tolist() == list(range(5))  # only the verified chunk
+    st = fill(tmp_path, spec)
+    assert st.problems == {} and st.done() == {0, 1, 2, 3}
+    same_rows(sweep.SweepStore(str(tmp_path), spec).load(), inputs_outcome(spec, 0, 18))
+
+
+def test_foreign_chunk_with_matching_hash_still_refused(tmp_path, spec):
+    """A chunk file and its manifest entry both copied from another chunk: the embedded metadata and the
+    row range give it away."""
+    fill(tmp_path, spec)
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    (tmp_path / "chunks" / "00002.parquet").write_bytes((tmp_path / "chunks" / "00001.parquet").read_bytes())
+    man["chunks"]["2"].update({k: man["chunks"]["1"][k] for k in ("sha256", "bytes")})
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert set(ro.problems) == {2} and "chunk" in ro.problems[2]
+
+
+def test_stale_temporaries_removed_and_unrecorded_chunk_adopted(tmp_path, spec):
+    fill(tmp_path, spec, chunks=[0])
+    (tmp_path / "chunks" / ".00001.parquet.tmp-999999-abcd").write_bytes(b"partial")
+    (tmp_path / ".manifest.json.tmp-999999-abcd").write_bytes(b"{")
+    # Chunk 2 written, the writer killed before the manifest's rename.
+    data = sweep.rows_to_parquet(inputs_outcome(spec, 10, 15), dict(
+        schema=sweep.SCHEMA, spec_hash=spec.spec_hash, chunk=2, start=10, stop=15))
+    (tmp_path / "chunks" / "00002.parquet").write_bytes(data)
+    st = sweep.SweepStore(str(tmp_path), spec, None, LAYOUT, writer=True)
+    st.close()
+    assert st.done() == {0, 2}
+    assert not [f for d in (tmp_path, tmp_path / "chunks") for f in os.listdir(d) if ".tmp" in f]
+
+
+def test_corrupt_manifest_named_then_rebuilt(tmp_path, spec):
+    fill(tmp_path, spec)
+    (tmp_path / "manifest.json").write_text('{"schema": "hyqjax.sweep/2", "chunks": {')
+    with pytest.raises(sweep.StoreCorrupt, match="manifest.json is corrupt"):
+        sweep.SweepStore(str(tmp_path), spec)
+    st = sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True)
+    st.close()
+    assert st.done() == {0, 1, 2, 3}
+    assert [f for f in os.listdir(tmp_path) if f.startswith("manifest.json.corrupt-")]
+
+
+def test_layout_recorded_and_other_layout_refused(tmp_path, spec):
+    fill(tmp_path, spec, chunks=[0])
+    with pytest.raises(sweep.StoreMismatch, match="1 x cpu.*2 x cpu"):
+        sweep.SweepStore(str(tmp_path), spec, None, dict(LAYOUT, devices=2), writer=True)
+    assert not os.path.exists(tmp_path / ".lock") or DirLock(str(tmp_path)).acquire().release() is None
+
+
+def test_strict_json_summary(tmp_path, spec):
+    st = fill(tmp_path, spec)
+    s = sweep.write_outputs(st)
+    text = (tmp_path / "summary.json").read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c} in summary.json"))
+    assert s["complete"] and "NaN" not in text
+
+
+def test_schema_1_store_converted(tmp_path, spec):
+    os.makedirs(tmp_path / "chunks")
+    man = dict(schema="hyqjax.sweep/1", spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=18,
+               chunk_size=5, n_chunks=4, chunks={})
+    for c in (0, 1):
+        rows = inputs_outcome(spec, c * 5, c * 5 + 5)
+        np.savez(tmp_path / "chunks" / f"{c:05d}.npz", **rows)
+        man["chunks"][str(c)] = dict(file=f"chunks/{c:05d}.npz", start=c * 5, stop=c * 5 + 5, wall_s=1.0)
+    (tmp_path / "manifest.json").write_text(json.dumps(man))
+    assert sweep.SweepStore(str(tmp_path), spec).done() == {0, 1}  # read as is
+    st = fill(tmp_path, spec)
+    assert st.manifest["schema"] == sweep.SCHEMA and st.done() == {0, 1, 2, 3}
+    assert sorted(os.listdir(tmp_path / "chunks")) == [f"{c:05d}.parquet" for c in range(4)]
+    same_rows(sweep.SweepStore(str(tmp_path), spec).load(), inputs_outcome(spec, 0, 18))
+
+
+# ------------------------------------------------------------------------------------------------
+# Processes: kills at random points (including mid-write), two writers
+# ------------------------------------------------------------------------------------------------
+
+WRITER = textwrap.dedent("""
+    import os, sys, time
+    sys.path.insert(0, {root!r}); sys.path.insert(0, {tests!r})
+    from test_store import inputs_outcome, LAYOUT
+    from hyqjax.studies import sweep
+    import hyqjax.io.atomic as atomic
+    spec = sweep.SweepSpec.from_dict({spec!r})
+    slow = float(os.environ.get("SLOW_RENAME", "0"))
+    if slow:
+        real = atomic.os.replace
+        def replace(a, b):  # widen the window between writing a temporary and renaming it
+            time.sleep(slow); real(a, b)
+        atomic.os.replace = replace
+    with sweep.SweepStore(sys.argv[1], spec, int(sys.argv[2]), LAYOUT, writer=True, wait=True) as st:
+        for c in st.todo():
+            st.write_chunk(c, inputs_outcome(spec, *st.chunk_range(c)), 0.0, worker=str(os.getpid()))
+    print("done", flush=True)
+""")
+
+
+def _writer(tmp_path, spec_dict, out, chunk_size=1, env=None):
+    script = tmp_path / f"writer_{sweep.SweepSpec.from_dict(spec_dict).spec_hash[:8]}.py"
+    script.write_text(WRITER.format(root=ROOT, tests=os.path.join(ROOT, "tests"), spec=spec_dict))
+    return subprocess.Popen([sys.executable, str(script), str(out), str(chunk_size)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
+
+
+def test_sigkill_at_random_points_then_resume_is_identical(tmp_path, spec):
+    ref = tmp_path / "ref"
+    fill(ref, spec, chunk_size=1)
+    out = tmp_path / "out"
+    rng = random.Random(0)
+    for trial in range(6):
+        env = {"SLOW_RENAME": "0.3"} if trial % 2 else {}  # odd trials: kill inside the write window
+        p = _writer(tmp_path, SPEC, out, env=env)
+        time.sleep(rng.uniform(1.0, 3.0))
+        p.send_signal(signal.SIGKILL)
+        p.wait()
+    p = _writer(tmp_path, SPEC, out)
+    assert p.wait(120) == 0, p.stderr.read()
+    st = sweep.SweepStore(str(out), spec)
+    assert st.problems == {} and st.done() == set(range(18))
+    same_rows(st.load(), sweep.SweepStore(str(ref), spec).load())
+    assert not [f for d in (out, out / "chunks") for f in os.listdir(d) if ".tmp" in f]
+
+
+def test_two_writers_no_lost_records(tmp_path, spec):
+    out = tmp_path / "out"
+    ps = [_writer(tmp_path, SPEC, out, env={"SLOW_RENAME": "0.05"}) for _ in range(2)]
+    for p in ps:
+        assert p.wait(120) == 0, p.stderr.read()
+    st = sweep.SweepStore(str(out), spec)
+    assert st.done() == set(range(18)) and st.problems == {}
+    workers = {e["worker"] for e in st.manifest["chunks"].values()}
+    assert len(workers) == 1  # the second writer waited, then found every chunk done: nothing computed twice
+    same_rows(st.load(), inputs_outcome(spec, 0, 18))
+
+
+@pytest.mark.slow
+def test_two_specs_started_together_never_mix(tmp_path):
+    other = {**SPEC, "seed": 77}
+    for trial in range(4):
+        out = tmp_path / f"t{trial}"
+        ps = [_writer(tmp_path, s, out) for s in (SPEC, other)]
+        codes = [p.wait(120) for p in ps]
+        errs = [p.stderr.read() for p in ps]
+        assert sorted(codes) == [0, 1], errs
+        assert "different sweep" in errs[codes.index(1)]
+        man = json.loads((out / "manifest.json").read_text())
+        winner = sweep.SweepSpec.from_dict(SPEC if codes[0] == 0 else other)
+        assert man["spec_hash"] == winner.spec_hash
+        st = sweep.SweepStore(str(out), winner)
+        assert st.problems == {} and st.done() == set(range(18))
+        same_rows(st.load(), inputs_outcome(winner, 0, 18))
