@@ -1,4 +1,4 @@
-"""The sweep specification: axes with their allowed ranges, grid / random / fixed sections, validation.
+"""The sweep specification: grid / random / fixed sections over the axes of :mod:`hyqjax.studies.sweep.axes`, validation.
 
 A :class:`SweepSpec` names, for every *axis* of :data:`AXES` (step height, rough terrain amplitude,
 friction, payload, initial pose, foot sequence, joint PD gains, lateral push, sensor noise, control
@@ -29,112 +29,13 @@ from typing import Any
 
 import numpy as np
 
-from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import step as hreflex
 from hyqjax.sim import model as hmodel
 from hyqjax.studies import stepdown
+from hyqjax.studies.sweep.axes import AXES, SENSOR_AXES, Axis, SpecError, axis_value, get_axis  # noqa: F401
 
-class SpecError(ValueError):
-    """A sweep specification is invalid (the message names the field and the allowed range)."""
-
-
-
-@dataclasses.dataclass(frozen=True)
-class Axis:
-    """One sweepable input: allowed range ``[lo, hi]`` (or ``options``), unit, default."""
-
-    name: str
-    lo: float
-    hi: float
-    unit: str
-    default: Any
-    doc: str
-    kind: str = "float"  # "float", "bool", "choice", "int"
-    options: tuple = ()
-    lo_open: bool = False
-    hi_open: bool = False
-
-    @property
-    def range_text(self) -> str:
-        return f"{'(' if self.lo_open else '['}{self.lo}, {self.hi}{')' if self.hi_open else ']'} {self.unit}".strip()
-
-
-def _reflex_axes():
-    """One axis per :class:`ReflexParams` field, with the range, unit and default declared there."""
-    from hyqjax.core.params import param_ranges
-
-    return [Axis(f"reflex_{n}", float(r.lo), float(r.hi), r.unit, float(np.asarray(r.default)),
-                 f"ReflexParams.{n} (Table I default)", lo_open=r.lo_open, hi_open=r.hi_open)
-            for n, r in param_ranges(hreflex.ReflexParams).items()]
-
-
-_AXES_LIST = [
-    Axis("height", 0.0, hmodel.MAX_PLATFORM_HEIGHT, "m", 0.21, "platform (step) height"),
-    Axis("roughness", 0.0, 2 * hmodel.BLOCK_HALF_Z, "m", 0.0,
-         "rough-terrain amplitude: block heights ~ U(0, roughness) per block (needs blocks > 0)"),
-    Axis("friction", 0.05, 5.0, "", 0.8, "sliding friction of the terrain"),
-    Axis("payload_mass", 0.0, 100.0, "kg", 0.0, "payload on the trunk"),
-    Axis("payload_com_x", -0.5, 0.5, "m", 0.0, "payload CoM, trunk frame x"),
-    Axis("payload_com_y", -0.5, 0.5, "m", 0.0, "payload CoM, trunk frame y"),
-    Axis("payload_com_z", -0.5, 0.5, "m", 0.0, "payload CoM, trunk frame z"),
-    Axis("start_distance", 0.0, 1.5, "m", 0.02, "front feet distance before the platform edge at the start"),
-    Axis("lateral_offset", -0.5, 0.5, "m", 0.0, "initial lateral trunk offset"),
-    Axis("yaw", -0.5, 0.5, "rad", 0.0, "initial heading"),
-    Axis("speed", -0.3, 0.3, "m/s", 0.1, "desired forward velocity (CrawlParams.forward_velocity)"),
-    Axis("foot_sequence", 0, 0, "", "rh-rf-lh-lf", "crawl leg order (CrawlParams.foot_sequence)", "choice",
-         tuple(sorted(crawl.FOOT_SEQUENCES))),
-    Axis("kp_haa", 1.0, 5000.0, "N m/rad", 300.0, "joint PD stiffness, HAA"),
-    Axis("kp_hfe", 1.0, 5000.0, "N m/rad", 300.0, "joint PD stiffness, HFE"),
-    Axis("kp_kfe", 1.0, 5000.0, "N m/rad", 300.0, "joint PD stiffness, KFE"),
-    Axis("kd_haa", 0.01, 200.0, "N m s/rad", 8.0, "joint PD damping, HAA"),
-    Axis("kd_hfe", 0.01, 200.0, "N m s/rad", 8.0, "joint PD damping, HFE"),
-    Axis("kd_kfe", 0.01, 200.0, "N m s/rad", 6.0, "joint PD damping, KFE"),
-    Axis("push_force_x", -5000.0, 5000.0, "N", 0.0, "push on the trunk, world x"),
-    Axis("push_force_y", -5000.0, 5000.0, "N", 0.0, "lateral push on the trunk, world y"),
-    Axis("push_t_start", 0.0, 600.0, "s", 0.0, "push start time"),
-    Axis("push_duration", 0.0, 10.0, "s", 0.0, "push duration"),
-    Axis("noise_joint_pos", 0.0, 0.1, "rad", 0.0, "std of joint encoder noise"),
-    Axis("noise_joint_vel", 0.0, 10.0, "rad/s", 0.0, "std of joint velocity noise"),
-    Axis("noise_imu", 0.0, 0.1, "rad", 0.0, "std of IMU orientation noise (small random rotation)"),
-    Axis("noise_gyro", 0.0, 2.0, "rad/s", 0.0, "std of IMU angular-rate noise"),
-    Axis("noise_foot_force", 0.0, 200.0, "N", 0.0, "std of estimated foot force noise"),
-    Axis("latency", 0.0, 0.05, "s", 0.0, "control latency (rounded to whole control ticks)"),
-    Axis("reflex", 0, 1, "", True, "height reflex on/off", "bool"),
-    *_reflex_axes(),
-]
-#: Every sweepable axis by name.
-AXES: dict[str, Axis] = {a.name: a for a in _AXES_LIST}
-_SENSOR_AXES = ("noise_joint_pos", "noise_joint_vel", "noise_imu", "noise_gyro", "noise_foot_force", "latency")
 _TOP_KEYS = ("seed", "samples", "paired", "duration", "control_dt", "max_tilt", "min_progress", "blocks",
              "grid", "random", "fixed", "maps", "bins")
-
-
-def _axis_value(axis: Axis, v, where: str):
-    """Validate and normalise one value of ``axis`` (``where`` names it in errors)."""
-    if axis.kind == "bool":
-        if isinstance(v, str) and v.lower() in ("on", "off", "true", "false"):
-            return v.lower() in ("on", "true")
-        if isinstance(v, (bool, np.bool_)) or v in (0, 1):
-            return bool(v)
-        raise SpecError(f"{where}: {axis.name} must be true/false (or 'on'/'off'), got {v!r}")
-    if axis.kind == "choice":
-        if v not in axis.options:
-            raise SpecError(f"{where}: {axis.name} must be one of {list(axis.options)}, got {v!r}")
-        return str(v)
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-        raise SpecError(f"{where}: {axis.name} must be a number in {axis.range_text}, got {v!r}")
-    f = float(v)
-    ok = math.isfinite(f) and (axis.lo < f if axis.lo_open else axis.lo <= f) and (
-        f < axis.hi if axis.hi_open else f <= axis.hi)
-    if not ok:
-        raise SpecError(f"{where}: {axis.name}={v!r} out of range: must be in {axis.range_text}")
-    return f
-
-
-def _get_axis(name: str, where: str) -> Axis:
-    if name not in AXES:
-        raise SpecError(f"{where}: unknown axis {name!r}; allowed axes: {sorted(AXES)}")
-    return AXES[name]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,7 +94,7 @@ class SweepSpec:
             if not isinstance(sec, dict):
                 raise SpecError(f"[{name}] must be a table of axis = value(s), got {type(sec).__name__}")
             for k in sec:
-                _get_axis(k, f"[{name}]")
+                get_axis(k, f"[{name}]")
                 if k in seen:
                     raise SpecError(f"axis {k!r} appears in both [{seen[k]}] and [{name}]; name it once")
                 seen[k] = name
@@ -204,7 +105,7 @@ class SweepSpec:
             a = AXES[k]
             if not isinstance(vals, (list, tuple)) or not vals:
                 raise SpecError(f"[grid] {k} must be a non-empty list of values, got {vals!r}")
-            norm = tuple(_axis_value(a, v, f"[grid] {k}") for v in vals)
+            norm = tuple(axis_value(a, v, f"[grid] {k}") for v in vals)
             if len(set(norm)) != len(norm):
                 raise SpecError(f"[grid] {k} has repeated values {list(vals)}")
             grid.append((k, norm))
@@ -216,15 +117,15 @@ class SweepSpec:
             if a.kind == "choice":
                 if not isinstance(rng, (list, tuple)) or not rng:
                     raise SpecError(f"[random] {k} must be a non-empty list of options from {list(a.options)}")
-                random.append((k, tuple(_axis_value(a, v, f"[random] {k}") for v in rng)))
+                random.append((k, tuple(axis_value(a, v, f"[random] {k}") for v in rng)))
                 continue
             if not isinstance(rng, (list, tuple)) or len(rng) != 2:
                 raise SpecError(f"[random] {k} must be [lo, hi] within [{a.lo}, {a.hi}] {a.unit}, got {rng!r}")
-            lo, hi = (_axis_value(a, v, f"[random] {k}") for v in rng)
+            lo, hi = (axis_value(a, v, f"[random] {k}") for v in rng)
             if lo > hi:
                 raise SpecError(f"[random] {k}: lo={lo} must be <= hi={hi}")
             random.append((k, (lo, hi)))
-        fixed = tuple((k, _axis_value(AXES[k], v, f"[fixed] {k}")) for k, v in sorted(section("fixed").items()))
+        fixed = tuple((k, axis_value(AXES[k], v, f"[fixed] {k}")) for k, v in sorted(section("fixed").items()))
 
         blocks = d.get("blocks", [0, 0])
         if (not isinstance(blocks, (list, tuple)) or len(blocks) != 2
@@ -235,7 +136,7 @@ class SweepSpec:
             raise SpecError(f"maps must be a list of [axis, axis] pairs, got {maps!r}")
         for p in maps:
             for k in p:
-                _get_axis(k, "maps")
+                get_axis(k, "maps")
         spec = SweepSpec(
             grid=tuple(grid), random=tuple(random), fixed=fixed,
             samples=num("samples", 1, 10**7, 1, integer=True), seed=num("seed", 0, 2**63 - 1, 0, integer=True),
@@ -298,7 +199,7 @@ class SweepSpec:
     @property
     def sensed(self) -> bool:
         """Whether the controller sees sensor noise or latency (wraps the crawl controller)."""
-        return any(self.axis_max(k) > 0 for k in _SENSOR_AXES)
+        return any(self.axis_max(k) > 0 for k in SENSOR_AXES)
 
     @property
     def max_delay(self) -> int:
