@@ -12,7 +12,10 @@ platform edge at ``x = 0`` stays in view while HyQ walks off it. Overlays:
   capsules from hip to knee so the legs read as legs;
 * **reflex**: a strip under the frame (matplotlib) plots the height reflex activation and the
   vertical foot forces over the whole run with a cursor at the current time, and the frame gets an
-  orange border while the reflex is active.
+  orange border while the reflex is active (the strip: :mod:`hyqjax.io.strip`).
+
+Frames are written as MP4, GIF or PNG by :mod:`hyqjax.io.video` (``has_ffmpeg``, ``write_video`` and
+``write_png`` are also reachable here).
 
 OpenGL backend: MuJoCo picks it from ``MUJOCO_GL`` when ``mujoco`` is imported. Unset, hyqjax uses
 ``egl``: headless, on NVIDIA GPUs through the driver and on CPU through Mesa's software EGL device
@@ -54,8 +57,10 @@ _select_backend_before_import()
 import mujoco  # noqa: E402
 
 from hyqjax.sim import model as hmodel  # noqa: E402
-from hyqjax.io import recording
-from hyqjax.core import robot
+from hyqjax.core import robot  # noqa: E402
+from hyqjax.io import recording  # noqa: E402
+from hyqjax.io.strip import reflex_strip  # noqa: E402
+from hyqjax.io.video import has_ffmpeg, write_png, write_video  # noqa: E402, F401  (has_ffmpeg: re-exported)
 
 
 class RenderBackendError(RuntimeError):
@@ -233,7 +238,7 @@ class FrameRenderer:
         scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = self.opts.shadows
         add_leg_links(scn, self.data, self.links)
         if self.opts.forces and foot_force_b is not None:
-            rot = quat_to_rot(qpos[3:7])
+            rot = quat_to_rot(qpos[robot.QPOS_BASE_QUAT])
             feet = self.data.site_xpos[self.links.feet]
             add_force_arrows(scn, feet, np.asarray(foot_force_b, np.float64) @ rot.T, self.opts.force_scale)
         return r.render().copy()
@@ -246,60 +251,6 @@ class FrameRenderer:
 
     def __exit__(self, *exc):
         self.close()
-
-
-@dataclasses.dataclass
-class Strip:
-    """A pre-drawn plot strip and the pixel column of each time."""
-
-    image: np.ndarray  # (h, W, 3) uint8
-    t0: float
-    t1: float
-    x0: float
-    x1: float
-
-    def column(self, t: float) -> int:
-        f = (t - self.t0) / max(self.t1 - self.t0, 1e-9)
-        return int(round(self.x0 + np.clip(f, 0.0, 1.0) * (self.x1 - self.x0)))
-
-    def at(self, t: float) -> np.ndarray:
-        img = self.image.copy()
-        c = self.column(t)
-        img[:, max(c - 1, 0):c + 1] = (20, 20, 20)
-        return img
-
-
-def reflex_strip(time: np.ndarray, width: int, height: int, reflex_active: np.ndarray | None = None,
-                 foot_force: np.ndarray | None = None) -> Strip:
-    """The strip under the frame: reflex activation (orange band) and each foot's vertical force over time."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    dpi = 100
-    fig = plt.figure(figsize=(width / dpi, height / dpi), dpi=dpi)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
-    t = np.asarray(time, np.float64)
-    if foot_force is not None:
-        fz = np.asarray(foot_force, np.float64)[..., 2]
-        top = max(float(np.nanmax(fz)) if np.isfinite(fz).any() else 1.0, 1.0)
-        for leg, color in zip(range(fz.shape[1]), ("#1f77b4", "#2ca02c", "#9467bd", "#8c564b")):
-            ax.plot(t, np.clip(fz[:, leg], 0, None) / top, color=color, lw=0.8)
-    if reflex_active is not None:
-        act = np.asarray(reflex_active).astype(bool)
-        ax.fill_between(t, 0, 1, where=act, step="mid", color="#ff8c00", alpha=0.55, lw=0)
-    ax.set_xlim(t[0], t[-1] if t[-1] > t[0] else t[0] + 1.0)
-    ax.set_ylim(-0.05, 1.1)
-    ax.set_axis_off()
-    if height >= 40:
-        ax.text(0.005, 0.97, "reflex active (orange), foot normal forces LF RF LH RH", transform=ax.transAxes,
-                fontsize=max(5, min(8, height // 12)), va="top", color="#333")
-    fig.canvas.draw()
-    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
-    plt.close(fig)
-    x1 = ax.get_xlim()[1]
-    return Strip(image=img, t0=float(t[0]), t1=float(x1), x0=0.0, x1=float(width - 1))
 
 
 def with_border(frame: np.ndarray, rgb: np.ndarray, px: int) -> np.ndarray:
@@ -346,63 +297,6 @@ def frames(inst: dict[str, np.ndarray], indices: np.ndarray, opts: RenderOptions
             if strip is not None:
                 img = np.concatenate([img, strip.at(float(t[i]))], axis=0)
             yield img
-
-
-def _even(img: np.ndarray) -> np.ndarray:
-    """Crop to even width and height (H.264 with yuv420p needs them)."""
-    h, w = img.shape[:2]
-    return img[: h - h % 2, : w - w % 2]
-
-
-def has_ffmpeg() -> bool:
-    """Whether MP4 can be written (imageio and imageio-ffmpeg with its ffmpeg binary are installed)."""
-    try:
-        import imageio.v2  # noqa: F401
-        import imageio_ffmpeg
-
-        return bool(imageio_ffmpeg.get_ffmpeg_exe())
-    except Exception:  # noqa: BLE001  (not installed, or no binary for this platform)
-        return False
-
-
-def write_video(path: str, images, fps: float) -> int:
-    """Write an iterable of frames to ``path`` (``.mp4`` through imageio + imageio-ffmpeg, the ``video`` extra;
-    ``.gif`` through Pillow, which matplotlib already needs).
-
-    Returns the number of frames written.
-    """
-    ext = os.path.splitext(path)[1].lower()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    n = 0
-    if ext == ".mp4":
-        if not has_ffmpeg():
-            raise RuntimeError("writing .mp4 needs imageio-ffmpeg (pip install 'hyqjax[video]'); or write a .gif")
-        import imageio.v2 as imageio
-
-        with imageio.get_writer(path, format="FFMPEG", mode="I", fps=fps, codec="libx264", macro_block_size=1,
-                                pixelformat="yuv420p", quality=7) as w:
-            for img in images:
-                w.append_data(_even(img))
-                n += 1
-    elif ext == ".gif":
-        from PIL import Image
-
-        pil = [Image.fromarray(img).convert("P", palette=Image.Palette.ADAPTIVE, colors=128) for img in images]
-        n = len(pil)
-        if n == 0:
-            raise ValueError("no frames to write")
-        duration = max(20, int(round(1000.0 / fps / 10.0)) * 10)  # GIF delays are in centiseconds
-        pil[0].save(path, save_all=True, append_images=pil[1:], duration=duration, loop=0, optimize=False)
-    else:
-        raise ValueError(f"unknown video format {ext!r}: use .mp4 or .gif")
-    return n
-
-
-def write_png(path: str, img: np.ndarray) -> None:
-    from PIL import Image
-
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    Image.fromarray(img).save(path)
 
 
 def still_indices(inst: dict[str, np.ndarray], indices: np.ndarray, n: int) -> np.ndarray:
