@@ -179,6 +179,29 @@ def test_summary_maps_and_outputs(swept):
         assert len(f.read().strip().splitlines()) == 9
 
 
+def test_failure_reasons_come_from_the_outcome_columns():
+    """A sweep chunk's outcome columns are the step-down's boolean failure reasons (no failure_reason column):
+    every failed row is labelled with the reasons set in it, an internal reflex failure as its own reason, and
+    the summary counts them instead of calling them "unspecified"."""
+    from hyqjax.studies.stepdown_outcome import FAILURE_REASONS
+
+    n = 5
+    out = {k: np.zeros(n, bool) for k in FAILURE_REASONS}
+    out.update(success=np.array([True, False, False, False, False]), peak_pitch=np.array([0.1] * 4 + [np.nan]),
+               mean_mobility=np.ones(n), diverged=np.array([False, False, False, True, False]))
+    out["reflex_failure"][1] = True
+    out["feet_not_down"][2] = out["no_progress"][2] = True
+    out["shin_strike"][3] = True
+    c = sweep.count_outcomes(out)
+    assert c["success"].tolist() == [True, False, False, False, False]
+    assert c["failure_reason"].tolist() == ["", "reflex_failure", "feet_not_down; no_progress",
+                                            "shin_strike; diverged", "non-finite metrics"]
+    spec = sweep.SweepSpec.from_dict(dict(grid=dict(height=[0.2], reflex=[True]), samples=n))
+    s = sweep.summarize_sweep(spec, {**spec.instance_inputs(0, n), **c})
+    assert s["failure_reasons"] == {"reflex_failure": 1, "feet_not_down": 1, "no_progress": 1, "shin_strike": 1,
+                                    "diverged": 1, "non-finite metrics": 1}
+
+
 def test_h95_definitions():
     spec = sweep.SweepSpec.from_dict(dict(grid=dict(height=[0.1, 0.2, 0.3], reflex=[True]), samples=80))
     rows = spec.instance_inputs(0, spec.n_instances)
