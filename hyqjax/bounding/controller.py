@@ -195,7 +195,7 @@ def ground_forces(params: BoundingParams, state: BoundingState, att: estimator.I
 
 def feedforward_torques(jac, f_h, rpy):
     """Eq. B3: ``tau_ff = -J^T bR_h f_h`` (12,) from the ground forces in ``H``."""
-    f_b = f_h @ estimator.horizontal_to_base(rpy[0], rpy[1])  # (hR_b^T f)^T
+    f_b = f_h @ spatial.roll_pitch_to_rot(rpy[0], rpy[1])  # (hR_b^T f)^T
     return -jnp.einsum("lij,li->lj", jac, f_b).reshape(12)
 
 

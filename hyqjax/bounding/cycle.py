@@ -145,16 +145,6 @@ def reference_joints(params: BoundingParams, s: jax.Array) -> jax.Array:
     return jnp.clip(kinematics.inverse_kinematics(b_x).reshape(12), robot.Q_MIN + 0.02, robot.Q_MAX - 0.02)
 
 
-def _trace_quat(r):
-    """Unit quaternion (w, x, y, z) of a rotation by its trace formula (valid for |angles| < pi/2, HyQ in flight).
-
-    :func:`hyqjax.core.spatial.rot_to_quat` (Shepperd's method) is the general one; it differs from this
-    formula in the last bit of float32, so this one keeps the stored cycle and the committed results
-    bit-reproducible."""
-    w = 0.5 * jnp.sqrt(jnp.maximum(1.0 + r[0, 0] + r[1, 1] + r[2, 2], 1e-9))
-    return jnp.stack([w, (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)])
-
-
 def apex_data(mx: mjx.Model, m: mujoco.MjModel, params: BoundingParams, s: jax.Array, xy=(0.0, 0.0), yaw=0.0,
               roll=0.0, vy=0.0, yaw_rate=0.0) -> mjx.Data:
     """MJX data with HyQ in the air at apex state ``s`` (optionally with roll / yaw / lateral speed)."""
@@ -163,7 +153,7 @@ def apex_data(mx: mjx.Model, m: mujoco.MjModel, params: BoundingParams, s: jax.A
     a = Apex.of(s)
     q_legs = reference_joints(params, s)
     rot = spatial.rpy_to_rot(jnp.stack([jnp.asarray(roll, dtype), a.pitch, jnp.asarray(yaw, dtype)]))
-    qpos = jnp.concatenate([jnp.stack([jnp.asarray(xy[0], dtype), jnp.asarray(xy[1], dtype), a.z]), _trace_quat(rot),
+    qpos = jnp.concatenate([jnp.stack([jnp.asarray(xy[0], dtype), jnp.asarray(xy[1], dtype), a.z]), spatial.rot_to_quat_trace(rot),
                             q_legs.astype(dtype)])
     omega_w = jnp.stack([jnp.zeros((), dtype), a.pitch_rate, jnp.asarray(yaw_rate, dtype)])
     omega_b = rot.T @ omega_w  # pitch rate about the (yaw-rotated) world y axis, approx.
@@ -177,7 +167,7 @@ def apex_data(mx: mjx.Model, m: mujoco.MjModel, params: BoundingParams, s: jax.A
 def data_apex(d: mjx.Data) -> Apex:
     """Sagittal apex state of MJX data (ground truth; ``vx`` along the trunk's heading)."""
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
-    rates = estimator.euler_rates(rpy, d.qvel[robot.QVEL_BASE_ANG])
+    rates = spatial.euler_rates(rpy, d.qvel[robot.QVEL_BASE_ANG])
     v = d.qvel[robot.QVEL_BASE_LIN]
     vx = jnp.cos(rpy[2]) * v[0] + jnp.sin(rpy[2]) * v[1]
     return Apex(z=d.qpos[robot.QPOS_BASE_POS][2], pitch=rpy[1], vx=vx, vz=v[2], pitch_rate=rates[1])

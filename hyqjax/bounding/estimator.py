@@ -3,14 +3,14 @@
 IMU
 ---
 ``W_R_B`` from the IMU quaternion, roll / pitch / yaw ``(phi, theta, psi)`` (ZYX) and the Euler-angle
-rates from the body angular velocity ``omega_B`` (:func:`euler_rates`):
+rates from the body angular velocity ``omega_B`` (:func:`hyqjax.core.spatial.euler_rates`):
 
 .. math:: \\dot\\psi = \\frac{\\sin\\phi\\, \\omega_y + \\cos\\phi\\, \\omega_z}{\\cos\\theta}, \\quad
           \\dot\\theta = \\cos\\phi\\, \\omega_y - \\sin\\phi\\, \\omega_z, \\quad
           \\dot\\phi = \\omega_x + \\sin\\theta\\, \\dot\\psi.
 
 The horizontal frame ``H`` is the trunk frame with roll and pitch removed:
-``hR_b = R_y(theta) R_x(phi)`` (:func:`horizontal_to_base`), ``W`` and ``H`` differ by ``R_z(psi)``
+``hR_b = R_y(theta) R_x(phi)`` (:func:`hyqjax.core.spatial.roll_pitch_to_rot`), ``W`` and ``H`` differ by ``R_z(psi)``
 (:func:`hyqjax.core.spatial.rot_z`).
 
 Leg odometry
@@ -45,25 +45,11 @@ class Imu(NamedTuple):
     rates: jax.Array
 
 
-def euler_rates(rpy, omega_b):
-    """ZYX Euler-angle rates ``(phidot, thetadot, psidot)`` from the body angular velocity."""
-    r, p = rpy[0], rpy[1]
-    wx, wy, wz = omega_b[0], omega_b[1], omega_b[2]
-    cr, sr, cp = jnp.cos(r), jnp.sin(r), jnp.maximum(jnp.cos(p), 1e-3)
-    psid = (sr * wy + cr * wz) / cp
-    return jnp.stack([wx + jnp.sin(p) * psid, cr * wy - sr * wz, psid])
-
-
 def imu(obs: Observation) -> Imu:
     """Rotation, roll / pitch / yaw and Euler-angle rates from the IMU quaternion and gyro."""
     w_r_b = spatial.quat_to_rot(obs.quat)
     rpy = spatial.rot_to_rpy(w_r_b)
-    return Imu(w_r_b, rpy, euler_rates(rpy, obs.gyro))
-
-
-def horizontal_to_base(roll, pitch):
-    """``hR_b = R_y(theta) R_x(phi)`` (ZYX with the yaw removed): ``h_x = hR_b b_x``."""
-    return spatial.rpy_to_rot(jnp.stack([roll, pitch, jnp.zeros_like(roll)]))
+    return Imu(w_r_b, rpy, spatial.euler_rates(rpy, obs.gyro))
 
 
 def leg_odometry(obs: Observation, att: Imu, b_feet, jac, weight, pos, vel, force_w, dt, mass, tau_est):

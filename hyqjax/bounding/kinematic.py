@@ -25,7 +25,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hyqjax.bounding import estimator
 from hyqjax.bounding.params import LEG_PAIR, BoundingParams
 from hyqjax.bounding.state import BoundingState
 from hyqjax.core import kinematics
@@ -116,7 +115,7 @@ def foot_references(params: BoundingParams, state: BoundingState, t, rpy, rates,
     roll_d = jnp.arctan(dy / gait.height)
     roll = ang * rpy[0] + (1.0 - ang) * roll_d
     pitch = ang * rpy[1]
-    w_r_b = rz @ estimator.horizontal_to_base(roll, pitch)
+    w_r_b = rz @ spatial.roll_pitch_to_rot(roll, pitch)
     omega = ang * omega_b + (1.0 - ang) * (w_r_b.T @ (rates[2] * ez))
     b_x = r_w @ w_r_b
     b_xd = rd_w @ w_r_b - jnp.cross(omega[None, :], b_x)

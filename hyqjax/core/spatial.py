@@ -43,6 +43,26 @@ def rpy_to_rot(rpy):
     )
 
 
+def roll_pitch_to_rot(roll, pitch):
+    """``R_y(pitch) R_x(roll)``: ZYX with the yaw removed, the trunk's orientation in the horizontal frame
+    ``H`` (``h_x = hR_b b_x``); broadcasts over ``roll`` and ``pitch``."""
+    return rpy_to_rot(jnp.stack([roll, pitch, jnp.zeros_like(roll)], -1))
+
+
+def euler_rates(rpy, omega_b):
+    """ZYX Euler-angle rates ``(phidot, thetadot, psidot)`` of roll / pitch / yaw ``rpy`` from the body angular
+    velocity ``omega_b``; ``(..., 3)``. ``cos(pitch)`` is floored at ``1e-3`` (the gimbal lock at 90 deg pitch).
+
+    ``psidot = (sin(phi) w_y + cos(phi) w_z) / cos(theta)``, ``thetadot = cos(phi) w_y - sin(phi) w_z``,
+    ``phidot = w_x + sin(theta) psidot``.
+    """
+    r, p = rpy[..., 0], rpy[..., 1]
+    wx, wy, wz = omega_b[..., 0], omega_b[..., 1], omega_b[..., 2]
+    cr, sr, cp = jnp.cos(r), jnp.sin(r), jnp.maximum(jnp.cos(p), 1e-3)
+    psid = (sr * wy + cr * wz) / cp
+    return jnp.stack([wx + jnp.sin(p) * psid, cr * wy - sr * wz, psid], -1)
+
+
 def skew(v):
     """``[v]_x`` such that ``[v]_x w = v x w``; ``(..., 3) -> (..., 3, 3)``."""
     z = jnp.zeros_like(v[..., 0])
@@ -141,6 +161,18 @@ def rot_to_quat(r):
     q3 = jnp.stack([d10, s02, s21, t3 * t3], -1) / (2.0 * t3[..., None])
     q = jnp.select([k[..., None] == 0, k[..., None] == 1, k[..., None] == 2], [q0, q1, q2], q3)
     return q * jnp.where(q[..., :1] < 0, -1.0, 1.0).astype(q.dtype)
+
+
+def rot_to_quat_trace(r):
+    """Unit quaternion ``(w, x, y, z)`` of a rotation matrix by the trace formula alone, ``(..., 3, 3) -> (..., 4)``.
+
+    Valid only away from half turns (``1 + trace > 0``; every angle below ``pi / 2``, e.g. HyQ in flight).
+    :func:`rot_to_quat` (Shepperd's method) is the general one; the two differ in the last bit of float32,
+    so the bounding cycle keeps this one and its stored cycle and committed results stay bit-reproducible.
+    """
+    w = 0.5 * jnp.sqrt(jnp.maximum(1.0 + r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2], 1e-9))
+    return jnp.stack([w, (r[..., 2, 1] - r[..., 1, 2]) / (4 * w), (r[..., 0, 2] - r[..., 2, 0]) / (4 * w),
+                      (r[..., 1, 0] - r[..., 0, 1]) / (4 * w)], -1)
 
 
 def rpy_to_quat(rpy):

@@ -31,7 +31,6 @@ from hyqjax.control import trunk as trunk_control
 from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core import spatial
-from hyqjax.crawl import footholds
 from hyqjax.crawl import remedy
 from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, CrawlParams  # noqa: F401  (re-exported)
@@ -46,7 +45,7 @@ from hyqjax.sim import rollout as sim
 def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: sim.Observation, rp_meas, p_des, v_des, rp_des):
     """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP, as joint torques ``(12,)``."""
     dtype = p_des.dtype
-    h_r_b = footholds.rp_rot(rp_meas)
+    h_r_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1])
     x_meas_b = kinematics.foot_positions(obs.q)
     r_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b - jnp.asarray(COM_OFFSET_B, dtype))
     # Trunk pose relative to H0 by leg odometry: stance feet are fixed in H0.

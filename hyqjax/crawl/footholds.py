@@ -16,17 +16,10 @@ from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core import spatial
 
-#: ``STANCE_OF[i]``: the stance legs while leg ``i`` swings.
-STANCE_OF = np.array([[j for j in range(4) if j != i] for i in range(4)])
 #: Step fractions tried, longest first, when the full step leaves the leg's workspace.
 STEP_FRACTIONS = np.array([1.0, 0.85, 0.7, 0.55, 0.4, 0.25, 0.1])
 #: Joint-limit margin (rad) a planned foothold and swing apex must keep.
 REACH_MARGIN = 0.08
-
-
-def rp_rot(rp):
-    """``R_y(pitch) R_x(roll)``: trunk orientation in the horizontal frame."""
-    return spatial.rpy_to_rot(jnp.stack([rp[0], rp[1], jnp.zeros_like(rp[0])]))
 
 
 def feet_plane(x):
@@ -74,7 +67,7 @@ def body_target(feet, leg, com_h, margin, body_height):
     smallest trunk motion that keeps the stability margin and keeps the trunk centred over the feet), and the
     trunk to ``body_height`` above the mean foot height (feet are below the trunk, mean z < 0).
     """
-    tri = feet[jnp.asarray(STANCE_OF)[leg]]
+    tri = feet[jnp.asarray(robot.STANCE_LEGS)[leg]]
     a, b, c = shrink_triangle(tri[0, :2], tri[1, :2], tri[2, :2], margin)
     target_xy = closest_in_triangle(jnp.mean(feet[:, :2], 0), a, b, c)
     dz = jnp.mean(feet[:, 2]) + body_height
@@ -91,7 +84,7 @@ def reachable_foothold(step_height, max_leg_extension, leg, lift, target, n, rp)
     A hind leg folded under a trunk that has lowered over the step cannot reach a full step forward
     (its HFE hits the end stop); without this the swing would stop at the end stop in mid-air.
     """
-    r_b = rp_rot(rp).T
+    r_b = spatial.roll_pitch_to_rot(rp[0], rp[1]).T
     q_min = jnp.asarray(robot.Q_MIN, lift.dtype).reshape(4, 3)[leg]
     q_max = jnp.asarray(robot.Q_MAX, lift.dtype).reshape(4, 3)[leg]
     hip = kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, lift.dtype))

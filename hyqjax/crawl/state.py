@@ -90,14 +90,14 @@ def feet_h(obs: sim.Observation):
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))
     rp = rpy[:2]
     x_b = kinematics.foot_positions(obs.q)
-    return jnp.einsum("ij,lj->li", footholds.rp_rot(rp), x_b), rp
+    return jnp.einsum("ij,lj->li", spatial.roll_pitch_to_rot(rp[0], rp[1]), x_b), rp
 
 
 def start_body_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
     """Body phase toward the support triangle of the next swing leg, from the actual state."""
     feet, rp = feet_h(obs)
     leg = st.sequence[st.seq_index]
-    com_h = footholds.rp_rot(rp) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
+    com_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
     delta = footholds.body_target(feet, leg, com_h, p.stability_margin, p.body_height)
     rp_target = jnp.clip(p.terrain_adaptation * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
@@ -108,10 +108,10 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> C
     """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7)."""
     feet, rp = feet_h(obs)
     leg = st.sequence[st.seq_index]
-    n = reflex.terrain_normal(feet[jnp.asarray(footholds.STANCE_OF)[leg]])
+    n = reflex.terrain_normal(feet[jnp.asarray(robot.STANCE_LEGS)[leg]])
     t_cycle = 4.0 * (p.t_body + p.t_swing)
     step = jnp.clip(p.forward_velocity * t_cycle, -p.max_step_length, p.max_step_length)
-    nominal_h = footholds.rp_rot(rp) @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg]
+    nominal_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg]
     lift = feet[leg]
     target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
     target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from hyqjax.control import trajectories
 from hyqjax.core import kinematics
 from hyqjax.core import robot
-from hyqjax.crawl import footholds
+from hyqjax.core import spatial
 from hyqjax.crawl.params import CrawlParams
 from hyqjax.crawl.state import PHASE_BODY, CrawlState
 
@@ -38,13 +38,13 @@ def _feet_at(p: CrawlParams, st: CrawlState, t, search, rp_meas):
     s_body = jnp.where(in_body, s_body, 0.0)
     p_des = s_body * st.body_delta
     rp_des = st.rp_start + s_body * (st.rp_target - st.rp_start)
-    r_des = footholds.rp_rot(rp_des)
+    r_des = spatial.roll_pitch_to_rot(rp_des[0], rp_des[1])
     leg = st.sequence[st.seq_index]
     s_tan, z_n, _ = trajectories.swing_profile(t / p.t_swing, p.step_height)
     start = st.feet_h0[leg]
     swing_pos = start + s_tan * (st.swing_target - start) + z_n * st.normal_h0 - search * st.search_dir
     x_b = jnp.einsum("ji,lj->li", r_des, st.feet_h0 - p_des)
-    x_sw_b = footholds.rp_rot(rp_meas).T @ (swing_pos - p_des)
+    x_sw_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]).T @ (swing_pos - p_des)
     x_b = jnp.where((~in_body) & (jnp.arange(4) == leg)[:, None], x_sw_b[None, :], x_b)
     return x_b, (p_des, rp_des, r_des)
 
