@@ -4,6 +4,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from hyqjax.core import kinematics
 from hyqjax.core import robot
@@ -30,21 +31,23 @@ def test_joint_velocities_invert_the_foot_jacobian():
 
 def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
     p = CrawlParams.make()
-    st = crawl_state.crawl_init(p, _obs())
+    st = jax.jit(crawl_state.crawl_init)(p, _obs())
+    swing_state = jax.jit(crawl_state.start_swing_phase)(p, st, _obs())
     rp = jnp.zeros(2)
+    planned = jax.jit(lambda p, s, rp, rate: swing.planned_feet(p, s, rp, rate)[:2])
     for phase_start, t in ((None, 0.13), ("swing", 0.2), ("swing", 0.31), ("search", 0.6)):
         s = st
         if phase_start is not None:
-            s = crawl_state.start_swing_phase(p, st, _obs())
-        rate = p.search_speed if phase_start == "search" else 0.0
+            s = swing_state
+        rate = jnp.asarray(p.search_speed if phase_start == "search" else 0.0, jnp.float32)
         depth = 0.05 if phase_start == "search" else 0.0
         s = dataclasses.replace(s, t_phase=jnp.asarray(t, jnp.float32), search_depth=jnp.asarray(depth, jnp.float32))
-        x, xd = swing.planned_feet(p, s, rp, rate)[:2]
+        x, xd = planned(p, s, rp, rate)
         eps = 1e-3
-        xp = swing.planned_feet(p, dataclasses.replace(s, t_phase=s.t_phase + eps, search_depth=s.search_depth
-                                                       + rate * eps), rp, rate)[0]
-        xm = swing.planned_feet(p, dataclasses.replace(s, t_phase=s.t_phase - eps, search_depth=s.search_depth
-                                                       - rate * eps), rp, rate)[0]
+        xp = planned(p, dataclasses.replace(s, t_phase=s.t_phase + eps, search_depth=s.search_depth + rate * eps),
+                     rp, rate)[0]
+        xm = planned(p, dataclasses.replace(s, t_phase=s.t_phase - eps, search_depth=s.search_depth - rate * eps),
+                     rp, rate)[0]
         fd = (np.asarray(xp) - np.asarray(xm)) / (2 * eps)
         np.testing.assert_allclose(np.asarray(xd), fd, atol=5e-3)
         assert np.abs(np.asarray(xd)).max() > 0.01  # something moves in each case
@@ -79,8 +82,6 @@ def test_forward_search_only_for_front_legs_with_the_remedy_and_the_reflex():
 
 
 def test_crawl_params_reject_bad_values_with_the_parameter_name():
-    import pytest
-
     with pytest.raises(ValueError, match="search_forward"):
         CrawlParams.make(search_forward=-1.0)
     with pytest.raises(ValueError, match="deep_search"):
@@ -91,10 +92,105 @@ def test_crawl_step_is_jittable_and_differentiable_in_a_gain():
     from hyqjax.crawl import controller
 
     p = CrawlParams.make()
-    st = controller.crawl_init(p, _obs())
+    st = jax.jit(controller.crawl_init)(p, _obs())
 
     def tau_of(k):
         return controller.crawl_step(p.replace(k_com=k), st, _obs(), 0.002)[1]
 
     j = jax.jit(jax.jacfwd(tau_of))(jnp.asarray(3000.0))
     assert np.all(np.isfinite(np.asarray(j)))
+
+
+# ------------------------------------------------------------------- the planner: support triangle, feet plane, footholds
+from hyqjax.core import spatial  # noqa: E402
+from hyqjax.crawl import footholds  # noqa: E402
+
+X_STAND = np.asarray(kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, jnp.float32)))
+
+
+def _point_to_segment(p, a, b):
+    d = b - a
+    t = np.clip(np.dot(p - a, d) / np.dot(d, d), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t * d))
+
+
+def test_body_target_puts_the_com_inside_the_shrunk_support_triangle():
+    """The body phase's target: the CoM lands in the support triangle of the three other legs, at least the
+    stability margin from every edge, the trunk ``body_height`` above the mean foot height; a CoM already deep
+    inside the triangle stays where it is."""
+    target = jax.jit(footholds.body_target)
+    rng = np.random.default_rng(0)
+    margin, height = 0.05, 0.56
+    for _ in range(12):
+        feet = X_STAND + rng.uniform(-0.04, 0.04, (4, 3))
+        leg = int(rng.integers(4))
+        com = np.r_[rng.uniform(-0.05, 0.05, 2), 0.0]
+        delta = np.asarray(target(jnp.asarray(feet), leg, jnp.asarray(com), margin, height))
+        tri = feet[robot.STANCE_LEGS[leg], :2]
+        c = com[:2] + delta[:2]
+        area = [np.cross(tri[(k + 1) % 3] - tri[k], c - tri[k]) for k in range(3)]
+        assert np.all(np.sign(area) == np.sign(area[0])), (leg, c, tri)  # inside
+        assert min(_point_to_segment(c, tri[k], tri[(k + 1) % 3]) for k in range(3)) >= margin - 1e-5
+        assert delta[2] == pytest.approx(np.mean(feet[:, 2]) + height, abs=1e-6)
+    # The incentre of the triangle (deep inside) is a fixed point of the CoM placement.
+    feet = X_STAND
+    tri = feet[robot.STANCE_LEGS[0], :2]
+    la, lb, lc = (np.linalg.norm(tri[1] - tri[2]), np.linalg.norm(tri[2] - tri[0]), np.linalg.norm(tri[0] - tri[1]))
+    incentre = (la * tri[0] + lb * tri[1] + lc * tri[2]) / (la + lb + lc)
+    np.testing.assert_allclose(np.asarray(footholds.closest_in_triangle(jnp.asarray(incentre), *map(jnp.asarray, tri))),
+                               incentre, atol=1e-7)
+
+
+def test_closest_in_triangle_is_the_nearest_point_of_the_triangle():
+    closest = jax.jit(footholds.closest_in_triangle)
+    rng = np.random.default_rng(1)
+    a, b, c = np.array([0.0, 0.0]), np.array([1.0, 0.0]), np.array([0.2, 0.8])
+    u, v = np.meshgrid(np.linspace(0, 1, 201), np.linspace(0, 1, 201))
+    keep = u + v <= 1
+    grid = a + u[keep, None] * (b - a) + v[keep, None] * (c - a)  # dense samples of the triangle
+    for p in rng.uniform(-1.0, 2.0, (20, 2)):
+        q = np.asarray(closest(jnp.asarray(p), jnp.asarray(a), jnp.asarray(b), jnp.asarray(c)))
+        best = np.min(np.linalg.norm(grid - p, axis=1))
+        assert np.linalg.norm(q - p) <= best + 1e-6
+        assert np.linalg.norm(q - p) >= best - 0.01  # within the sampling resolution
+
+
+def test_feet_plane_recovers_the_trunk_pitch_and_roll_of_a_flat_stance():
+    """Feet of the standing pose seen from a trunk pitched (or rolled) by ``a`` relative to the horizontal
+    frame, ``R_y(pitch) R_x(roll) x_b``: the fitted plane gives that pitch (or roll) back: the plane fit and the
+    frame convention of the crawl agree."""
+    plane = jax.jit(footholds.feet_plane)
+    for a in (-0.25, -0.1, 0.0, 0.15, 0.3):
+        pitched = np.asarray(X_STAND @ np.asarray(spatial.roll_pitch_to_rot(0.0, a)).T)
+        rolled = np.asarray(X_STAND @ np.asarray(spatial.roll_pitch_to_rot(a, 0.0)).T)
+        np.testing.assert_allclose(np.asarray(plane(jnp.asarray(pitched))), [0.0, a], atol=1e-5)
+        np.testing.assert_allclose(np.asarray(plane(jnp.asarray(rolled))), [a, 0.0], atol=1e-5)
+
+
+def test_footholds_one_step_ahead_on_the_terrain_plane_and_shortened_to_the_workspace():
+    """The nominal foothold is one step ahead along x (rotated by the heading change) in the plane through the
+    lift-off point normal to ``n``; ``reachable_foothold`` keeps a reachable step, and shortens one that leaves
+    the workspace to a point of the same segment whose joints stay ``REACH_MARGIN`` inside their ranges."""
+    swing_target = jax.jit(footholds.swing_foothold)
+    reach = jax.jit(footholds.reachable_foothold)
+    leg = robot.LF
+    lift = jnp.asarray(X_STAND[leg])
+    up = jnp.asarray([0.0, 0.0, 1.0])
+    t = np.asarray(swing_target(lift, lift, 0.1, 0.0, up))
+    np.testing.assert_allclose(t, np.asarray(lift) + [0.1, 0.0, 0.0], atol=1e-7)
+    n = jnp.asarray([0.2, -0.1, 0.97]) / np.linalg.norm([0.2, -0.1, 0.97])
+    for yaw in (0.0, 0.2):
+        t = np.asarray(swing_target(lift, lift + jnp.asarray([0.0, 0.03, 0.0]), 0.12, yaw, n))
+        assert abs(np.dot(t - np.asarray(lift), np.asarray(n))) < 1e-6  # on the terrain plane through lift-off
+    rp = jnp.zeros(2)
+    easy = lift + jnp.asarray([0.08, 0.0, 0.0])
+    np.testing.assert_allclose(np.asarray(reach(0.1, 0.75, leg, lift, easy, up, rp)), np.asarray(easy), atol=1e-7)
+    far = lift + jnp.asarray([0.6, 0.0, 0.0])
+    got = np.asarray(reach(0.1, 0.75, leg, lift, far, up, rp))
+    frac = (got[0] - float(lift[0])) / 0.6
+    assert frac < 1.0 and np.any(np.isclose(frac, footholds.STEP_FRACTIONS, atol=1e-5))
+    np.testing.assert_allclose(got[1:], np.asarray(lift)[1:], atol=1e-7)  # on the segment lift -> target
+    x = jnp.asarray(X_STAND).at[leg].set(jnp.asarray(got))
+    q = np.asarray(kinematics.inverse_kinematics(x)).reshape(4, 3)[leg]
+    assert np.all(q > robot.Q_MIN.reshape(4, 3)[leg] + footholds.REACH_MARGIN - 1e-6)
+    assert np.all(q < robot.Q_MAX.reshape(4, 3)[leg] - footholds.REACH_MARGIN + 1e-6)

@@ -153,8 +153,8 @@ def apex_data(mx: mjx.Model, m: mujoco.MjModel, params: BoundingParams, s: jax.A
     a = Apex.of(s)
     q_legs = reference_joints(params, s)
     rot = spatial.rpy_to_rot(jnp.stack([jnp.asarray(roll, dtype), a.pitch, jnp.asarray(yaw, dtype)]))
-    qpos = jnp.concatenate([jnp.stack([jnp.asarray(xy[0], dtype), jnp.asarray(xy[1], dtype), a.z]), spatial.rot_to_quat_trace(rot),
-                            q_legs.astype(dtype)])
+    qpos = jnp.concatenate([jnp.stack([jnp.asarray(xy[0], dtype), jnp.asarray(xy[1], dtype), a.z]),
+                            spatial.rot_to_quat_trace(rot), q_legs.astype(dtype)])
     omega_w = jnp.stack([jnp.zeros((), dtype), a.pitch_rate, jnp.asarray(yaw_rate, dtype)])
     omega_b = rot.T @ omega_w  # pitch rate about the (yaw-rotated) world y axis, approx.
     v = jnp.stack([a.vx, jnp.asarray(vy, dtype), a.vz])

@@ -111,7 +111,8 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> C
     n = reflex.terrain_normal(feet[jnp.asarray(robot.STANCE_LEGS)[leg]])
     t_cycle = 4.0 * (p.t_body + p.t_swing)
     step = jnp.clip(p.forward_velocity * t_cycle, -p.max_step_length, p.max_step_length)
-    nominal_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg]
+    nominal_h = (spatial.roll_pitch_to_rot(rp[0], rp[1])
+                 @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg])
     lift = feet[leg]
     target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
     target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
