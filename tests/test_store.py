@@ -173,20 +173,87 @@ def test_strict_json_summary(tmp_path, spec):
     assert s["complete"] and "NaN" not in text
 
 
-def test_schema_1_store_converted(tmp_path, spec):
-    os.makedirs(tmp_path / "chunks")
-    man = dict(schema="hyqjax.sweep/1", spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=18,
-               chunk_size=5, n_chunks=4, chunks={})
-    for c in (0, 1):
-        rows = inputs_outcome(spec, c * 5, c * 5 + 5)
-        np.savez(tmp_path / "chunks" / f"{c:05d}.npz", **rows)
+def _v1_store(path, spec, chunks=(0, 1)):
+    """A store of the first format (.npz chunks, no hashes), as the earlier hyqjax wrote it."""
+    os.makedirs(path / "chunks")
+    man = dict(schema="hyqjax.sweep/1", spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=spec.n_instances,
+               chunk_size=5, n_chunks=-(-spec.n_instances // 5), chunks={})
+    for c in chunks:
+        rows = inputs_outcome(spec, c * 5, min(c * 5 + 5, spec.n_instances))
+        np.savez(path / "chunks" / f"{c:05d}.npz", **rows)
         man["chunks"][str(c)] = dict(file=f"chunks/{c:05d}.npz", start=c * 5, stop=c * 5 + 5, wall_s=1.0)
-    (tmp_path / "manifest.json").write_text(json.dumps(man))
-    assert sweep.SweepStore(str(tmp_path), spec).done() == {0, 1}  # read as is
-    st = fill(tmp_path, spec)
-    assert st.manifest["schema"] == sweep.SCHEMA and st.done() == {0, 1, 2, 3}
-    assert sorted(os.listdir(tmp_path / "chunks")) == [f"{c:05d}.parquet" for c in range(4)]
-    same_rows(sweep.SweepStore(str(tmp_path), spec).load(), inputs_outcome(spec, 0, 18))
+        man["columns"] = sorted(rows)
+    (path / "manifest.json").write_text(json.dumps(man))
+
+
+def _files(path):
+    out = {}
+    for d, _, fs in os.walk(path):
+        for f in fs:
+            if f != ".lock":
+                with open(os.path.join(d, f), "rb") as fh:
+                    out[os.path.relpath(os.path.join(d, f), path)] = fh.read()
+    return out
+
+
+def test_schema_1_store_read_as_is_never_resumed_converted_on_request(tmp_path, spec, capsys):
+    """A store of the first format is read as it is; a writer is refused with how to convert it (its rows are an
+    earlier version's outcomes, so adding this version's rows would mix them); the conversion keeps every row
+    and gives a Parquet table, read-only as well."""
+    _v1_store(tmp_path, spec)
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert ro.done() == {0, 1} and ro.problems == {}
+    same_rows(ro.load(), inputs_outcome(spec, 0, 10))
+    before = _files(tmp_path)
+    for attempt in (lambda: sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True), ro.check_resumable):
+        with pytest.raises(sweep.StoreMismatch, match="hyqjax.sweep/1.*python -m hyqjax.studies.sweep.legacy"):
+            attempt()
+    assert _files(tmp_path) == before  # nothing converted or written by the refused writer
+    # A first-format store of another spec is another sweep, for readers too.
+    with pytest.raises(sweep.StoreMismatch, match="different sweep"):
+        sweep.SweepStore(str(tmp_path), sweep.SweepSpec.from_dict({**SPEC, "seed": 6}))
+
+    st = sweep.convert_v1(str(tmp_path))
+    assert "converted" in capsys.readouterr().out
+    assert sorted(os.listdir(tmp_path / "chunks")) == ["00000.parquet", "00001.parquet"]
+    assert st.done() == {0, 1} and st.problems == {}
+    same_rows(sweep.open_store(str(tmp_path)).load(), inputs_outcome(spec, 0, 10))
+    import pyarrow.dataset as ds
+
+    table = ds.dataset(str(tmp_path / "chunks"), format="parquet").to_table().sort_by("index")
+    assert table.column("index").to_pylist() == list(range(10))
+    man = json.loads((tmp_path / "manifest.json").read_text())
+    assert man["schema"] == sweep.SCHEMA and man["converted_from"] == "hyqjax.sweep/1"
+    with pytest.raises(sweep.StoreMismatch, match="converted from schema hyqjax.sweep/1"):
+        sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True)
+
+
+def test_damaged_schema_1_chunk_named(tmp_path, spec):
+    _v1_store(tmp_path, spec)
+    (tmp_path / "chunks" / "00001.npz").write_bytes(b"PK\x03\x04 truncated")
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert ro.done() == {0} and "00001.npz is not readable" in ro.problems[1]
+
+
+def test_rows_of_another_version_refused_and_such_a_chunk_named(tmp_path, spec):
+    """The manifest lists the columns; rows or a chunk file with other columns (computed by another hyqjax
+    version) are refused, so a store never mixes two versions' outcomes."""
+    fill(tmp_path, spec, chunks=[0, 1])
+    with sweep.SweepStore(str(tmp_path), spec, None, LAYOUT, writer=True) as st:
+        rows = {**inputs_outcome(spec, *st.chunk_range(2)), "completed": np.ones(5, bool)}
+        with pytest.raises(sweep.StoreMismatch, match=r"chunk 2 .*extra \['completed'\]"):
+            st.write_chunk(2, rows, 0.1)
+        assert not os.path.exists(st.chunk_file(2))
+        # A chunk file of another version, recorded with its true hash: named by verification.
+        rows = {k: v for k, v in inputs_outcome(spec, *st.chunk_range(1)).items() if k != "mean_mobility"}
+        data = sweep.rows_to_parquet(rows, st._meta(1))
+        (tmp_path / "chunks" / "00001.parquet").write_bytes(data)
+        man = json.loads((tmp_path / "manifest.json").read_text())
+        man["chunks"]["1"].update(st._entry(1, data))
+        (tmp_path / "manifest.json").write_text(json.dumps(man))
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert set(ro.problems) == {1} and "missing ['mean_mobility']" in ro.problems[1]
+    assert ro.load()["index"].tolist() == list(range(5))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -143,10 +143,10 @@ def validate(args) -> None:
     if args.dry_run:
         return
     if os.path.exists(os.path.join(args.out, "manifest.json")):
-        # A different sweep there is refused now, not after a compile (read-only, writes nothing). A corrupt
-        # manifest is not an error here: the run sets it aside and rebuilds it from the chunk files.
+        # A different sweep, or an old store that is read-only, is refused now, not after a compile (read-only,
+        # writes nothing). A corrupt manifest is not an error here: the run sets it aside and rebuilds it.
         try:
-            sweep.SweepStore(args.out, args.spec_obj)
+            sweep.SweepStore(args.out, args.spec_obj).check_resumable()
         except sweep.StoreCorrupt:
             pass
     if args.executor == "ray":

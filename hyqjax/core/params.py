@@ -380,13 +380,20 @@ def _batch(base, n, flat, nested):
         elif dataclasses.is_dataclass(v):
             kw[f.name] = _batch(v, n, {}, {})
         else:
-            x = jnp.asarray(flat.get(f.name, v), jnp.asarray(v).dtype)
+            val = flat.get(f.name, v)
             shape = (n,) + tuple(jnp.shape(v))
+            # NumPy for concrete values: the batch is validated before anything is compiled or sent to a device.
+            xp = jnp if isinstance(val, jax.core.Tracer) or isinstance(v, jax.core.Tracer) else np
             try:
-                kw[f.name] = jnp.broadcast_to(x, shape)
+                x = xp.asarray(val).astype(jnp.result_type(v))
+            except (TypeError, ValueError) as e:
+                raise ParameterError(owner, f.name, val, f"numbers of dtype {jnp.result_type(v)}") from e
+            try:
+                kw[f.name] = xp.broadcast_to(x, shape)
             except ValueError as e:
                 raise ParameterError(owner, f.name, f"array of shape {x.shape}", f"broadcastable to {shape}") from e
-    return dataclasses.replace(base, **kw)
+    out = dataclasses.replace(base, **kw)  # validated here (every element)
+    return jax.tree.map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, out)
 
 
 def field_doc_table(cls) -> str:

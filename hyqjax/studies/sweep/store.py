@@ -31,9 +31,11 @@ Guarantees:
   (XLA's vectorisation and fusion), not on which rows share a chunk. The manifest records the layout
   (platform, device kind, devices per program, chunk size); a resume with another layout is refused
   (:class:`StoreMismatch`), so a store never mixes rows computed under two layouts.
+* **One version's columns.** The manifest lists the chunks' columns; a chunk with other columns (computed
+  by another hyqjax version) fails verification, and rows with other columns are refused by
+  :meth:`SweepStore.write_chunk` (:class:`StoreMismatch`), so a store never mixes two versions' outcomes.
 
-Stores of schema ``hyqjax.sweep/1`` (``.npz`` chunks, no hashes) are converted in place by the first
-writer that opens them with the same spec (rows kept, row ranges checked, hashes computed).
+Stores of schema ``hyqjax.sweep/1`` are read as they are, never resumed (:mod:`hyqjax.studies.sweep.legacy`).
 """
 from __future__ import annotations
 
@@ -46,11 +48,12 @@ import numpy as np
 
 from hyqjax.io.atomic import atomic_write, clean_temporaries, write_json
 from hyqjax.io.lock import Busy, DirLock
+from hyqjax.studies.sweep import legacy
 from hyqjax.studies.sweep.chunkfile import META_KEY, parquet_to_rows, rows_to_parquet
-from hyqjax.studies.sweep.spec import SweepSpec
+from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
-SCHEMA = "hyqjax.sweep/2"
-OLD_SCHEMAS = ("hyqjax.sweep/1",)
+SCHEMA = legacy.SCHEMA
+OLD_SCHEMAS = legacy.OLD_SCHEMAS
 MANIFEST = "manifest.json"
 
 
@@ -96,6 +99,7 @@ class SweepStore:
         self.chunks_dir = os.path.join(out_dir, "chunks")
         self.problems: dict[int, str] = {}
         self._lock: DirLock | None = None
+        self._writer = writer
         self._verified: dict[int, dict[str, np.ndarray]] = {}
         self._requested = dict(chunk_size=chunk_size, layout=layout, default_chunk_size=default_chunk_size)
         if chunk_size is not None and chunk_size < 1:
@@ -104,7 +108,10 @@ class SweepStore:
             man = self._read_manifest()
             if man is None:
                 raise StoreCorrupt(f"{out_dir} holds no sweep ({MANIFEST} missing)")
-            spec = SweepSpec.from_dict(man["spec"])
+            try:
+                spec = SweepSpec.from_dict(man.get("spec"))
+            except SpecError as e:
+                raise StoreCorrupt(f"{self.path}: its spec is not readable by this hyqjax ({e})") from None
         self.spec = spec
         if writer:
             self._lock = DirLock(out_dir, wait=wait, timeout=timeout, what=f"sweep {spec.spec_hash[:12]}").acquire()
@@ -157,13 +164,16 @@ class SweepStore:
 
     def _check(self, man: dict, chunk_size, layout) -> None:
         if man.get("schema") in OLD_SCHEMAS:
-            return  # converted by the next writer (upgrade), read as is
+            legacy.check_v1(self, man)  # same spec (else StoreMismatch); read as is, never resumed
+            return
         if man.get("schema") != SCHEMA:
             raise StoreMismatch(f"{self.path} has schema {man.get('schema')!r}, expected {SCHEMA!r}")
         if man.get("spec_hash") != self.spec.spec_hash:
             raise StoreMismatch(
                 f"{self.dir} holds a different sweep (spec hash {str(man.get('spec_hash', '?'))[:12]}, this spec "
                 f"{self.spec.spec_hash[:12]}); use another --out directory or remove {self.dir}")
+        if self._writer and man.get("converted_from"):
+            raise StoreMismatch(legacy.read_only_message(self.dir, man["converted_from"], converted=True))
         if chunk_size is not None and chunk_size != man["chunk_size"]:
             print(f"note: resuming with the stored chunk size {man['chunk_size']} (ignoring {chunk_size})")
         stored = man.get("layout")
@@ -177,6 +187,13 @@ class SweepStore:
                     f"{self.dir} was computed on {fmt(stored)}; this run has {fmt(want)}. An instance's result "
                     f"depends on the batch each device compiles for, so a store never mixes layouts: resume "
                     f"with the same devices (e.g. CUDA_VISIBLE_DEVICES / --executor), or use another --out")
+
+    def check_resumable(self) -> None:
+        """Raise :class:`StoreMismatch` if a writer would be refused here (an old or a converted store)."""
+        schema = self.manifest.get("schema")
+        if schema in OLD_SCHEMAS or self.manifest.get("converted_from"):
+            old = self.manifest.get("converted_from") or schema
+            raise StoreMismatch(legacy.read_only_message(self.dir, old, converted=schema not in OLD_SCHEMAS))
 
     @property
     def chunk_size(self) -> int:
@@ -233,16 +250,26 @@ class SweepStore:
             rows, meta = parquet_to_rows(data)
         except Exception as e:  # pyarrow raises several types for a damaged file
             return None, f"{path} is not a readable Parquet file ({type(e).__name__})"
-        why = self._check_rows(c, rows, meta)
+        why = self._check_rows(c, rows, meta) or self._check_columns(rows)
         return (None, f"{path}: {why}") if why else (rows, None)
+
+    def _check_columns(self, rows: dict) -> str | None:
+        want = self.manifest.get("columns")
+        if want is None or sorted(rows) == sorted(want):
+            return None
+        extra, missing = sorted(set(rows) - set(want)), sorted(set(want) - set(rows))
+        return (f"its columns differ from the store's (another hyqjax version?): extra {extra}, "
+                f"missing {missing}")
 
     def verify(self) -> dict[int, str]:
         """Check every recorded chunk; returns (and keeps in :attr:`problems`) ``{chunk: reason}`` of bad ones."""
         self._verified, self.problems = {}, {}
         if self.manifest.get("schema") in OLD_SCHEMAS:
             for key, entry in self.manifest["chunks"].items():
-                rows = self._load_v1(int(key), entry)
-                if rows is not None:
+                rows, why = legacy.load_v1_chunk(self, int(key), entry)
+                if why:
+                    self.problems[int(key)] = why
+                else:
                     self._verified[int(key)] = rows
             return self.problems
         for key, entry in sorted(self.manifest["chunks"].items(), key=lambda t: int(t[0])):
@@ -278,9 +305,6 @@ class SweepStore:
             man["layout"] = dict(self._requested["layout"], chunk_size=man["chunk_size"])
         self.manifest = man
         os.makedirs(self.chunks_dir, exist_ok=True)
-        if man.get("schema") in OLD_SCHEMAS:
-            self.verify()
-            self._upgrade_v1()
         self._adopt_unlisted()
         self.verify()
         for c, why in sorted(self.problems.items()):
@@ -301,13 +325,14 @@ class SweepStore:
                 data = f.read()
             try:
                 rows, meta = parquet_to_rows(data)
-                why = self._check_rows(c, rows, meta)
+                why = self._check_rows(c, rows, meta) or self._check_columns(rows)
             except Exception as e:
                 why = f"not a readable Parquet file ({type(e).__name__})"
             if why:
                 print(f"note: ignoring {path}: {why}; the chunk is recomputed")
                 continue
             self.manifest["chunks"][str(c)] = self._entry(c, data, wall_s=meta.get("wall_s"), adopted=True)
+            self.manifest.setdefault("columns", sorted(rows))
             print(f"note: {path} was written but not recorded (the writer stopped in between): verified and kept")
 
     def _entry(self, c: int, data: bytes, wall_s=None, worker=None, adopted=False) -> dict:
@@ -335,6 +360,11 @@ class SweepStore:
         why = self._check_rows(c, rows, meta)
         if why:
             raise ValueError(f"rows given for chunk {c}: {why}")
+        self.manifest = man
+        why = self._check_columns(rows)
+        if why:
+            raise StoreMismatch(f"{self.dir}: the rows computed for chunk {c} do not fit the store: {why}; the "
+                                f"store's chunks were computed by another hyqjax version: use another --out directory")
         data = rows_to_parquet(rows, meta)
         atomic_write(self.chunk_file(c), lambda f: f.write(data))
         man["chunks"][str(c)] = self._entry(c, data, wall_s, worker)
@@ -351,42 +381,11 @@ class SweepStore:
         parts = [self._verified[c] for c in sorted(self._verified)]
         if not parts:
             return {}
+        for c in sorted(self._verified):
+            if sorted(self._verified[c]) != sorted(parts[0]):
+                raise StoreCorrupt(f"{self.chunk_file(c)} has other columns than the store's first chunk "
+                                   f"(computed by another hyqjax version); remove {self.dir} and run the sweep again")
         return {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]}
-
-    # ---------------------------------------------------------------- schema 1 (.npz chunks)
-    def _load_v1(self, c: int, entry: dict) -> dict[str, np.ndarray] | None:
-        path = os.path.join(self.dir, entry.get("file", f"chunks/{c:05d}.npz"))
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                rows = {k: z[k] for k in z.files}
-        except Exception as e:
-            self.problems[c] = f"{path} is not readable ({type(e).__name__})"
-            return None
-        start, stop = self.chunk_range(c)
-        if not np.array_equal(rows.get("index"), np.arange(start, stop)):
-            self.problems[c] = f"{path}: its index column is not the row range [{start}, {stop})"
-            return None
-        return rows
-
-    def _upgrade_v1(self) -> None:
-        old = self.manifest
-        man = dict(old, schema=SCHEMA, chunks={}, layout=old.get("layout") or self._requested["layout"])
-        self.manifest = man
-        for key in sorted(old["chunks"], key=int):
-            c = int(key)
-            rows = self._verified.get(c)
-            if rows is None:
-                print(f"note: {self.problems.get(c)}; chunk {c} is recomputed")
-                continue
-            data = rows_to_parquet(rows, dict(self._meta(c), wall_s=old["chunks"][key].get("wall_s")))
-            atomic_write(self.chunk_file(c), lambda f: f.write(data))
-            man["chunks"][key] = self._entry(c, data, old["chunks"][key].get("wall_s"))
-        write_json(self.path, man)
-        for e in old["chunks"].values():
-            p = os.path.join(self.dir, e.get("file", ""))
-            if p.endswith(".npz") and os.path.exists(p):
-                os.remove(p)
-        print(f"note: converted {self.dir} from {old.get('schema')} (.npz chunks) to {SCHEMA} (Parquet chunks)")
 
 
 def open_store(out_dir: str) -> SweepStore:
