@@ -17,6 +17,12 @@ from hyqjax.studies.tune import space as spmod
 
 SMALL_KIN = kinematic.Objective(duration=0.5, t_lift=0.05, lift=0.02)
 
+#: Names of the functions jax traced (for the closed-loop tuner step's retrace guard).
+TRACED: list[str] = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, fun_name=None, **kw: TRACED.append(fun_name) if name == "/jax/core/compile/jaxpr_trace_duration"
+    else None)
+
 
 def test_space_roundtrip_and_always_valid():
     sp = spmod.ParamSpace.make(tuple(spmod.GROUPS))
@@ -172,6 +178,7 @@ def test_closed_loop_gradient_matches_central_differences(cl64):
         assert bool(win.valid[0])
         th = jnp.asarray(spmod.table1_theta(sp))
         r = vj(th, win)
+        traced = TRACED.count(vj.__name__)
         g = np.asarray(r["grad"])
         assert np.all(np.isfinite(g)) and np.any(g != 0) and bool(r["ok"][0])
         rng = np.random.default_rng(0)
@@ -180,6 +187,8 @@ def test_closed_loop_gradient_matches_central_differences(cl64):
             eps = 1e-6
             fd = (float(vj(th + eps * v, win)["loss"]) - float(vj(th - eps * v, win)["loss"])) / (2 * eps)
             assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
+        # Retrace guard: the tuner step with new values of theta reuses its program.
+        assert TRACED.count(vj.__name__) == traced, "the closed-loop tuner step was traced again"
 
 
 @pytest.mark.slow
