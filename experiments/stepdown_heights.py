@@ -34,19 +34,27 @@ def load_instances(dirs):
 
 
 def summarise(rows):
-    from hyqjax.studies.stepdown import failure_labels, wilson_interval
+    """Per height and reflex setting: counts, success rate and Wilson interval (``statistics.success_curve``),
+    the lost-foothold rate and the failure reasons; sorted by (height, reflex)."""
+    from hyqjax.studies.statistics import success_curve
+    from hyqjax.studies.stepdown import failure_labels
 
-    cells = collections.defaultdict(list)
-    for r in rows:
-        cells[(round(float(r["height"]), 4), bool(r["reflex"]))].append(r)
+    heights = np.asarray([round(float(r["height"]), 4) for r in rows])
+    reflex = np.asarray([bool(r["reflex"]) for r in rows])
+    success = np.asarray([bool(r["success"]) for r in rows])
+    lost = np.asarray([int(r["lost_footholds"]) > 0 for r in rows])
     table = []
-    for (h, reflex), rs in sorted(cells.items()):
-        n, k = len(rs), int(sum(bool(r["success"]) for r in rs))
-        lost = int(sum(int(r["lost_footholds"]) > 0 for r in rs))
-        lo, hi = wilson_interval(k, n)
-        reasons = collections.Counter(" + ".join(failure_labels(r)) for r in rs if not r["success"])
-        table.append(dict(height=h, reflex=reflex, n=n, successes=k, success_rate=k / n, success_ci95=[lo, hi],
-                          lost_foothold_rate=lost / n, failure_reasons=dict(reasons.most_common())))
+    for mode in sorted(set(reflex.tolist())):
+        m = reflex == mode
+        for c in success_curve(heights[m], success[m]):
+            cell = m & (heights == c["height"])
+            reasons = collections.Counter(" + ".join(failure_labels(r)) for r, failed in zip(rows, cell & ~success)
+                                          if failed)
+            table.append(dict(height=c["height"], reflex=mode, n=c["n"], successes=c["successes"],
+                              success_rate=c["rate"], success_ci95=c["ci95"],
+                              lost_foothold_rate=int(lost[cell].sum()) / c["n"],
+                              failure_reasons=dict(reasons.most_common())))
+    table.sort(key=lambda t: (t["height"], t["reflex"]))
     limits = {}
     for reflex in (False, True):
         cell = [t for t in table if t["reflex"] == reflex]

@@ -60,21 +60,14 @@ def success_curve(x, success, levels=None, confidence: float = 0.95, key: str = 
     s = np.asarray(success).astype(bool)
     if x.shape != s.shape:
         raise ValueError(f"x and success must have the same shape, got {x.shape} and {s.shape}")
+    idx = np.unique(x, return_inverse=True)[1].reshape(x.shape) if levels is None else np.asarray(levels)
     out = []
-    if levels is None:
-        for v in np.unique(x):
-            m = x == v
-            k, n = int(s[m].sum()), int(m.sum())
-            out.append({key: float(v), "n": n, "successes": k, "rate": k / n,
-                        "ci95": list(wilson_interval(k, n, confidence))})
-    else:
-        idx = np.asarray(levels)
-        for i in np.unique(idx):
-            m = idx == i
-            k, n = int(s[m].sum()), int(m.sum())
-            out.append({key: float(x[m][0]), "n": n, "successes": k, "rate": k / n,
-                        "ci95": list(wilson_interval(k, n, confidence))})
-        out.sort(key=lambda c: c[key])
+    for i in np.unique(idx):
+        m = idx == i
+        k, n = int(s[m].sum()), int(m.sum())
+        out.append({key: float(x[m][0]), "n": n, "successes": k, "rate": k / n,
+                    "ci95": list(wilson_interval(k, n, confidence))})
+    out.sort(key=lambda c: c[key])
     return out
 
 
