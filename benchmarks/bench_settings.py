@@ -129,7 +129,7 @@ def reference(m_ref: mujoco.MjModel, ids, qpos0, force, duration: float) -> np.n
         qadr, vadr = np.asarray(ids.qpos_joints), np.asarray(ids.dof_joints)
         for _ in range(int(round(duration / CONTROL_DT))):
             q, qd = d.qpos[qadr], d.qvel[vadr]
-            tau = kp * (q_ref - q) - kd * qd + np.asarray(ff(jnp.asarray(q), jnp.asarray(d.qpos[3:7])))
+            tau = kp * (q_ref - q) - kd * qd + np.asarray(ff(jnp.asarray(q), jnp.asarray(d.qpos[robot.QPOS_BASE_QUAT])))
             d.ctrl[:] = np.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
             on = PUSH_T0 - 1e-6 <= d.time < PUSH_T0 + PUSH_DURATION - 1e-6
             d.xfrc_applied[ids.trunk_body, :3] = force if on else 0.0
@@ -139,10 +139,11 @@ def reference(m_ref: mujoco.MjModel, ids, qpos0, force, duration: float) -> np.n
 
 def state_errors(qpos, qref) -> dict:
     """Final-state errors of (n, nq) against (n, nq): trunk position (mm), orientation (deg), joints (rad)."""
-    pos = np.linalg.norm(qpos[:, :3] - qref[:, :3], axis=-1) * 1e3
-    dot = np.abs(np.sum(qpos[:, 3:7] / np.linalg.norm(qpos[:, 3:7], axis=-1, keepdims=True) * qref[:, 3:7], -1))
+    pos_, quat, joint = robot.QPOS_BASE_POS, robot.QPOS_BASE_QUAT, robot.QPOS_JOINTS
+    pos = np.linalg.norm(qpos[:, pos_] - qref[:, pos_], axis=-1) * 1e3
+    dot = np.abs(np.sum(qpos[:, quat] / np.linalg.norm(qpos[:, quat], axis=-1, keepdims=True) * qref[:, quat], -1))
     ang = np.degrees(2 * np.arccos(np.clip(dot, 0.0, 1.0)))
-    joints = np.max(np.abs(qpos[:, 7:] - qref[:, 7:]), axis=-1)
+    joints = np.max(np.abs(qpos[:, joint] - qref[:, joint]), axis=-1)
     return dict(pos_mm=pos, rot_deg=ang, joint_rad=joints)
 
 

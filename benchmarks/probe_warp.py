@@ -138,14 +138,14 @@ def c_states(m: mujoco.MjModel) -> list[tuple[str, mujoco.MjData]]:
         d = mujoco.MjData(m)
         d.qpos[:] = qpos
         if name == "collapse":
-            d.qpos[3:7] = [np.cos(0.15), np.sin(0.15), 0, 0]  # rolled 0.3 rad
+            d.qpos[robot.QPOS_BASE_QUAT] = [np.cos(0.15), np.sin(0.15), 0, 0]  # rolled 0.3 rad
         k = 0
         for n in steps:
             while k < n:
                 if ctrl is None:  # joint PD around the keyframe (what stand.stand_controller does, simplified)
-                    q = d.qpos[7:]
-                    d.ctrl[:] = np.clip(d.qfrc_bias[6:] + 300.0 * (m.key("standing").qpos[7:] - q)
-                                        - 10.0 * d.qvel[6:], -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
+                    q, q_key = d.qpos[robot.QPOS_JOINTS], m.key("standing").qpos[robot.QPOS_JOINTS]
+                    d.ctrl[:] = np.clip(d.qfrc_bias[robot.QVEL_JOINTS] + 300.0 * (q_key - q)
+                                        - 10.0 * d.qvel[robot.QVEL_JOINTS], -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
                 else:
                     d.ctrl[:] = ctrl
                 mujoco.mj_step(m, d)
