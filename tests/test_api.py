@@ -67,6 +67,15 @@ def test_batch_with_per_instance_reflex_params(capsys):
     single, final = jax.jit(rollout)(jax.tree_util.tree_map(lambda x: x[i], params), one)
     np.testing.assert_allclose(np.asarray(final.qpos), np.asarray(res.data.qpos[i]), atol=1e-3)
     assert float(single.peak_pitch) == pytest.approx(float(out.peak_pitch[i]), abs=1e-3)
+    # Compile once: the same static config gives the same rollout, and a batch of new parameter values (same
+    # shapes) reuses the compiled programs of the runner.
+    assert rollout is hyqjax.make_stepdown_rollout(hyqjax.StepdownConfig(duration=2.0))
+    compiled = rollout.runner().n_compiles
+    assert compiled >= 1
+    params2 = hyqjax.batch_params(hyqjax.CrawlParams.make(), n, use_reflex=1.0, reflex=dict(k_base=np.full(n, 1800.0)))
+    out2, _ = rollout.run(ns["scenario"].replace(params=params2))
+    assert rollout.runner().n_compiles == compiled, "a batch with new parameter values compiled again"
+    assert out2.completed.shape == (4,) and not np.array_equal(np.asarray(out2.peak_pitch), np.asarray(out.peak_pitch))
 
 
 @pytest.mark.slow
