@@ -387,3 +387,56 @@ def test_at_least_sixty_bad_inputs_counted():
     """The issue asks for >= 60 bad inputs across every command and the public API; this file has them all."""
     n = len(CASES) + len(API_CASES) + len(PUBLIC_API_CASES) + 3  # + the sweep runner API checks
     assert len(CASES) >= 60 and len(PUBLIC_API_CASES) >= 20 and n >= 150
+
+
+# ------------------------------------------------------------------------------------------------
+# Output hygiene: the bogus XLA:CPU lines logged for every program loaded from the compilation cache
+# ------------------------------------------------------------------------------------------------
+
+NOISE = (b"E1124 16:38:00.521730    6065 cpu_aot_loader.cc:220] Loading XLA:CPU AOT result. Target machine feature "
+         b"+prefer-no-gather is not  supported on the host machine. Machine type used for XLA:CPU compilation "
+         b"doesn't match the machine type for execution. Compile machine features: [+64bit,+adx] vs host machine "
+         b"features: [64bit,adx]. This could lead to execution errors such as SIGILL.\n")
+
+
+def test_cache_load_noise_dropped_everything_else_kept():
+    from hyqjax.io.cache import filter_log_noise
+
+    keep = b"W1124 16:38:00.521730    6065 other.cc:12] a real warning\n"
+    assert filter_log_noise(b"\rsweep:  50%" + NOISE + keep + NOISE + b"done\n") == (b"\rsweep:  50%" + keep + b"done\n",
+                                                                                   b"")
+    # A noise line split over two reads is held back until it ends, then dropped.
+    out, held = filter_log_noise(b"text " + NOISE[:40])
+    assert (out, held) == (b"text ", NOISE[:40])
+    assert filter_log_noise(held + NOISE[40:] + b"more") == (b"more", b"")
+    # A tail that might start a log line waits for more bytes; when none come (quiet) or at the end it is written.
+    assert filter_log_noise(b"DONE") == (b"DON", b"E")
+    assert filter_log_noise(b"E", quiet=True) == (b"E", b"")
+    assert filter_log_noise(keep[:-1], quiet=True) == (keep[:-1], b"")
+    assert filter_log_noise(NOISE[:-1], quiet=True) == (b"", NOISE[:-1])  # a noise line is never written in part
+    assert filter_log_noise(b"x E1124 1", final=True) == (b"x E1124 1", b"")
+
+
+def test_stderr_filter_in_a_process():
+    """C++ log lines written to fd 2 go through the filter; Python's stderr goes straight out; after stop()
+    everything written before is out and fd 2 is the real stderr again."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent(f"""
+        import os, sys
+        from hyqjax.io.cache import StderrFilter
+        f = StderrFilter().start()
+        os.write(2, {NOISE!r})
+        print("python line", file=sys.stderr)
+        os.write(2, b"E1124 16:38:00.5 1 other.cc:1] kept\\n" + {NOISE!r})
+        f.stop()
+        os.write(2, b"after\\n")
+    """)
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=60,
+                       cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert p.returncode == 0, p.stderr
+    err = p.stderr.decode()
+    assert "cpu_aot_loader" not in err and "python line\n" in err
+    assert err.index("other.cc:1] kept\n") < err.index("after\n")

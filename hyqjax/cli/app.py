@@ -7,7 +7,8 @@ and ``run(args) -> int``; this file collects them.
 Exit status: 0 done, 2 a user error (one line naming the option and what is allowed, no traceback; the
 parser's own errors too), 1 any other error (one line; ``--debug`` shows the traceback), 130 interrupted.
 Every command takes ``--debug`` and ``--no-cache`` (JAX's persistent compilation cache is on by default in
-``~/.cache/hyqjax/jax``, see :func:`hyqjax.cli.common.cache_dir`).
+``~/.cache/hyqjax/jax``, see :func:`hyqjax.cli.common.cache_dir`; with it, the bogus XLA:CPU log lines about
+loading cached programs are dropped from stderr, :class:`hyqjax.io.cache.StderrFilter`, unless ``--debug``).
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 import hyqjax  # noqa: E402
 import hyqjax.cli as _commands  # noqa: E402
 from hyqjax.cli.common import USAGE_EXIT, UsageError, enable_compilation_cache  # noqa: E402
+from hyqjax.io.cache import StderrFilter  # noqa: E402
 
 
 class Parser(argparse.ArgumentParser):
@@ -84,6 +86,7 @@ def main(argv: list[str] | None = None) -> int:
         return USAGE_EXIT
     prog = f"hyqjax {args.command}"
     debug = args.debug or os.environ.get("HYQJAX_DEBUG") == "1"
+    noise = None
     try:
         if args._validate is not None:
             try:
@@ -92,6 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise UsageError(str(e)) from e
         if not args.no_cache:
             enable_compilation_cache()
+            if argv is None and not debug:  # the command line itself (not main([...]) inside another program)
+                noise = StderrFilter().start()
         return int(args._run(args) or 0)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
@@ -112,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{prog}: error: {type(e).__name__}: {e} (run again with --debug for the traceback)",
               file=sys.stderr)
         return 1
+    finally:
+        if noise is not None:
+            noise.stop()
 
 
 if __name__ == "__main__":

@@ -6,10 +6,18 @@ Every ``hyqjax`` command turns it on (``--no-cache`` to skip), and so does every
 JAX keys each entry by the program, the compile options, the backend and the JAX version, so a changed
 model, batch shape or installation compiles anew. Every program is cached (minimum compile time 0 s),
 including the small ones around the rollout.
+
+:class:`StderrFilter` (installed by the command line with the cache, not with ``--debug``) drops the two
+bogus ERROR lines XLA:CPU logs for every program it loads from the cache on some hosts.
 """
 from __future__ import annotations
 
+import atexit
 import os
+import re
+import select
+import sys
+import threading
 
 
 def cache_dir() -> str:
@@ -38,3 +46,95 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     return path
+
+
+# XLA:CPU logs two ERROR lines (thousands of characters each) for every program it loads from the persistent
+# cache on hosts whose LLVM target features include the tuning flags +prefer-no-gather / +prefer-no-scatter
+# ("Target machine feature ... is not supported on the host machine"); the program loads and runs correctly
+# (openxla/xla#44565, jax-ml/jax#38445). StderrFilter drops exactly those lines.
+_NOISE = re.compile(rb"[IWEF]\d{4} \d\d:\d\d:\d\d\.\d+ +\d+ cpu_aot_loader\.cc:\d+\] Loading XLA:CPU AOT result\."
+                    rb"[^\n]*\n")
+_LOG_START = re.compile(rb"[IWEF](\d{0,4}|\d{4} [^\n]*)$")  # a log line begun but not ended yet
+_HOLD_MAX = 1 << 20
+
+
+def filter_log_noise(buf: bytes, quiet: bool = False, final: bool = False) -> tuple[bytes, bytes]:
+    """``(to_write, held)``: ``buf`` without the XLA:CPU cache-load lines; a tail that may be the start of one is
+    held back, unless nothing more came for a while (``quiet``) and it is not one, or at the end (``final``)."""
+    out = []
+    while (m := _NOISE.search(buf)) is not None:
+        out.append(buf[:m.start()])
+        buf = buf[m.end():]
+    p = None if final else _LOG_START.search(buf)
+    if p is not None and len(buf) - p.start() < _HOLD_MAX:
+        tail = buf[p.start():]
+        if not quiet or b"cpu_aot_loader.cc" in tail:
+            out.append(buf[:p.start()])
+            return b"".join(out), tail
+    out.append(buf)
+    return b"".join(out), b""
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    try:
+        while data:
+            data = data[os.write(fd, data):]
+    except OSError:
+        pass
+
+
+class StderrFilter:
+    """File descriptor 2 (XLA's C++ logging) through a pipe and a thread that writes everything to the real stderr
+    except the lines :func:`filter_log_noise` drops; Python's ``sys.stderr`` (progress bars, messages) writes to
+    the real stderr directly, so it stays in order with stdout. :meth:`stop` (also at exit) restores both."""
+
+    def __init__(self):
+        self._orig = None
+
+    def start(self) -> "StderrFilter":
+        if self._orig is not None:
+            return self
+        try:
+            sys.stderr.flush()
+            orig = os.dup(2)
+            r, w = os.pipe()
+            os.dup2(w, 2)
+            os.close(w)
+        except OSError:
+            return self
+        self._orig, self._r, self._py = orig, r, sys.stderr
+        sys.stderr = open(orig, "w", buffering=1, encoding=getattr(self._py, "encoding", None) or "utf-8",
+                          errors="backslashreplace", closefd=False)
+        self._thread = threading.Thread(target=self._pump, name="hyqjax-stderr-filter", daemon=True)
+        self._thread.start()
+        atexit.register(self.stop)
+        return self
+
+    def _pump(self) -> None:
+        held = b""
+        while True:
+            if select.select([self._r], [], [], 0.2)[0]:
+                chunk = os.read(self._r, 1 << 16)
+                if not chunk:
+                    break
+                out, held = filter_log_noise(held + chunk)
+            elif held:
+                out, held = filter_log_noise(held, quiet=True)
+            else:
+                continue
+            _write_all(self._orig, out)
+        _write_all(self._orig, filter_log_noise(held, final=True)[0])
+        os.close(self._r)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Restore fd 2 and wait (``timeout`` s at most) until everything written before is out."""
+        if self._orig is None:
+            return
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        sys.stderr = self._py
+        os.dup2(self._orig, 2)  # closes this process's write end of the pipe: the pump reads to the end
+        self._thread.join(timeout)
+        self._orig = None
