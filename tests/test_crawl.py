@@ -194,3 +194,59 @@ def test_footholds_one_step_ahead_on_the_terrain_plane_and_shortened_to_the_work
     q = np.asarray(kinematics.inverse_kinematics(x)).reshape(4, 3)[leg]
     assert np.all(q > robot.Q_MIN.reshape(4, 3)[leg] + footholds.REACH_MARGIN - 1e-6)
     assert np.all(q < robot.Q_MAX.reshape(4, 3)[leg] - footholds.REACH_MARGIN + 1e-6)
+
+
+# ------------------------------------------------------------------- one declaration of every crawl parameter
+from hypothesis import given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+from hyqjax.core.params import ParameterError, batch_params, param_ranges  # noqa: E402
+
+CRAWL_SPECS = param_ranges(CrawlParams)
+
+
+def _around(name):
+    """Values around the declared range of ``name`` (about a third inside), its ends, and non-finite values."""
+    s = CRAWL_SPECS[name]
+    w = s.hi - s.lo
+    return st.tuples(st.just(name), st.floats(s.lo - w, s.hi + w) | st.sampled_from([s.lo, s.hi, float("nan"),
+                                                                                      float("-inf")]))
+
+
+FLAGS = ("use_reflex", "shin_remedy", "weight_qp")  # make() takes booleans for these
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.sampled_from(sorted(k for k in CRAWL_SPECS if k not in FLAGS)).flatmap(_around))
+def test_make_accepts_exactly_the_declared_range(case):
+    """``CrawlParams.make`` accepts a value iff it lies in the range the field declares; a refusal names the field
+    and that range; accepted values are float32 leaves and pass ``validate``."""
+    name, value = case
+    spec = CRAWL_SPECS[name]
+    ok = bool(spec.in_range(np.asarray(value)))
+    try:
+        p = CrawlParams.make(**{name: value})
+    except ParameterError as e:
+        assert not ok and e.param == name and spec.range_text in str(e), str(e)
+        return
+    assert ok
+    assert getattr(p, name).dtype == jnp.float32 and p.validate() is p
+
+
+def test_batched_crawl_params_validate_every_element_and_the_sweep_axis_uses_the_declaration():
+    from hyqjax.studies.sweep.axes import AXES
+
+    spec = CRAWL_SPECS["forward_velocity"]
+    speed = AXES["speed"]
+    assert (speed.lo, speed.hi, speed.unit, speed.default) == (spec.lo, spec.hi, spec.unit, spec.default)
+    p = CrawlParams.make(forward_velocity=spec.hi)  # an end of the range survives float32
+    assert p.validate() is p
+    good = batch_params(p, 3, forward_velocity=np.array([spec.lo, 0.0, spec.hi]))
+    assert good.validate() is good and good.forward_velocity.shape == (3,)
+    with pytest.raises(ParameterError, match=r"CrawlParams\.forward_velocity=0\.31 out of range: must be in "
+                                             r"\[-0\.3, 0\.3\] m/s"):
+        batch_params(p, 3, forward_velocity=np.array([0.0, 0.31, 0.1])).validate()
+    with pytest.raises(ParameterError, match=r"foot_sequence=\(0, 0, 2, 3\) is not a leg order"):
+        batch_params(p, 2, foot_sequence=np.array([[3, 1, 2, 0], [0, 0, 2, 3]])).validate()
+    with pytest.raises(ParameterError, match=r"ReflexParams\.k_base"):
+        batch_params(p, 2, reflex=dict(k_base=np.array([1500.0, -1.0])))

@@ -9,6 +9,7 @@ import numpy as np
 
 from hyqjax.control import impedance
 from hyqjax.core import robot
+from hyqjax.core.params import ParameterError, is_concrete, param_field, param_ranges
 from hyqjax.reflex import step as reflex
 
 #: Foot sequences (leg indices LF=0, RF=1, LH=2, RH=3). Hind-then-front on each side, the usual crawl.
@@ -21,6 +22,24 @@ FOOT_SEQUENCES = {
 
 #: The trunk-frame CoM offset in the standing pose (m), from the MJCF's masses.
 COM_OFFSET_B = np.array([0.00696, 0.0, -0.0426])
+
+
+def _at_declared_ends(spec, v) -> np.ndarray:
+    """``v`` in float64, where a float32 element equal to float32(lo) or float32(hi) counts as the end itself
+    (``make`` stores float32: ``0.3`` becomes 0.30000001, still the declared end of ``[-0.3, 0.3]``)."""
+    a = np.asarray(v)
+    out = a.astype(np.float64)
+    if a.dtype == np.float32:
+        out[a == np.float32(spec.lo)] = spec.lo
+        out[a == np.float32(spec.hi)] = spec.hi
+    return out
+
+
+def _as_float(v, name: str) -> np.ndarray:
+    try:
+        return np.asarray(v, np.float64)
+    except (TypeError, ValueError) as e:
+        raise ParameterError("CrawlParams", name, v, "a number") from e
 
 
 @jax.tree_util.register_dataclass
@@ -64,92 +83,103 @@ class CrawlParams:
       reflex: height reflex parameters (Table I by default).
     """
 
-    forward_velocity: jax.Array
-    heading_velocity: jax.Array
-    t_body: jax.Array
-    t_swing: jax.Array
-    step_height: jax.Array
-    max_step_length: jax.Array
-    body_height: jax.Array
-    stability_margin: jax.Array
-    touchdown_force: jax.Array
-    search_speed: jax.Array
-    max_search_depth: jax.Array
-    max_leg_extension: jax.Array
-    terrain_adaptation: jax.Array
-    max_tilt: jax.Array
-    mu: jax.Array
-    k_com: jax.Array
-    d_com: jax.Array
-    k_rot: jax.Array
-    d_rot: jax.Array
-    mass: jax.Array
-    search_forward: jax.Array
-    deep_search: jax.Array
-    velocity_feedforward: jax.Array
-    joint_margin: jax.Array
-    weight_qp: jax.Array
-    foot_sequence: jax.Array
-    use_reflex: jax.Array
-    shin_remedy: jax.Array
-    gains: impedance.ImpedanceGains
-    reflex: reflex.ReflexParams
+    forward_velocity: jax.Array = param_field(0.1, -0.3, 0.3, "m/s", "desired forward speed v_f")
+    heading_velocity: jax.Array = param_field(0.0, -0.5, 0.5, "rad/s", "desired yaw rate v_h")
+    t_body: jax.Array = param_field(0.4, 0.1, 5.0, "s", "nominal body-phase duration")
+    t_swing: jax.Array = param_field(0.45, 0.1, 5.0, "s", "nominal swing duration")
+    step_height: jax.Array = param_field(0.1, 0.0, 0.25, "m", "swing apex along the terrain normal")
+    max_step_length: jax.Array = param_field(0.3, 0.0, 0.4, "m", "bound on the step length")
+    body_height: jax.Array = param_field(0.56, 0.3, 0.68, "m", "trunk height above the mean foot height")
+    stability_margin: jax.Array = param_field(0.07, 0.0, 0.15, "m", "support triangle shrunk by this much")
+    touchdown_force: jax.Array = param_field(30.0, 1.0, 500.0, "N", "haptic touchdown threshold along the normal")
+    search_speed: jax.Array = param_field(0.15, 0.01, 1.0, "m/s", "speed of the search after the nominal swing")
+    max_search_depth: jax.Array = param_field(0.4, 0.0, 0.6, "m", "search stops this far below the foothold")
+    max_leg_extension: jax.Array = param_field(0.678, 0.4, 0.69, "m", "HFE-to-foot distance of the workspace limit")
+    terrain_adaptation: jax.Array = param_field(0.3, 0.0, 1.0, "", "fraction of the feet plane's roll/pitch followed")
+    max_tilt: jax.Array = param_field(0.35, 0.0, 0.6, "rad", "bound on the trunk roll/pitch targets")
+    mu: jax.Array = param_field(0.7, 0.05, 2.0, "", "friction coefficient of the weight distribution")
+    k_com: jax.Array = param_field(3000.0, 0.0, 2e4, "N/m", "trunk position stiffness")
+    d_com: jax.Array = param_field(600.0, 0.0, 5e3, "N s/m", "trunk position damping")
+    k_rot: jax.Array = param_field(1500.0, 0.0, 1e4, "N m/rad", "trunk orientation stiffness")
+    d_rot: jax.Array = param_field(150.0, 0.0, 2e3, "N m s/rad", "trunk orientation damping")
+    mass: jax.Array = param_field(robot.TOTAL_MASS, 10.0, 300.0, "kg", "mass the trunk controller supports")
+    search_forward: jax.Array = param_field(0.5, 0.0, 2.0, "m/m", "forward search per metre searched (remedy)")
+    deep_search: jax.Array = param_field(0.05, 0.0, 0.5, "m", "a swing searching deeper found a step down")
+    velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
+    joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
+    weight_qp: jax.Array = param_field(0.0, 0.0, 1.0, "", "0/1: friction-pyramid QP (1) or clipped least norm (0)")
+    foot_sequence: jax.Array = dataclasses.field(
+        default_factory=lambda: np.asarray(FOOT_SEQUENCES["rh-rf-lh-lf"], np.int32))
+    use_reflex: jax.Array = param_field(1.0, 0.0, 1.0, "", "0/1: height reflex on")
+    shin_remedy: jax.Array = param_field(0.0, 0.0, 1.0, "", "0/1: the step-down remedy against shin strikes")
+    gains: impedance.ImpedanceGains = dataclasses.field(default_factory=impedance.ImpedanceGains.make)
+    reflex: reflex.ReflexParams = dataclasses.field(default_factory=reflex.ReflexParams.table1)
 
     @staticmethod
     def make(forward_velocity=0.1, heading_velocity=0.0, t_body=0.4, t_swing=0.45, step_height=0.1,
              max_step_length=0.3, body_height=0.56, stability_margin=0.07, touchdown_force=30.0,
              search_speed=0.15, max_search_depth=0.4, max_leg_extension=0.678, terrain_adaptation=0.3,
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS,
-             search_forward=0.5, deep_search=0.05, velocity_feedforward=0.0, joint_margin=0.0, weight_qp=False, foot_sequence="rh-rf-lh-lf", use_reflex=True,
-             shin_remedy=False, gains: impedance.ImpedanceGains | None = None,
+             search_forward=0.5, deep_search=0.05, velocity_feedforward=0.0, joint_margin=0.0, weight_qp=False,
+             foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
+             gains: impedance.ImpedanceGains | None = None,
              reflex_params: reflex.ReflexParams | None = None) -> "CrawlParams":
-        """Validated constructor (runs outside jit; errors name the parameter and its range)."""
-        checks = {
-            "forward_velocity": (forward_velocity, -0.3, 0.3),
-            "heading_velocity": (heading_velocity, -0.5, 0.5),
-            "t_body": (t_body, 0.1, 5.0),
-            "t_swing": (t_swing, 0.1, 5.0),
-            "step_height": (step_height, 0.0, 0.25),
-            "max_step_length": (max_step_length, 0.0, 0.4),
-            "body_height": (body_height, 0.3, 0.68),
-            "stability_margin": (stability_margin, 0.0, 0.15),
-            "touchdown_force": (touchdown_force, 1.0, 500.0),
-            "search_speed": (search_speed, 0.01, 1.0),
-            "max_search_depth": (max_search_depth, 0.0, 0.6),
-            "max_leg_extension": (max_leg_extension, 0.4, 0.69),
-            "terrain_adaptation": (terrain_adaptation, 0.0, 1.0),
-            "max_tilt": (max_tilt, 0.0, 0.6),
-            "mu": (mu, 0.05, 2.0),
-            "k_com": (k_com, 0.0, 2e4),
-            "d_com": (d_com, 0.0, 5e3),
-            "k_rot": (k_rot, 0.0, 1e4),
-            "d_rot": (d_rot, 0.0, 2e3),
-            "mass": (mass, 10.0, 300.0),
-            "search_forward": (search_forward, 0.0, 2.0),
-            "deep_search": (deep_search, 0.0, 0.5),
-            "velocity_feedforward": (velocity_feedforward, 0.0, 1.0),
-            "joint_margin": (joint_margin, 0.0, 0.2),
-        }
+        """Validated constructor (runs outside jit; errors name the parameter and its declared range): scalar
+        leaves as float32, ``foot_sequence`` a name of :data:`FOOT_SEQUENCES` or a permutation of the legs."""
+        given = dict(forward_velocity=forward_velocity, heading_velocity=heading_velocity, t_body=t_body,
+                     t_swing=t_swing, step_height=step_height, max_step_length=max_step_length,
+                     body_height=body_height, stability_margin=stability_margin, touchdown_force=touchdown_force,
+                     search_speed=search_speed, max_search_depth=max_search_depth,
+                     max_leg_extension=max_leg_extension, terrain_adaptation=terrain_adaptation, max_tilt=max_tilt,
+                     mu=mu, k_com=k_com, d_com=d_com, k_rot=k_rot, d_rot=d_rot, mass=mass,
+                     search_forward=search_forward, deep_search=deep_search,
+                     velocity_feedforward=velocity_feedforward, joint_margin=joint_margin)
+        specs = param_ranges(CrawlParams)
         vals = {}
-        for name, (v, lo, hi) in checks.items():
-            arr = np.asarray(v, np.float64)
-            if arr.shape != () or not np.isfinite(arr) or not (lo <= arr <= hi):
-                raise ValueError(f"{name} must be a finite scalar in [{lo}, {hi}], got {v!r}")
+        for name, v in given.items():
+            arr = _as_float(v, name)
+            if arr.shape != ():
+                raise ParameterError("CrawlParams", name, f"array of shape {arr.shape}", "a scalar",
+                                     problem="has a wrong shape")
+            specs[name].check(arr, "CrawlParams")
             vals[name] = jnp.asarray(arr, jnp.float32)
         if isinstance(foot_sequence, str):
             if foot_sequence not in FOOT_SEQUENCES:
-                raise ValueError(f"foot_sequence must be one of {sorted(FOOT_SEQUENCES)}, got {foot_sequence!r}")
+                raise ParameterError("CrawlParams", "foot_sequence", foot_sequence,
+                                     f"one of {sorted(FOOT_SEQUENCES)}", problem="is unknown")
             seq = FOOT_SEQUENCES[foot_sequence]
         else:
             seq = tuple(int(i) for i in foot_sequence)
             if sorted(seq) != [0, 1, 2, 3]:
-                raise ValueError(f"foot_sequence must be a permutation of (0, 1, 2, 3), got {foot_sequence!r}")
+                raise ParameterError("CrawlParams", "foot_sequence", repr(foot_sequence),
+                                     "a permutation of (0, 1, 2, 3)", problem="is not a leg order")
         return CrawlParams(**vals, foot_sequence=jnp.asarray(seq, jnp.int32),
                            use_reflex=jnp.asarray(1.0 if use_reflex else 0.0, jnp.float32),
                            shin_remedy=jnp.asarray(1.0 if shin_remedy else 0.0, jnp.float32),
                            weight_qp=jnp.asarray(1.0 if weight_qp else 0.0, jnp.float32),
                            gains=gains or impedance.ImpedanceGains.make(),
                            reflex=reflex_params or reflex.ReflexParams.table1())
+
+    def validate(self) -> "CrawlParams":
+        """Check every concrete field, every element of batched leaves included, against its declared range,
+        the leg order, the gains and the reflex parameters; return ``self``. Raises
+        :class:`hyqjax.core.params.ParameterError` naming the parameter and its range. Construction and
+        :meth:`replace` do not validate (a float32 leaf at an end of its range is valid: see ``make``)."""
+        for name, spec in param_ranges(self).items():
+            v = getattr(self, name)
+            if is_concrete(v):
+                spec.check(_at_declared_ends(spec, v), "CrawlParams")
+        seq = self.foot_sequence
+        if is_concrete(seq):
+            seq = np.asarray(seq)
+            rows = seq.reshape(-1, seq.shape[-1]) if seq.ndim else seq.reshape(1, 1)
+            ok = np.all(np.sort(rows, -1) == np.arange(4), -1) if rows.shape[-1] == 4 else np.zeros(len(rows), bool)
+            if not ok.all():
+                raise ParameterError("CrawlParams", "foot_sequence", repr(tuple(rows[np.argmin(ok)].tolist())),
+                                     "a permutation of (0, 1, 2, 3)", problem="is not a leg order")
+        self.gains.validate()
+        self.reflex.validate()
+        return self
 
     def replace(self, **kw) -> "CrawlParams":
         return dataclasses.replace(self, **kw)

@@ -45,6 +45,15 @@ class Axis:
         return f"{'(' if self.lo_open else '['}{self.lo}, {self.hi}{')' if self.hi_open else ']'} {self.unit}".strip()
 
 
+def _declared_axis(name: str, cls, field: str, doc: str) -> Axis:
+    """An axis whose range, unit and default are those ``cls`` declares for ``field``."""
+    from hyqjax.core.params import param_ranges
+
+    r = param_ranges(cls)[field]
+    return Axis(name, float(r.lo), float(r.hi), r.unit, float(np.asarray(r.default)), doc, lo_open=r.lo_open,
+                hi_open=r.hi_open)
+
+
 def _reflex_axes():
     """One axis per :class:`ReflexParams` field, with the range, unit and default declared there."""
     from hyqjax.core.params import param_ranges
@@ -66,7 +75,8 @@ _AXES_LIST = [
     Axis("start_distance", 0.0, 1.5, "m", 0.02, "front feet distance before the platform edge at the start"),
     Axis("lateral_offset", -0.5, 0.5, "m", 0.0, "initial lateral trunk offset"),
     Axis("yaw", -0.5, 0.5, "rad", 0.0, "initial heading"),
-    Axis("speed", -0.3, 0.3, "m/s", 0.1, "desired forward velocity (CrawlParams.forward_velocity)"),
+    _declared_axis("speed", crawl.CrawlParams, "forward_velocity",
+                   "desired forward velocity (CrawlParams.forward_velocity)"),
     Axis("foot_sequence", 0, 0, "", "rh-rf-lh-lf", "crawl leg order (CrawlParams.foot_sequence)", "choice",
          tuple(sorted(crawl.FOOT_SEQUENCES))),
     Axis("kp_haa", 1.0, 5000.0, "N m/rad", 300.0, "joint PD stiffness, HAA"),
