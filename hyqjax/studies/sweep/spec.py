@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import os
+import threading
 from typing import Any
 
 import numpy as np
@@ -36,6 +37,9 @@ from hyqjax.studies.sweep.axes import AXES, SENSOR_AXES, Axis, SpecError, axis_v
 
 _TOP_KEYS = ("seed", "samples", "paired", "duration", "control_dt", "max_tilt", "min_progress", "blocks",
              "grid", "random", "fixed", "maps", "bins")
+
+
+_BUILDING = threading.local()  # inside SweepSpec.from_dict (which validates) on this thread
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +72,17 @@ class SweepSpec:
     blocks: tuple = (0, 0)
     maps: tuple = (("height", "friction"), ("height", "payload_mass"))
     bins: int = 4
+
+    def __post_init__(self):
+        """Direct construction (``SweepSpec(...)``, ``dataclasses.replace``) is validated as :meth:`from_dict` is."""
+        if getattr(_BUILDING, "depth", 0):
+            return
+        try:
+            d = self.to_dict()
+        except (TypeError, ValueError):
+            raise SpecError("SweepSpec(grid=..., random=..., fixed=...) takes ((axis, value(s)), ...) pairs; build a "
+                            "spec from a dict with SweepSpec.from_dict") from None
+        SweepSpec.from_dict(d)
 
     # ---------------------------------------------------------------- construction / validation
     @staticmethod
@@ -137,14 +152,18 @@ class SweepSpec:
         for p in maps:
             for k in p:
                 get_axis(k, "maps")
-        spec = SweepSpec(
-            grid=tuple(grid), random=tuple(random), fixed=fixed,
-            samples=num("samples", 1, 10**7, 1, integer=True), seed=num("seed", 0, 2**63 - 1, 0, integer=True),
-            paired=bool(d.get("paired", True)), duration=num("duration", 0.01, 600.0, 18.0),
-            control_dt=num("control_dt", 1e-4, 0.02, 0.002), max_tilt=num("max_tilt", 0.01, 1.5, 0.4),
-            min_progress=num("min_progress", -10.0, 10.0, 0.5), blocks=(int(blocks[0]), int(blocks[1])),
-            maps=tuple((str(a), str(b)) for a, b in maps), bins=num("bins", 1, 100, 4, integer=True),
-        )
+        _BUILDING.depth = getattr(_BUILDING, "depth", 0) + 1  # validated here, not again in __post_init__
+        try:
+            spec = SweepSpec(
+                grid=tuple(grid), random=tuple(random), fixed=fixed,
+                samples=num("samples", 1, 10**7, 1, integer=True), seed=num("seed", 0, 2**63 - 1, 0, integer=True),
+                paired=bool(d.get("paired", True)), duration=num("duration", 0.01, 600.0, 18.0),
+                control_dt=num("control_dt", 1e-4, 0.02, 0.002), max_tilt=num("max_tilt", 0.01, 1.5, 0.4),
+                min_progress=num("min_progress", -10.0, 10.0, 0.5), blocks=(int(blocks[0]), int(blocks[1])),
+                maps=tuple((str(a), str(b)) for a, b in maps), bins=num("bins", 1, 100, 4, integer=True),
+            )
+        finally:
+            _BUILDING.depth -= 1
         if not isinstance(d.get("paired", True), bool):
             raise SpecError(f"paired must be true or false, got {d.get('paired')!r}")
         if spec.n_instances > 10**8:
