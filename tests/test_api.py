@@ -96,3 +96,46 @@ def test_gradient_wrt_k_base_and_damping_bounds_matches_finite_differences():
     # not match at 1% steps (docs/api.md gives the numbers); only their finiteness is checked here.
     np.testing.assert_allclose(g[:3], fd[:3], rtol=0.02)
     assert abs(g[0] * x0[0]) > 1e-5  # K_base moves the trunk height by more than 10 um per unit log-change
+
+
+def _resolve(dotted: str):
+    import importlib
+
+    parts = dotted.split(".")
+    for i in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:i]))
+        except ImportError:
+            continue
+        for name in parts[i:]:
+            obj = getattr(obj, name)
+        return obj
+    raise ImportError(dotted)
+
+
+def test_docs_name_objects_that_exist_and_k_base_enters_eq6_where_they_say():
+    """Every ``module.name`` that docs/architecture.md and docs/api.md mention exists (the docs follow the code),
+    and the one hop from the public API to Eq. 6 holds: ``hyqjax.ReflexParams.k_base`` is read by
+    ``hyqjax.reflex.forces.distribute_virtual_forces`` as the base moment ``m = -K_base e_b``."""
+    import dataclasses
+    import inspect
+
+    import hyqjax
+
+    text = "".join(open(os.path.join(REPO_ROOT, "docs", n)).read() for n in ("architecture.md", "api.md"))
+    pkgs = "core|sim|control|reflex|crawl|bounding|studies|io"
+    dotted = set(re.findall(rf"(?<![\w/.])((?:hyqjax\.)?(?:{pkgs})\.[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*)", text))
+    dotted |= set(re.findall(r"(?<![\w/.])(hyqjax\.[A-Z]\w*(?:\.[A-Za-z_]\w*)*)", text))
+    assert len(dotted) >= 15
+    missing = []
+    for d in sorted(dotted):
+        d = d.rstrip(".")
+        try:
+            _resolve(d if d.startswith("hyqjax") else "hyqjax." + d)
+        except (ImportError, AttributeError):
+            missing.append(d)
+    assert not missing, f"the docs name objects that do not exist: {missing}"
+    assert "where k_base enters eq. 6" in text.replace("`", "").lower()
+    assert "k_base" in {f.name for f in dataclasses.fields(hyqjax.ReflexParams)}
+    source = inspect.getsource(_resolve("hyqjax.reflex.forces.distribute_virtual_forces"))
+    assert re.search(r"moment = -_vec3\(params\.k_base, dtype\) \* jnp\.asarray\(e_b, dtype\)", source)
