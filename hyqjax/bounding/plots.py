@@ -17,6 +17,14 @@ def _plt():
     return plt
 
 
+def _save(fig, path: str) -> str:
+    """Lay out, write (120 dpi) and close ``fig``; return ``path``."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    _plt().close(fig)
+    return path
+
+
 def cycle_speeds(trace: dict, i: int, period: float = 0.4, control_dt: float = 0.002):
     """Per-cycle mean forward speed (heading frame) and yaw rate of instance ``i``: ``(t_mid, v, psidot)``."""
     idx, v, _, yr = per_cycle(trace, period, control_dt)
@@ -50,10 +58,7 @@ def tracking_figures(trace: dict, groups: dict[str, list[int]], outdir: str, pre
     ax[0].legend(fontsize=7, ncol=2)
     ax[1].legend(fontsize=7)
     ax[0].set_title("Yaw tracking while bounding")
-    fig.tight_layout()
-    f_yaw = os.path.join(outdir, prefix + "yaw_tracking.png")
-    fig.savefig(f_yaw, dpi=120)
-    plt.close(fig)
+    f_yaw = _save(fig, os.path.join(outdir, prefix + "yaw_tracking.png"))
 
     fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for g, (name, idx) in enumerate(groups.items()):
@@ -70,10 +75,7 @@ def tracking_figures(trace: dict, groups: dict[str, list[int]], outdir: str, pre
     ax[1].set_xlabel("time [s]")
     ax[0].legend(fontsize=7)
     ax[0].set_title("Speed and yaw-rate tracking (dashed: command)")
-    fig.tight_layout()
-    f_speed = os.path.join(outdir, prefix + "speed_tracking.png")
-    fig.savefig(f_speed, dpi=120)
-    plt.close(fig)
+    f_speed = _save(fig, os.path.join(outdir, prefix + "speed_tracking.png"))
     return dict(yaw_tracking=f_yaw, speed_tracking=f_speed)
 
 
@@ -89,10 +91,7 @@ def convergence_figure(history: np.ndarray, residual_history: np.ndarray, path: 
     ax[1].set_xlabel("iteration")
     ax[1].set_ylabel("||r|| (scaled return-map residual)")
     fig.suptitle(title or "Cycle optimisation from many initial guesses (vmap, forward-mode Jacobians)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def eigenvalue_figure(eigs: dict[str, np.ndarray], path: str) -> str:
@@ -110,10 +109,7 @@ def eigenvalue_figure(eigs: dict[str, np.ndarray], path: str) -> str:
     lim = max(1.2, max(np.max(np.abs(e)) for e in eigs.values()) * 1.1)
     ax.set_xlim(-lim, lim)
     ax.set_ylim(-lim, lim)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def bar_figure(labels: list[str], series: dict[str, list[float]], ylabel: str, path: str, title: str = "") -> str:
@@ -129,7 +125,4 @@ def bar_figure(labels: list[str], series: dict[str, list[float]], ylabel: str, p
     ax.set_ylabel(ylabel)
     ax.legend(fontsize=7)
     ax.set_title(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
