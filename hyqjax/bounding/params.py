@@ -342,7 +342,8 @@ def default_params(speed=0.0, yaw_rate=0.0, lateral_speed=0.0, ramp_time=1.0, ki
         raise ValueError(f"reference must be a finite (N >= 2, 4) table, got shape {ref.shape}")
     check_range("default_params", "cycle_amplitudes[:2] (vertical)", amp[:2], 0.0, 1500.0)
     check_range("default_params", "cycle_amplitudes[2:] (horizontal)", amp[2:], -500.0, 500.0)
-    check_range("default_params", "cycle_apex z", apex[0], 0.35, 0.8)
+    s0 = Apex.of(apex)
+    check_range("default_params", "cycle_apex z", s0.z, 0.35, 0.8)
     gkw = dict(stored.apex_gains, **DEFAULT_GAINS)
     gkw.update(gain_overrides)
     a = pair_amplitudes([amp[2], 0.0, amp[0]], [amp[3], 0.0, amp[1]])
@@ -351,4 +352,4 @@ def default_params(speed=0.0, yaw_rate=0.0, lateral_speed=0.0, ramp_time=1.0, ki
         gains=BoundingGains.make(**gkw),
         switches=Switches.make(kinematic_adjustment, centrifugal, apex_feedback, stance_feedback),
         command=BoundingCommand.make(speed, yaw_rate, lateral_speed, ramp_time),
-        init_estimate=_f32([apex[0], apex[2], 0.0, apex[3]]), mass=_f32(robot.TOTAL_MASS))
+        init_estimate=_f32([s0.z, s0.vx, 0.0, s0.vz]), mass=_f32(robot.TOTAL_MASS))
