@@ -122,7 +122,7 @@ def run(sc: stepdown.Scenario, cfg: stepdown.StepdownConfig):
     from hyqjax.sim import model as hmodel
 
     mb = hmodel.batch_model(st.mx, st.ids, sc.terrain)
-    d0 = sim.initial_data(st.mx, stepdown.initial_qpos(st.m, sc), sc.batch_size)
+    d0 = stepdown.initial_batch_data(st, mb, sc)  # under impl jax or warp
     res = runner(mb, d0, sc.params, sc.push)
     outcome = jax.jit(jax.vmap(lambda r: so.outcome(r, st.ids, cfg.max_tilt, cfg.min_progress)))(
         res._replace(metrics=res.metrics[0], trace=None))

@@ -23,6 +23,7 @@ from hyqjax.bounding.params import BoundingCommand, BoundingParams, default_para
 from hyqjax.bounding.state import BoundingInfo
 from hyqjax.core import robot
 from hyqjax.core import spatial
+from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
 
@@ -252,12 +253,27 @@ def record(d, obs, info: BoundingInfo) -> dict:
                 roll_des=info.roll_des, qpos=d.qpos, foot_force=obs.foot_force)
 
 
-def initial_data(batch: Batch, m, mx) -> "jax.Array":
+def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
+    """Batched MJX data at each instance's initial apex state (:func:`hyqjax.bounding.cycle.apex_data`). Under
+    MuJoCo Warp (``mx_batched`` a batched Warp model) the state is computed with the JAX model ``mx`` and put
+    into Warp data made by :func:`hyqjax.sim.rollout.initial_data`."""
     def one(p, s, roll, yr):
         return bc.apex_data(mx, m, p, s, roll=roll, yaw_rate=yr)
 
-    return jax.vmap(one)(batch.params, jnp.asarray(batch.apex0, jnp.float32), jnp.asarray(batch.roll0, jnp.float32),
-                         jnp.asarray(batch.yaw_rate0, jnp.float32))
+    d = jax.vmap(one)(batch.params, jnp.asarray(batch.apex0, jnp.float32), jnp.asarray(batch.roll0, jnp.float32),
+                      jnp.asarray(batch.yaw_rate0, jnp.float32))
+    if mx_batched is None or not backend.is_warp_model(mx_batched):
+        return d
+    dw = sim.initial_data(mx_batched, d.qpos, d.qpos.shape[0], m=m)
+    return dw.replace(qvel=d.qvel.astype(dw.qvel.dtype))
+
+
+@functools.lru_cache(maxsize=2)
+def _model(impl: str):
+    """``(m, mx_jax, mx_impl, ids)``: the bounding model (:func:`hyqjax.bounding.cycle.model`) and its MJX model
+    under the resolved ``impl``."""
+    m, mx, ids = bc.model()
+    return m, mx, (mx if impl == "jax" else backend.put_model(m, impl)), ids
 
 
 @functools.lru_cache(maxsize=8)
@@ -270,10 +286,12 @@ def runner(cfg: sim.SimConfig):
     return sim.make_batch_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
 
 
-def run(batch: Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None):
+def run(batch: Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,
+        impl: str = "jax"):
     """Simulate the batch (:func:`runner`); returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)``
-    (simulated seconds) is called after every simulated second."""
-    m, mx, ids = bc.model()
+    (simulated seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax |
+    warp`` (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``)."""
+    m, mx_jax, mx, ids = _model(backend.resolve_impl(impl))
     period = float(np.asarray(batch.params.gait.period).reshape(-1)[0])
     if not np.allclose(np.asarray(batch.params.gait.period), period):
         raise ValueError("all instances must share the gait period")
@@ -283,7 +301,7 @@ def run(batch: Batch, duration: float, control_dt: float = 0.002, record_every: 
                          f"({record_every} x {control_dt})")
     cfg = sim.SimConfig(control_dt=control_dt, duration=duration, record_every=record_every)
     mxb = hmodel.batch_model(mx, ids, batch.terrain)
-    d0 = initial_data(batch, m, mx)
+    d0 = initial_data(batch, m, mx_jax, mxb)
     res = runner(cfg)(mxb, d0, batch.params, batch.push, progress=progress)
     trace = jax.tree_util.tree_map(np.asarray, res.trace)
     return res, trace

@@ -50,6 +50,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    from hyqjax.cli.common import add_impl_argument
+
+    add_impl_argument(p)
 
 
 def validate(args) -> None:
@@ -64,7 +67,9 @@ def validate(args) -> None:
 def check_options(args) -> None:
     """Every option checked, here and by ``bounding.experiment.validate_run``, before anything is compiled;
     raises ValueError naming the option and its allowed range."""
-    from hyqjax.cli.common import check_out_free, check_range
+    from hyqjax.cli.common import check_impl, check_out_free, check_range
+
+    check_impl(args.impl)
 
     for opt, v, lo, hi, unit in (("--speed", args.speed, -1.5, 1.5, "m/s"), ("--yaw-rate", args.yaw_rate, -1.5, 1.5,
                                                                               "rad/s"),
@@ -129,7 +134,7 @@ def run(args) -> int:
     from hyqjax.cli.common import sim_progress
 
     with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
-        res, trace = bx.run(batch, duration=args.duration, progress=progress)
+        res, trace = bx.run(batch, duration=args.duration, progress=progress, impl=args.impl)
     wall = time.time() - t0
     summary = bs.summarise(res, trace, batch)
     groups = {}
@@ -138,7 +143,9 @@ def run(args) -> int:
         groups[name] = dict(kinematic_adjustment=kin, centrifugal=cf, aggregate=bs.aggregate(per),
                             instances=[p.to_dict() for p in per])
     opts = {k: v for k, v in vars(args).items() if not k.startswith("_")}
-    out = dict(provenance=io.provenance(seed=args.seed), args=opts,
+    from hyqjax.sim import backend
+
+    out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=backend.resolve_impl(args.impl),
                wall_time_s=wall, env_steps_per_s=len(plist) * args.duration / 0.002 / wall, groups=groups)
     if args.ablation:
         out["contributions"] = bs.contributions(groups)

@@ -106,3 +106,22 @@ def sim_progress(desc: str, total_s: float, disable: bool = False):
         stop.set()
         th.join()
         bar.close()
+
+
+def add_impl_argument(p) -> None:
+    """``--impl auto|jax|warp``: the MJX implementation of a forward-only simulation (:mod:`hyqjax.sim.backend`)."""
+    p.add_argument("--impl", choices=["auto", "jax", "warp"], default="auto",
+                   help="MJX implementation: 'warp' (MuJoCo Warp, several times faster on a CUDA GPU, forward "
+                        "only; pip install 'hyqjax[warp]'), 'jax' (pure JAX, differentiable), 'auto' (warp when "
+                        "a CUDA GPU and warp-lang are present, else jax)")
+
+
+def check_impl(impl: str, option: str = "--impl") -> None:
+    """Refuse ``--impl warp`` without warp-lang, before anything is imported from JAX."""
+    from hyqjax.sim import backend
+
+    if impl not in backend.IMPLS:
+        raise UsageError(f"{option} must be one of {', '.join(backend.IMPLS)}, got {impl!r}")
+    if impl == "warp" and not backend.warp_installed():
+        raise UsageError(f"{option} warp needs warp-lang, which is not installed: pip install 'hyqjax[warp]' "
+                         f"(or use {option} jax)")

@@ -31,6 +31,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
                         "results.json); the file format is in hyqjax/io/recording.py")
     p.add_argument("--out", default="out/stepdown", help="output directory")
+    from hyqjax.cli.common import add_impl_argument
+
+    add_impl_argument(p)
 
 
 SEED_MAX = 2**32 - 1
@@ -38,7 +41,7 @@ SEED_MAX = 2**32 - 1
 
 def validate(args) -> None:
     """Every option checked, and the output directory created and probed, before JAX is imported."""
-    from hyqjax.cli.common import check_all, check_range, prepare_out
+    from hyqjax.cli.common import check_all, check_impl, check_range, prepare_out
 
     check_all("--heights", args.heights, 0.0, 0.45, "m")
     check_range("--instances", args.instances, 1, 100000, integer=True)
@@ -47,6 +50,7 @@ def validate(args) -> None:
     check_range("--speed", args.speed, -0.3, 0.3, "m/s")
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
+    check_impl(args.impl)
     args.recorded = _recorded_instances(args)
     prepare_out(args.out)
     args._validated = True
@@ -66,11 +70,12 @@ def run(args) -> int:
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every
-    cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every)
+    cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every, impl=args.impl)
     n = scenario.batch_size
+    impl = stepdown.setup(cfg).impl
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks; compiling and running...",
-          flush=True)
+          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks, MJX impl {impl}; "
+          f"compiling and running...", flush=True)
     t0 = time.time()
     from hyqjax.cli.common import sim_progress
 
@@ -85,7 +90,7 @@ def run(args) -> int:
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
     config = {k: v for k, v in vars(args).items() if not k.startswith("_") and k != "recorded"}
     io.write_json(os.path.join(args.out, "results.json"), dict(
-        provenance=io.provenance(seed=args.seed), config=config, summary=rows,
+        provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
         instances=instances, figures=figs, wall_time_s=wall))
     traces_path = os.path.join(args.out, recording.TRACES_FILE)
     if trace is not None and len(recorded):

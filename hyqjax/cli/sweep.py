@@ -67,6 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="validate and print the sweep's size, run nothing")
     p.add_argument("--list-axes", action="store_true", help="print the axes with ranges and defaults, then exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from hyqjax.cli.common import add_impl_argument
+
+    add_impl_argument(p)
 
 
 def _parse_value(s: str):
@@ -122,11 +125,12 @@ def build_spec_dict(args) -> dict:
 
 def validate(args) -> None:
     """The spec validated, the options checked and the output directory probed before anything compiles."""
-    from hyqjax.cli.common import check_out_free, check_range, prepare_out
+    from hyqjax.cli.common import check_impl, check_out_free, check_range, prepare_out
     from hyqjax.studies import sweep
 
     if args.list_axes:
         return
+    check_impl(args.impl)
     if args.chunk_size is not None:
         check_range("--chunk-size", args.chunk_size, 1, 10**7, integer=True)
     if args.max_chunks is not None:
@@ -180,14 +184,14 @@ def run(args) -> int:
         from hyqjax.studies.sweep import cluster
 
         executor = cluster.RayExecutor(address=args.address, gpus_per_task=args.gpus_per_task,
-                                       max_retries=args.max_retries)
+                                       max_retries=args.max_retries, impl=args.impl)
         where = executor.describe()
     else:
         import jax
 
-        executor = sweep.LocalExecutor()
+        executor = sweep.LocalExecutor(impl=args.impl)
         devs = jax.local_devices()
-        where = f"{len(devs)} x {devs[0].platform} device(s)"
+        where = f"{len(devs)} x {devs[0].platform} device(s), MJX impl {executor.impl}"
     print(f"{size}, {where}", flush=True)
     t0 = time.time()
     store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,

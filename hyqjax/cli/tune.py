@@ -59,12 +59,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--offset", type=int, default=0, help="window start, control ticks after the snapshot trigger")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period (Adam steps)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    from hyqjax.cli.common import add_impl_argument
+
+    add_impl_argument(p)  # the forward-only runs; the gradient always runs under impl jax
 
 
 def validate(args) -> None:
     """Every option checked, the configuration built and the run directory probed before anything is compiled
     or written (a refused command leaves nothing behind)."""
-    from hyqjax.cli.common import check_all, check_out_free, check_range, prepare_out
+    from hyqjax.cli.common import check_all, check_impl, check_out_free, check_range, prepare_out
+
+    check_impl(args.impl)
 
     check_range("--steps", args.steps, 0, 100000, integer=True)
     check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
@@ -110,7 +115,7 @@ def _config(args):
             warm_start=args.warm_start, baselines=base_list, sigma=args.sigma,
             success_instances=args.success_instances, success_duration=args.success_duration,
             heldout=args.heldout, heldout_seed=args.heldout_seed, heldout_duration=args.heldout_duration,
-            curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s)
+            curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s, impl=args.impl)
     except ValueError as e:
         msg = str(e)
         for field in ("groups", "baselines", "objective"):

@@ -175,7 +175,8 @@ def param_field(default, lo: float = -math.inf, hi: float = math.inf, unit: str 
     if isinstance(default, (tuple, list)):
         arr = np.asarray(default, np.float32)
         return dataclasses.field(default_factory=lambda: arr.copy(), metadata={"param": spec})
-    return dataclasses.field(default=default, metadata={"param": spec})
+    # ``static`` in the field's metadata is what jax.tree_util.register_dataclass reads to make it PyTree metadata.
+    return dataclasses.field(default=default, metadata={"param": spec, **({"static": True} if static else {})})
 
 
 def is_concrete(x) -> bool:

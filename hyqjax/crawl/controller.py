@@ -58,9 +58,8 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: sim.Observation, rp_m
     force = p.mass * robot.GRAVITY * up_h + p.k_com * (p_des - p_meas) + p.d_com * (v_des - v_meas)
     rp_err = jnp.concatenate([rp_des - rp_meas, jnp.zeros(1, dtype)])
     torque = p.k_rot * rp_err - p.d_rot * (h_r_b @ obs.gyro)
-    f_qp = trunk_control.distribute_wrench(r_h, st.stance, force, torque, p.mu)
-    f_clip = trunk_control.clipped_least_norm(r_h, st.stance, force, torque, p.mu)
-    f_h = jnp.where(p.weight_qp > 0.5, f_qp, f_clip)
+    distribute = trunk_control.distribute_wrench if p.weight_qp else trunk_control.clipped_least_norm  # static
+    f_h = distribute(r_h, st.stance, force, torque, p.mu)
     return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
 
 

@@ -45,8 +45,8 @@ def _as_float(v, name: str) -> np.ndarray:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class CrawlParams:
-    """Crawl parameters; every field is a PyTree leaf (vmap/grad reach it), ``foot_sequence``, ``use_reflex``
-    and ``shin_remedy`` included (given per instance as arrays).
+    """Crawl parameters; every field but ``weight_qp`` is a PyTree leaf (vmap/grad reach it), ``foot_sequence``,
+    ``use_reflex`` and ``shin_remedy`` included (given per instance as arrays).
 
     Attributes:
       forward_velocity: desired forward speed ``v_f`` (m/s); the step length is
@@ -77,8 +77,10 @@ class CrawlParams:
         toward zero velocity).
       joint_margin: joint references are kept this far inside each joint's range (rad), so that the
         impedance holding a leg against its workspace does not press the joint onto its end stop.
-      weight_qp: 0/1, weight distribution by the friction-pyramid QP (1) or least-norm forces clipped into the
-        cones (0), :mod:`hyqjax.control.trunk`.
+      weight_qp: weight distribution by the friction-pyramid QP (True) or least-norm forces clipped into the
+        cones (False), :mod:`hyqjax.control.trunk`. Static (PyTree metadata, shared by a batch): the QP's
+        fixed-iteration ADMM costs ten times the rest of the controller, and a per-instance switch would run it
+        for every instance under ``vmap``.
       gains: joint impedance gains.
       reflex: height reflex parameters (Table I by default).
     """
@@ -107,7 +109,8 @@ class CrawlParams:
     deep_search: jax.Array = param_field(0.05, 0.0, 0.5, "m", "a swing searching deeper found a step down")
     velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
-    weight_qp: jax.Array = param_field(0.0, 0.0, 1.0, "", "0/1: friction-pyramid QP (1) or clipped least norm (0)")
+    weight_qp: bool = param_field(False, doc="friction-pyramid QP (True) or clipped least norm (False); static",
+                                  static=True)
     foot_sequence: jax.Array = dataclasses.field(
         default_factory=lambda: np.asarray(FOOT_SEQUENCES["rh-rf-lh-lf"], np.int32))
     use_reflex: jax.Array = param_field(1.0, 0.0, 1.0, "", "0/1: height reflex on")
@@ -156,7 +159,7 @@ class CrawlParams:
         return CrawlParams(**vals, foot_sequence=jnp.asarray(seq, jnp.int32),
                            use_reflex=jnp.asarray(1.0 if use_reflex else 0.0, jnp.float32),
                            shin_remedy=jnp.asarray(1.0 if shin_remedy else 0.0, jnp.float32),
-                           weight_qp=jnp.asarray(1.0 if weight_qp else 0.0, jnp.float32),
+                           weight_qp=bool(weight_qp),
                            gains=gains or impedance.ImpedanceGains.make(),
                            reflex=reflex_params or reflex.ReflexParams.table1())
 
@@ -167,8 +170,10 @@ class CrawlParams:
         :meth:`replace` do not validate (a float32 leaf at an end of its range is valid: see ``make``)."""
         for name, spec in param_ranges(self).items():
             v = getattr(self, name)
-            if is_concrete(v):
+            if not spec.static and is_concrete(v):
                 spec.check(_at_declared_ends(spec, v), "CrawlParams")
+        if not isinstance(self.weight_qp, (bool, np.bool_)):
+            raise ParameterError("CrawlParams", "weight_qp", repr(self.weight_qp), "True or False (static)")
         seq = self.foot_sequence
         if is_concrete(seq):
             seq = np.asarray(seq)

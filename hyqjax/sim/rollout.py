@@ -181,6 +181,29 @@ def _finite_tree(tree) -> jax.Array:
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
 
 
+#: The ``mjx.Data`` fields a diverged instance keeps from its last finite tick: the state ``mjx.step`` reads
+#: (positions, velocities, activations, controls, applied forces, warm start, time) and the two derived fields
+#: the step-down outcome and the traces read from the final data (``site_xpos``, ``sensordata``). The other
+#: derived fields (kinematics, contacts, constraint rows) are recomputed from the state by every step, so
+#: selecting them too (``mjx.Data.where`` over every leaf) would only cost memory traffic: about 84 KB per
+#: instance and tick, the largest part of the closed loop's overhead over bare physics (benchmarks/NOTES.md).
+FROZEN_FIELDS = ("time", "qpos", "qvel", "act", "history", "qacc_warmstart", "plugin_state", "ctrl",
+                 "qfrc_applied", "xfrc_applied", "eq_active", "mocap_pos", "mocap_quat", "userdata",
+                 "site_xpos", "sensordata")
+
+
+def freeze_diverged(new: mjx.Data, old: mjx.Data, diverged: jax.Array) -> mjx.Data:
+    """``new``, with the :data:`FROZEN_FIELDS` of ``old`` where ``diverged`` (one instance: a scalar flag).
+
+    An instance that diverged steps on from its frozen state every tick and its result is discarded, so its
+    state and outcome are those of its last finite tick; the other derived fields of its final data are those
+    of the discarded step. Valid under both MJX implementations (no batched select over Warp's shared
+    contact buffers)."""
+    names = [f for f in FROZEN_FIELDS if hasattr(new, f) and getattr(new, f) is not None]
+    return new.replace(**{f: jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, b, a), getattr(new, f),
+                                                    getattr(old, f)) for f in names})
+
+
 class RolloutCarry(NamedTuple):
     """The scan carry of one instance between control ticks (what a chunked run hands from chunk to chunk)."""
 
@@ -233,7 +256,7 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
         newly = (~div) & (~ok)
         div = div | ~ok
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
-        d_new = d_new.where(div, d)  # mjx.Data.where: the same select, valid for Warp's shared contact buffers
+        d_new = freeze_diverged(d_new, d, div)
         cs_new = keep(cs_new, cs)
         tau = jnp.where(div, tau_prev, tau)
         ms_new = keep(metrics.update(ms, d_new, obs, info), ms)

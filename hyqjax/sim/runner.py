@@ -119,7 +119,8 @@ class BatchRunner:
         for done in range(0, n, k):
             carry, tr = self._advance(mx_batched, carry, params, push, k)
             traces.append(tr)
-            if progress is not None:
+            if progress is not None:  # dispatch is asynchronous: report a chunk once it has been computed
+                jax.block_until_ready(carry.tick)
                 progress((done + k) * dt, n * dt)
         trace = None
         if self.record is not None:

@@ -150,6 +150,13 @@ def initial_qpos(m: mujoco.MjModel, scenario: Scenario) -> np.ndarray:
                       np.asarray(scenario.yaw), np.asarray(scenario.terrain.platform_height))
 
 
+def initial_batch_data(st: StepdownSetup, mx_batched: mjx.Model, scenario: Scenario) -> mjx.Data:
+    """Batched initial data of ``scenario`` on ``mx_batched`` (``hmodel.batch_model`` of ``st.mx``) under either
+    implementation: under Warp the per-instance terrain poses go into the data (:func:`sim.initial_data`)."""
+    qpos = initial_qpos(st.m, scenario)
+    return sim.initial_data(mx_batched if st.impl == "warp" else st.mx, qpos, scenario.batch_size, m=st.m)
+
+
 def record_trace(d, obs: sim.Observation, info: crawl.CrawlInfo, sites=None):
     """What figures need: trunk pose, joints, commanded/planned feet, reflex activity, damping, mobility."""
     from hyqjax.core import spatial
@@ -214,10 +221,8 @@ class StepdownRollout:
             chunk_seconds: float | None = None) -> tuple[StepdownOutcome, sim.RolloutResult]:
         """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, metrics, trace)."""
         st = self.setup
-        b = scenario.batch_size
         mb = hmodel.batch_model(st.mx, st.ids, scenario.terrain)
-        # Warp needs the per-instance terrain poses in the data (sim.rollout.initial_data).
-        d0 = sim.initial_data(mb if st.impl == "warp" else st.mx, initial_qpos(st.m, scenario), b, m=st.m)
+        d0 = initial_batch_data(st, mb, scenario)
         res = self.runner(mesh)(mb, d0, scenario.params, scenario.push, progress=progress, chunk_seconds=chunk_seconds)
         return self._outcomes(res._replace(trace=None)), res
 

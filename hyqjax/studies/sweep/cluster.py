@@ -27,7 +27,7 @@ import time
 from hyqjax.studies.sweep.spec import SweepSpec
 
 
-def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int) -> tuple:
+def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int, impl: str = "auto") -> tuple:
     """One chunk on this worker's devices: ``(rows, wall_s, worker, layout)`` (the Ray task body)."""
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
     from hyqjax.io.cache import enable_compilation_cache
@@ -43,17 +43,17 @@ def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size
                            f"different hyqjax versions on driver and worker")
     devices = jax.local_devices()
     t0 = time.time()
-    rows = compute_chunk(spec, start, stop, chunk_size, devices)
-    return rows, time.time() - t0, f"{socket.gethostname()}:{os.getpid()}", device_layout(devices)
+    rows = compute_chunk(spec, start, stop, chunk_size, devices, impl=impl)
+    return rows, time.time() - t0, f"{socket.gethostname()}:{os.getpid()}", device_layout(devices, impl)
 
 
-def worker_layout() -> dict:
-    """The device layout of a worker (a probe task)."""
+def worker_layout(impl: str = "auto") -> dict:
+    """The device layout of a worker (a probe task), with the MJX implementation ``impl`` resolves to there."""
     import jax
 
     from hyqjax.studies.sweep.runner import device_layout
 
-    return device_layout(jax.local_devices())
+    return device_layout(jax.local_devices(), impl)
 
 
 class RayExecutor:
@@ -67,14 +67,17 @@ class RayExecutor:
       max_retries: how often a task whose worker died is run again.
       max_in_flight: tasks submitted at once (default: twice the workers the cluster can run at a time).
       num_cpus: CPUs of a local instance started here (None: all).
+      impl: MJX implementation of the workers (``auto | jax | warp``, resolved on each worker).
     """
 
     name = "ray"
 
     def __init__(self, address: str | None = None, gpus_per_task: float | None = None, cpus_per_task: float = 1,
-                 max_retries: int = 3, max_in_flight: int | None = None, num_cpus: int | None = None):
+                 max_retries: int = 3, max_in_flight: int | None = None, num_cpus: int | None = None,
+                 impl: str = "auto"):
         import ray
 
+        self.impl = impl
         self.ray = ray
         self.started = not ray.is_initialized()
         if self.started:
@@ -104,7 +107,7 @@ class RayExecutor:
     def layout(self) -> dict:
         """The layout of the workers (asked of one by a probe task)."""
         if self._layout is None:
-            self._layout = self.ray.get(self._probe.remote())
+            self._layout = self.ray.get(self._probe.remote(self.impl))
         return self._layout
 
     def default_chunk_size(self) -> int:
@@ -121,7 +124,7 @@ class RayExecutor:
             while queue or pending:
                 while queue and len(pending) < self.max_in_flight:
                     c, start, stop = queue.pop(0)
-                    pending[self._task.remote(spec_ref, spec.spec_hash, start, stop, chunk_size)] = c
+                    pending[self._task.remote(spec_ref, spec.spec_hash, start, stop, chunk_size, self.impl)] = c
                 done, _ = ray.wait(list(pending), num_returns=1)
                 for ref in done:
                     c = pending.pop(ref)

@@ -9,12 +9,14 @@ hands the chunks still to do to an executor (:class:`LocalExecutor` here; Ray in
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import jax
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
+from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
 from hyqjax.studies import stepdown
@@ -31,10 +33,12 @@ def default_chunk_size(devices=None) -> int:
     return per * len(devices)
 
 
-def device_layout(devices=None) -> dict:
-    """What an instance's numerics depend on besides its inputs: platform, device kind, devices per program."""
+def device_layout(devices=None, impl: str = "jax") -> dict:
+    """What an instance's numerics depend on besides its inputs: platform, device kind, devices per program and
+    the MJX implementation (``impl`` resolved: ``jax`` or ``warp``)."""
     devices = list(jax.local_devices() if devices is None else devices)
-    return dict(platform=devices[0].platform, device_kind=devices[0].device_kind, devices=len(devices))
+    return dict(platform=devices[0].platform, device_kind=devices[0].device_kind, devices=len(devices),
+                impl=backend.resolve_impl(impl))
 
 
 _RUNNERS: dict = {}
@@ -57,7 +61,7 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
 
 
 def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=None,
-             progress=None) -> dict[str, np.ndarray]:
+             progress=None, impl: str = "auto") -> dict[str, np.ndarray]:
     """Simulate input rows (padded to ``pad_to`` by repeating the last row); returns the outcome columns.
 
     The scan always runs in chunks of one simulated second (the batch runner's progress mode, bitwise equal to
@@ -68,10 +72,10 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
     pad_to = sim.pad_batch(max(pad_to, n), len(devices))
     padded = {k: np.concatenate([v, np.repeat(v[-1:], pad_to - n, 0)], 0) for k, v in rows.items()}
     scenario, sensor = build_scenario(padded, spec)
-    cfg = spec.stepdown_config()
+    cfg = dataclasses.replace(spec.stepdown_config(), impl=impl)
     run, m, mx, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
     mb = hmodel.batch_model(mx, ids, scenario.terrain)
-    d0 = sim.initial_data(mx, stepdown.initial_qpos(m, scenario), pad_to)
+    d0 = stepdown.initial_batch_data(stepdown.setup(cfg), mb, scenario)
     params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)
     res = run(mb, d0, params, scenario.push, progress=progress or _no_progress, chunk_seconds=1.0)
     if sensor is not None:
@@ -86,10 +90,11 @@ def _no_progress(done_s, total_s) -> None:
 
 
 def compute_chunk(spec: SweepSpec, start: int, stop: int, chunk_size: int, devices=None,
-                  progress=None) -> dict[str, np.ndarray]:
-    """Inputs and outcomes of instances ``start..stop-1`` (one chunk), computed on ``devices``."""
+                  progress=None, impl: str = "auto") -> dict[str, np.ndarray]:
+    """Inputs and outcomes of instances ``start..stop-1`` (one chunk), computed on ``devices`` under MJX
+    implementation ``impl``."""
     rows = spec.instance_inputs(start, stop)
-    return {**rows, **run_rows(rows, spec, chunk_size, devices, progress)}
+    return {**rows, **run_rows(rows, spec, chunk_size, devices, progress, impl)}
 
 
 class LocalExecutor:
@@ -97,11 +102,12 @@ class LocalExecutor:
 
     name = "local"
 
-    def __init__(self, devices=None):
+    def __init__(self, devices=None, impl: str = "auto"):
         self.devices = tuple(jax.local_devices() if devices is None else devices)
+        self.impl = backend.resolve_impl(impl)
 
     def layout(self) -> dict:
-        return device_layout(self.devices)
+        return device_layout(self.devices, self.impl)
 
     def default_chunk_size(self) -> int:
         return default_chunk_size(self.devices)
@@ -112,7 +118,7 @@ class LocalExecutor:
         for c, start, stop in chunks:
             t0 = time.time()
             cb = None if progress is None else (lambda d, t, c=c: progress(c, d / t))
-            rows = compute_chunk(spec, start, stop, chunk_size, self.devices, cb)
+            rows = compute_chunk(spec, start, stop, chunk_size, self.devices, cb, self.impl)
             yield c, rows, time.time() - t0, None
 
     def close(self) -> None:
@@ -120,7 +126,7 @@ class LocalExecutor:
 
 
 def run_sweep(spec: SweepSpec, out_dir: str, chunk_size: int | None = None, max_chunks: int | None = None,
-              devices=None, progress: bool = True, wait: bool = False, executor=None) -> SweepStore:
+              devices=None, progress: bool = True, wait: bool = False, executor=None, impl: str = "auto") -> SweepStore:
     """Run (or resume) ``spec`` into ``out_dir``; at most ``max_chunks`` new chunks in this call.
 
     Holds the store's lock for the whole run (``wait``: queue behind another writer instead of failing with
@@ -128,7 +134,7 @@ def run_sweep(spec: SweepSpec, out_dir: str, chunk_size: int | None = None, max_
     """
     if max_chunks is not None and max_chunks < 0:
         raise ValueError(f"max_chunks must be >= 0, got {max_chunks}")
-    executor = executor or LocalExecutor(devices)
+    executor = executor or LocalExecutor(devices, impl)
     from tqdm.auto import tqdm
 
     with SweepStore(out_dir, spec, chunk_size, executor.layout(), writer=True, wait=wait,

@@ -179,10 +179,12 @@ class SweepStore:
         stored = man.get("layout")
         if layout is not None and stored is not None:
             want = dict(layout, chunk_size=man["chunk_size"])
-            keys = ("platform", "device_kind", "devices", "chunk_size")
+            stored = dict(stored, impl=stored.get("impl", "jax"))  # stores written before impl was recorded
+            want.setdefault("impl", "jax")
+            keys = ("platform", "device_kind", "devices", "chunk_size", "impl")
             if any(stored.get(k) != want.get(k) for k in keys):
                 fmt = lambda lo: (f"{lo.get('devices')} x {lo.get('device_kind')} ({lo.get('platform')}), "  # noqa: E731
-                                  f"chunks of {lo.get('chunk_size')}")
+                                  f"chunks of {lo.get('chunk_size')}, MJX impl {lo.get('impl')}")
                 raise StoreMismatch(
                     f"{self.dir} was computed on {fmt(stored)}; this run has {fmt(want)}. An instance's result "
                     f"depends on the batch each device compiles for, so a store never mixes layouts: resume "

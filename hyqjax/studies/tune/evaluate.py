@@ -107,7 +107,8 @@ def summarize(heights: np.ndarray, res: dict, i: int) -> dict:
 
 
 def evaluate(methods: dict[str, crawl.CrawlParams], n: int, seed: int = 7777, heights=HELDOUT_HEIGHTS,
-             duration: float = 24.0, extra: dict[str, crawl.CrawlParams] | None = None, n_extra: int = 0) -> dict:
+             duration: float = 24.0, extra: dict[str, crawl.CrawlParams] | None = None, n_extra: int = 0,
+             impl: str = "auto") -> dict:
     """Held-out evaluation of every method on the same ``>= n`` instances, and of the ``extra`` sets (the
     budget curve) on a subset of ``n_extra`` of them spread over all heights; one batch, one compile.
     The instances are ordered round-robin over heights, so every prefix covers all heights evenly."""
@@ -118,7 +119,7 @@ def evaluate(methods: dict[str, crawl.CrawlParams], n: int, seed: int = 7777, he
     extra = extra or {}
     names, enames = list(methods), list(extra)
     counts = [sc.batch_size] * len(names) + [min(n_extra, sc.batch_size)] * len(enames)
-    res, wall = run(sc, [methods[k] for k in names] + [extra[k] for k in enames], duration, counts)
+    res, wall = run(sc, [methods[k] for k in names] + [extra[k] for k in enames], duration, counts, impl)
     out = dict(seed=seed, heights=[float(x) for x in heights], instances=sc.batch_size, duration=duration,
                wall_s=wall, physics_steps=int(sum(counts) * round(duration / 0.002)),
                methods={k: summarize(h, res, i) for i, k in enumerate(names)},
@@ -127,9 +128,9 @@ def evaluate(methods: dict[str, crawl.CrawlParams], n: int, seed: int = 7777, he
 
 
 def success_objective(thetas: np.ndarray, space, base: crawl.CrawlParams, scenario: stepdown.Scenario,
-                      duration: float) -> np.ndarray:
+                      duration: float, impl: str = "auto") -> np.ndarray:
     """Closed-loop clean-success rate of every candidate ``theta`` (rows) on ``scenario`` (for the
     gradient-free baselines given success directly). Cost: ``len(thetas) x B x duration / dt`` steps."""
     params = [space.concrete(t, base) for t in np.asarray(thetas)]
-    res, _ = run(scenario, params, duration)
+    res, _ = run(scenario, params, duration, impl=impl)
     return np.asarray([s.mean() for s in res["clean"]])

@@ -30,6 +30,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import atomic_write, provenance
+from hyqjax.sim import backend
 from hyqjax.studies.tune import baselines, evaluate, kinematic, optimize, windows
 from hyqjax.studies.tune import objective as clobj
 from hyqjax.studies.tune import space as spmod
@@ -58,8 +59,12 @@ class StudyConfig:
     curve_instances: int = 0
     curve_fractions: tuple = (0.25, 0.5)
     baseline_wall_s: float = 0.0
+    #: MJX implementation of the forward-only runs (held-out evaluation, success baselines); the gradient's
+    #: windows always run under impl jax (MuJoCo Warp is not differentiable).
+    impl: str = "auto"
 
     def __post_init__(self):
+        backend.validate_impl(self.impl)
         if self.objective not in ("closed_loop", "kinematic"):
             raise ValueError(f"objective must be 'closed_loop' or 'kinematic', got {self.objective!r}")
         spmod.ParamSpace.make(self.groups)
@@ -177,7 +182,8 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
             per = max(1, cfg.success_instances // len(cfg.train_heights))
             ssc, _ = evaluate.scenarios(cfg.train_heights, per, cfg.seed + 1)
             cost = ssc.batch_size * int(round(cfg.success_duration / 0.002))
-            f = lambda xs, ssc=ssc: -evaluate.success_objective(xs, space, base, ssc, cfg.success_duration)
+            f = lambda xs, ssc=ssc: -evaluate.success_objective(xs, space, base, ssc,  # noqa: E731
+                                                                 cfg.success_duration, cfg.impl)
         else:
             f, cost = pop, eval_cost
         if cost > budget:
@@ -211,7 +217,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
         pts = [(m, b, th) for m, v in snaps.items() for b, th in v] if cfg.curve_instances else []
         extra = {f"{m}@{b}": space.concrete(np.asarray(th), base) for m, b, th in pts}
         ho = evaluate.evaluate(params, cfg.heldout, cfg.heldout_seed, duration=cfg.heldout_duration, extra=extra,
-                               n_extra=cfg.curve_instances)
+                               n_extra=cfg.curve_instances, impl=cfg.impl)
         res["heldout"] = {k: v for k, v in ho.items() if k != "extra"}
         res["budget_curve"] = [dict(method=m, budget=b, n=ho["extra"][f"{m}@{b}"]["n"],
                                     clean=ho["extra"][f"{m}@{b}"]["clean"],
