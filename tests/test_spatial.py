@@ -70,27 +70,35 @@ def test_rot_to_quat_half_turns_and_batches():
 
 small_rpys = st.tuples(st.floats(-1.2, 1.2), st.floats(-1.2, 1.2), st.floats(-1.2, 1.2)).map(np.asarray)
 vecs = st.lists(st.floats(-3, 3), min_size=3, max_size=3).map(np.asarray)
+H = 1e-6
 
 
-@settings(max_examples=100, deadline=None)
+@jax.jit
+def _euler_case(rpy, omega):
+    r = spatial.rpy_to_rot(rpy)
+    step = spatial.quat_to_rot(spatial.rotvec_to_quat(H * omega))  # exp(h [omega]_x)
+    batch = jnp.stack([rpy, -rpy])
+    return dict(rates=spatial.euler_rates(rpy, omega),
+                fd=(spatial.rot_to_rpy(r @ step) - spatial.rot_to_rpy(r @ step.T)) / (2 * H),
+                q_trace=spatial.rot_to_quat_trace(r), q=spatial.rot_to_quat(r),
+                rp=spatial.roll_pitch_to_rot(rpy[0], rpy[1]),
+                rp_ref=spatial.rpy_to_rot(jnp.stack([rpy[0], rpy[1], 0.0])),
+                rp_batch=spatial.roll_pitch_to_rot(batch[:, 0], batch[:, 1]),
+                rp_neg=spatial.rpy_to_rot(jnp.stack([-rpy[0], -rpy[1], 0.0])),
+                rates_batch=spatial.euler_rates(batch, jnp.stack([omega, omega])))
+
+
+@settings(max_examples=60, deadline=None)
 @given(small_rpys, vecs)
 def test_euler_rates_trace_quat_and_roll_pitch_frame(rpy, omega):
     """``euler_rates`` is the time derivative of roll / pitch / yaw under the body rate ``omega``
     (``R' = R [omega]_x``, central differences); ``rot_to_quat_trace`` is ``rot_to_quat`` away from half
     turns; ``roll_pitch_to_rot`` is ``rpy_to_rot`` with the yaw removed, for scalars and batches."""
     with jax.enable_x64(True):
-        r = np.asarray(spatial.rpy_to_rot(rpy))
-        rates = np.asarray(spatial.euler_rates(jnp.asarray(rpy), jnp.asarray(omega)))
-        h = 1e-6
-        step = np.asarray(spatial.quat_to_rot(spatial.rotvec_to_quat(jnp.asarray(h * omega))))  # exp(h [omega]_x)
-        fd = (np.asarray(spatial.rot_to_rpy(r @ step)) - np.asarray(spatial.rot_to_rpy(r @ step.T))) / (2 * h)
-        np.testing.assert_allclose(rates, fd, atol=1e-6)
-        q_trace = np.asarray(spatial.rot_to_quat_trace(jnp.asarray(r)))
-        np.testing.assert_allclose(q_trace, np.asarray(spatial.rot_to_quat(jnp.asarray(r))), atol=1e-12)
-        np.testing.assert_allclose(np.asarray(spatial.roll_pitch_to_rot(rpy[0], rpy[1])),
-                                   np.asarray(spatial.rpy_to_rot(np.array([rpy[0], rpy[1], 0.0]))), atol=0)
-        batch = np.stack([rpy, -rpy])
-        np.testing.assert_allclose(np.asarray(spatial.roll_pitch_to_rot(batch[:, 0], batch[:, 1]))[1],
-                                   np.asarray(spatial.rpy_to_rot(np.array([-rpy[0], -rpy[1], 0.0]))), atol=0)
-        rates_b = spatial.euler_rates(jnp.asarray(batch), jnp.asarray(np.stack([omega] * 2)))
-        np.testing.assert_allclose(np.asarray(rates_b)[0], rates, atol=0)
+        o = {k: np.asarray(v) for k, v in _euler_case(jnp.asarray(rpy), jnp.asarray(omega)).items()}
+    np.testing.assert_allclose(o["rates"], o["fd"], atol=1e-6)
+    np.testing.assert_allclose(o["q_trace"], o["q"], atol=1e-12)
+    np.testing.assert_allclose(o["rp"], o["rp_ref"], atol=0)
+    np.testing.assert_allclose(o["rp_batch"][0], o["rp"], atol=0)
+    np.testing.assert_allclose(o["rp_batch"][1], o["rp_neg"], atol=0)
+    np.testing.assert_allclose(o["rates_batch"][0], o["rates"], atol=0)
