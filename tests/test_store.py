@@ -158,6 +158,27 @@ def test_corrupt_manifest_named_then_rebuilt(tmp_path, spec):
     assert [f for f in os.listdir(tmp_path) if f.startswith("manifest.json.corrupt-")]
 
 
+def test_lost_manifest_rebuilt_with_the_files_chunk_size_and_layout_other_sweep_refused(tmp_path, spec):
+    """Without a readable manifest a writer rebuilds it from the chunk files' metadata: their chunk size and
+    layout are kept (a resume with another layout is still refused), and chunk files of another sweep make
+    it refuse the directory instead of overwriting them."""
+    fill(tmp_path, spec, chunk_size=4, chunks=[0, 2])
+    chunk_files = _files(tmp_path / "chunks")
+    (tmp_path / "manifest.json").write_text("{")  # corrupt
+    with pytest.raises(sweep.StoreMismatch, match="1 x cpu.*2 x cpu"):
+        sweep.SweepStore(str(tmp_path), spec, None, dict(LAYOUT, devices=2), writer=True)
+    assert (tmp_path / "manifest.json").read_text() == "{"  # refused: nothing moved or rewritten
+    os.remove(tmp_path / "manifest.json")  # lost
+    with sweep.SweepStore(str(tmp_path), spec, None, LAYOUT, writer=True, default_chunk_size=32) as st:
+        assert st.chunk_size == 4 and st.done() == {0, 2} and st.layout == dict(LAYOUT, chunk_size=4)
+    assert _files(tmp_path / "chunks") == chunk_files
+    other = sweep.SweepSpec.from_dict({**SPEC, "seed": 6})
+    (tmp_path / "manifest.json").write_text("not json")
+    with pytest.raises(sweep.StoreMismatch, match="chunk files hold a different sweep"):
+        sweep.SweepStore(str(tmp_path), other, 4, LAYOUT, writer=True)
+    assert _files(tmp_path / "chunks") == chunk_files and (tmp_path / "manifest.json").read_text() == "not json"
+
+
 def test_layout_recorded_and_other_layout_refused(tmp_path, spec):
     fill(tmp_path, spec, chunks=[0])
     with pytest.raises(sweep.StoreMismatch, match="1 x cpu.*2 x cpu"):

@@ -51,3 +51,41 @@ def parquet_to_rows(data: bytes) -> tuple[dict[str, np.ndarray], dict]:
         else:
             rows[name] = np.asarray(col.to_numpy(zero_copy_only=False))
     return rows, meta
+
+
+def read_meta(path: str) -> dict | None:
+    """The metadata embedded in the chunk file ``path`` (read from its footer only), or None if unreadable."""
+    import pyarrow.parquet as pq
+
+    try:
+        meta = json.loads((pq.read_schema(path).metadata or {}).get(META_KEY, b"{}"))
+    except Exception:  # pyarrow raises several types for a damaged file
+        return None
+    return meta if isinstance(meta, dict) and meta else None
+
+
+def chunk_metas(chunks_dir: str) -> dict[int, dict]:
+    """``{chunk: metadata}`` of the readable chunk files ``NNNNN.parquet`` in ``chunks_dir``."""
+    import os
+
+    out = {}
+    names = os.listdir(chunks_dir) if os.path.isdir(chunks_dir) else []
+    for name in sorted(names):
+        if name.endswith(".parquet") and name[:-8].isdigit():
+            meta = read_meta(os.path.join(chunks_dir, name))
+            if meta is not None:
+                out[int(name[:-8])] = meta
+    return out
+
+
+def chunk_size_of(metas: dict[int, dict], n_instances: int) -> int | None:
+    """The chunk size the files of ``metas`` were written with (None if they do not tell)."""
+    for c, m in sorted(metas.items()):
+        start, stop = m.get("start"), m.get("stop")
+        if not (isinstance(start, int) and isinstance(stop, int)):
+            continue
+        if c > 0 and start % c == 0:
+            return start // c
+        if c == 0 and stop < n_instances:
+            return stop - start
+    return None

@@ -1,39 +1,30 @@
 """The sweep results store: ``DIR/manifest.json`` + one Parquet file per chunk, locked and verified.
 
-Layout of ``DIR``::
-
-    manifest.json          schema, canonical spec and its SHA-256, chunk size, device layout, per chunk:
-                           file, row range [start, stop), row count, SHA-256 and size of the file, wall time
-    chunks/00000.parquet   the chunk's rows: inputs and outcome columns (one Parquet file per chunk)
-    .lock                  the writer's exclusive lock (:class:`hyqjax.io.lock.DirLock`)
-
-The chunks directory is one Parquet dataset: ``pandas.read_parquet("DIR/chunks")``,
-``polars.read_parquet("DIR/chunks/*.parquet")`` or DuckDB's ``SELECT * FROM 'DIR/chunks/*.parquet'``
-read the whole sweep as one table (``index`` is the instance number).
+``DIR`` holds ``manifest.json`` (schema, canonical spec and its SHA-256, chunk size, device layout, the
+columns, and per chunk its file, row range ``[start, stop)``, size, SHA-256 and wall time),
+``chunks/NNNNN.parquet`` (a chunk's input and outcome columns, with the spec hash, chunk number, row range
+and layout in the file's metadata) and ``.lock``. ``pandas.read_parquet("DIR/chunks")``,
+``polars.read_parquet("DIR/chunks/*.parquet")`` or DuckDB's ``SELECT * FROM 'DIR/chunks/*.parquet'`` read
+the whole sweep as one table (``index`` is the instance number).
 
 Guarantees:
 
-* **One writer.** A writer holds ``DIR/.lock`` for its whole run; a second one is refused with the
-  holder's pid and host, or waits (``wait=True``, ``hyqjax sweep --wait``). The kernel drops the lock
-  when its holder dies. The manifest is re-read and merged under the lock before every write, and a
-  chunk already recorded with a valid file is never written again (a chunk lands once).
-* **Atomic files.** Chunk and manifest are written to a temporary and renamed; a writer killed at any
-  point leaves the old or the new file, never a part. Temporaries of dead writers are removed when the
-  next writer takes the lock. A chunk file written but not yet recorded (a kill between the two renames)
-  is adopted after its embedded metadata and row range check out.
-* **Verified on load.** Each recorded chunk's size and SHA-256 must match the manifest, its embedded
-  metadata must name this sweep's spec hash and chunk number, and its ``index`` column must be exactly
-  ``start..stop-1``. A chunk that fails (truncated, replaced by another chunk, from another sweep) is
-  named in :attr:`SweepStore.problems`, left out of :meth:`SweepStore.load`, and recomputed by the next run.
-* **Strict JSON** (no bare NaN) in the manifest and summary; a corrupt manifest is named, set aside and,
-  for a writer that has the spec, rebuilt from the chunk files.
-* **Device layout.** The results of an instance depend on the batch shape each device compiles for
-  (XLA's vectorisation and fusion), not on which rows share a chunk. The manifest records the layout
-  (platform, device kind, devices per program, chunk size); a resume with another layout is refused
-  (:class:`StoreMismatch`), so a store never mixes rows computed under two layouts.
-* **One version's columns.** The manifest lists the chunks' columns; a chunk with other columns (computed
-  by another hyqjax version) fails verification, and rows with other columns are refused by
-  :meth:`SweepStore.write_chunk` (:class:`StoreMismatch`), so a store never mixes two versions' outcomes.
+* **One writer.** A writer holds ``DIR/.lock`` (:class:`hyqjax.io.lock.DirLock`) for its whole run; a
+  second one is refused with the holder's pid and host, or waits (``wait=True``, ``--wait``). The kernel
+  drops the lock when its holder dies. The manifest is re-read and merged under the lock before every
+  write, and a chunk already recorded with a valid file is never written again.
+* **Atomic files.** Chunk and manifest are written to a temporary and renamed; a kill at any point leaves
+  the old or the new file. The next writer removes dead writers' temporaries and adopts a chunk file
+  written but not yet recorded once its metadata and row range check out.
+* **Verified on load.** Each recorded chunk's size and SHA-256 must match the manifest, its metadata must
+  name this sweep and chunk, its ``index`` column must be its row range and its columns the store's
+  (another hyqjax version's rows never mix in: :meth:`SweepStore.write_chunk` refuses them). A chunk that
+  fails is named in :attr:`SweepStore.problems`, left out of :meth:`SweepStore.load`, and recomputed.
+* **Strict JSON** (no bare NaN). A corrupt or missing manifest is named, set aside and rebuilt by a writer
+  from the chunk files, keeping their chunk size and layout; chunk files of another sweep are refused.
+* **Device layout.** An instance's result depends on the batch shape each device compiles for (XLA's
+  vectorisation and fusion), not on which rows share a chunk. The layout (platform, device kind, devices
+  per program, chunk size) is recorded, and a resume with another one is refused (:class:`StoreMismatch`).
 
 Stores of schema ``hyqjax.sweep/1`` are read as they are, never resumed (:mod:`hyqjax.studies.sweep.legacy`).
 """
@@ -49,7 +40,7 @@ import numpy as np
 from hyqjax.io.atomic import atomic_write, clean_temporaries, write_json
 from hyqjax.io.lock import Busy, DirLock
 from hyqjax.studies.sweep import legacy
-from hyqjax.studies.sweep.chunkfile import META_KEY, parquet_to_rows, rows_to_parquet
+from hyqjax.studies.sweep.chunkfile import META_KEY, chunk_metas, chunk_size_of, parquet_to_rows, rows_to_parquet
 from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
 SCHEMA = legacy.SCHEMA
@@ -58,7 +49,7 @@ MANIFEST = "manifest.json"
 
 
 class StoreMismatch(RuntimeError):
-    """The output directory holds a sweep of a different specification, schema or device layout."""
+    """The output directory holds a sweep of a different specification, schema, layout or version."""
 
 
 class StoreCorrupt(RuntimeError):
@@ -79,9 +70,9 @@ def sha256_bytes(b: bytes) -> str:
 class SweepStore:
     """A sweep's store in ``out_dir`` (see the module docstring).
 
-    Opening reads and checks the manifest (spec hash, schema, layout) and verifies every recorded chunk;
-    it writes nothing unless the directory is new (the manifest is then created under the lock). Writers
-    call :meth:`lock` and :meth:`write_chunk`; readers call :meth:`load`.
+    A reader (``writer=False``) checks the manifest (spec hash, schema, layout) and verifies every recorded
+    chunk, writing nothing; :meth:`load` gives the rows. A writer (``writer=True``) takes the lock, repairs and
+    writes the manifest, and records chunks with :meth:`write_chunk`; :meth:`close` releases the lock.
 
     Args:
       out_dir: the sweep directory.
@@ -294,15 +285,16 @@ class SweepStore:
             for p in clean_temporaries(d, all_writers=True):
                 print(f"note: removed {p}, the temporary file of a writer that stopped")
         try:
-            man = self._read_manifest()
+            man, corrupt = self._read_manifest(), False
         except StoreCorrupt:
+            man, corrupt = None, True
+        if man is None:
+            man = self._rebuilt_manifest()
+        self._check(man, self._requested["chunk_size"], self._requested["layout"])
+        if corrupt:
             bad = f"{self.path}.corrupt-{datetime.datetime.now().strftime('%Y%m%dT%H%M%S')}"
             os.replace(self.path, bad)
             print(f"note: {self.path} was corrupt: kept as {bad}, rebuilding the manifest from the chunk files")
-            man = None
-        if man is None:
-            man = self._new_manifest(self._requested["chunk_size"], self._requested["layout"])
-        self._check(man, self._requested["chunk_size"], self._requested["layout"])
         if man.get("layout") is None and self._requested["layout"] is not None:
             man["layout"] = dict(self._requested["layout"], chunk_size=man["chunk_size"])
         self.manifest = man
@@ -314,12 +306,22 @@ class SweepStore:
             self.manifest["chunks"].pop(str(c), None)
         write_json(self.path, self.manifest)
 
+    def _rebuilt_manifest(self) -> dict:
+        """A manifest for a directory without a readable one, from its chunk files' metadata: refused if they are
+        another sweep's; their chunk size and device layout kept, so the checks still apply."""
+        metas = chunk_metas(self.chunks_dir)
+        foreign = sorted({str(m.get("spec_hash")) for m in metas.values()} - {self.spec.spec_hash})
+        if foreign:
+            raise StoreMismatch(f"{self.dir} has no readable {MANIFEST} and its chunk files hold a different sweep "
+                                f"(spec hash {foreign[0][:12]}); use another --out directory or remove {self.dir}")
+        cs = chunk_size_of(metas, self.spec.n_instances) or self._requested["chunk_size"]
+        layout = next((m["layout"] for m in metas.values() if isinstance(m.get("layout"), dict)), None)
+        return self._new_manifest(cs, layout or self._requested["layout"])
+
     def _adopt_unlisted(self) -> None:
         """Chunk files not in the manifest (a writer killed between the chunk's and the manifest's rename)."""
         for name in sorted(os.listdir(self.chunks_dir)):
-            if not (name.endswith(".parquet") and name[:-8].isdigit()):
-                continue
-            c = int(name[:-8])
+            c = int(name[:-8]) if name.endswith(".parquet") and name[:-8].isdigit() else -1
             if str(c) in self.manifest["chunks"] or not 0 <= c < self.n_chunks:
                 continue
             path = os.path.join(self.chunks_dir, name)
@@ -358,7 +360,7 @@ class SweepStore:
         if entry is not None and self._verify_chunk(c, entry)[1] is None:
             self.manifest = man
             return False
-        meta = dict(self._meta(c), wall_s=wall_s)
+        meta = dict(self._meta(c), wall_s=wall_s, layout=man.get("layout"))
         why = self._check_rows(c, rows, meta)
         if why:
             raise ValueError(f"rows given for chunk {c}: {why}")
@@ -381,13 +383,11 @@ class SweepStore:
     def load(self) -> dict[str, np.ndarray]:
         """All verified rows, in instance order (bad chunks are in :attr:`problems`, not here)."""
         parts = [self._verified[c] for c in sorted(self._verified)]
-        if not parts:
-            return {}
         for c in sorted(self._verified):
             if sorted(self._verified[c]) != sorted(parts[0]):
                 raise StoreCorrupt(f"{self.chunk_file(c)} has other columns than the store's first chunk "
                                    f"(computed by another hyqjax version); remove {self.dir} and run the sweep again")
-        return {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]}
+        return {k: np.concatenate([p[k] for p in parts], 0) for k in parts[0]} if parts else {}
 
 
 def open_store(out_dir: str) -> SweepStore:
