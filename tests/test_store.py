@@ -227,7 +227,7 @@ def test_schema_1_store_read_as_is_never_resumed_converted_on_request(tmp_path, 
     same_rows(ro.load(), inputs_outcome(spec, 0, 10))
     before = _files(tmp_path)
     for attempt in (lambda: sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True), ro.check_resumable):
-        with pytest.raises(sweep.StoreMismatch, match="hyqjax.sweep/1.*python -m hyqjax.studies.sweep.legacy"):
+        with pytest.raises(sweep.StoreMismatch, match="hyqjax.sweep/1.*python -m hyqjax.studies.sweep.convert"):
             attempt()
     assert _files(tmp_path) == before  # nothing converted or written by the refused writer
     # A first-format store of another spec is another sweep, for readers too.
@@ -247,6 +247,11 @@ def test_schema_1_store_read_as_is_never_resumed_converted_on_request(tmp_path, 
     assert man["schema"] == sweep.SCHEMA and man["converted_from"] == "hyqjax.sweep/1"
     with pytest.raises(sweep.StoreMismatch, match="converted from schema hyqjax.sweep/1"):
         sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True)
+    from hyqjax.studies.sweep import convert
+
+    capsys.readouterr()
+    assert convert.main([str(tmp_path)]) == 2 and "nothing to convert" in capsys.readouterr().err
+    assert convert.main([]) == 2 and "usage" in capsys.readouterr().err
 
 
 def test_damaged_schema_1_chunk_named(tmp_path, spec):

@@ -5,14 +5,13 @@ hyqjax whose outcome columns and definitions differ from this version's (e.g. ``
 ``completed`` / ``clean``). Its rows are read as they are (:func:`hyqjax.studies.sweep.store.open_store`,
 ``hyqjax report``), each chunk's ``index`` column checked against its row range. A writer never resumes
 it, since its rows and new ones would mix two versions' outcomes; it is refused with
-:func:`read_only_message`. :func:`convert_v1` (``python -m hyqjax.studies.sweep.legacy DIR``) converts it in
+:func:`read_only_message`. :func:`convert_v1` (``python -m hyqjax.studies.sweep.convert DIR``) converts it in
 place to Parquet chunks with hashes (rows kept, ``.npz`` files removed) so that pandas, polars or DuckDB
 open it as one table; the converted store records ``converted_from`` and stays read-only.
 """
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 
@@ -24,7 +23,7 @@ def read_only_message(out_dir: str, schema: str, converted: bool = False) -> str
     """Why a writer is refused on an old (or converted) store, and what to do."""
     what = f"converted from schema {schema}" if converted else f"of schema {schema}"
     how = "" if converted else (f" To open it as one Parquet table (pandas, polars, DuckDB), convert it: "
-                                f"python -m hyqjax.studies.sweep.legacy {out_dir}.")
+                                f"python -m hyqjax.studies.sweep.convert {out_dir}.")
     return (f"{out_dir} holds a sweep {what}, written by an earlier hyqjax (other outcome columns), so this "
             f"version does not add to it (a store never mixes two versions' rows); its rows are read as they are "
             f"(hyqjax report {out_dir}).{how} To run the sweep with this version, use another --out directory")
@@ -94,23 +93,3 @@ def convert_v1(out_dir: str):
     print(f"converted {out_dir} from {schema} (.npz chunks) to {SCHEMA} (Parquet chunks): {len(store.done())} of "
           f"{store.n_chunks} chunks; read-only")
     return store
-
-
-def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1 or argv[0].startswith("-"):
-        print("usage: python -m hyqjax.studies.sweep.legacy DIR  (converts a hyqjax.sweep/1 store to Parquet)",
-              file=sys.stderr)
-        return 2
-    from hyqjax.studies.sweep.store import StoreCorrupt, StoreMismatch
-
-    try:
-        convert_v1(argv[0])
-    except (StoreMismatch, StoreCorrupt, OSError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())
