@@ -95,7 +95,8 @@ def main(argv: list[str] | None = None) -> int:
                 raise UsageError(str(e)) from e
         if not args.no_cache:
             enable_compilation_cache()
-            if argv is None and not debug:  # the command line itself (not main([...]) inside another program)
+            # The command line itself (not main([...]) inside another program), not with Ray's processes.
+            if argv is None and not debug and getattr(args, "executor", "local") != "ray":
                 noise = StderrFilter().start()
         return int(args._run(args) or 0)
     except KeyboardInterrupt:

@@ -126,7 +126,7 @@ class StderrFilter:
         _write_all(self._orig, filter_log_noise(held, final=True)[0])
         os.close(self._r)
 
-    def stop(self, timeout: float = 5.0) -> None:
+    def stop(self, timeout: float = 1.0) -> None:
         """Restore fd 2 and wait (``timeout`` s at most) until everything written before is out."""
         if self._orig is None:
             return
