@@ -409,8 +409,8 @@ def test_cache_load_noise_dropped_everything_else_kept():
     from hyqjax.io.cache import filter_log_noise
 
     keep = b"W1124 16:38:00.521730    6065 other.cc:12] a real warning\n"
-    assert filter_log_noise(b"\rsweep:  50%" + NOISE + keep + NOISE + b"done\n") == (b"\rsweep:  50%" + keep + b"done\n",
-                                                                                   b"")
+    bar = b"\rsweep:  50%"
+    assert filter_log_noise(bar + NOISE + keep + NOISE + b"done\n") == (bar + keep + b"done\n", b"")
     # A noise line split over two reads is held back until it ends, then dropped.
     out, held = filter_log_noise(b"text " + NOISE[:40])
     assert (out, held) == (b"text ", NOISE[:40])
