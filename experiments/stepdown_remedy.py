@@ -51,7 +51,8 @@ VARIANTS = {
     "paper_off": (dict(use_reflex=False), HEIGHTS[:3]),
     "paper_on": (dict(use_reflex=True), HEIGHTS),
     "remedy": (dict(use_reflex=True, shin_remedy=True), HEIGHTS + (0.30,)),
-    "terrain_frame": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=1.0), (0.24,)),
+    "terrain_frame": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=1.0), HEIGHTS),
+    "terrain_frame_no_remedy": (dict(use_reflex=True, terrain_adaptation=1.0), HEIGHTS),
     "short_step_off": (dict(use_reflex=False, max_step_length=0.15), (0.16, 0.21)),
 }
 #: A front swing ending deeper than this below its nominal foothold found the step (m).

@@ -313,6 +313,7 @@ def _writer(tmp_path, spec_dict, out, chunk_size=1, env=None):
                             stderr=subprocess.PIPE, text=True, env={**os.environ, **(env or {})})
 
 
+@pytest.mark.slow  # subprocesses killed and resumed: seconds, not the unit lane
 def test_sigkill_at_random_points_then_resume_is_identical(tmp_path, spec):
     ref = tmp_path / "ref"
     fill(ref, spec, chunk_size=1)
@@ -332,6 +333,7 @@ def test_sigkill_at_random_points_then_resume_is_identical(tmp_path, spec):
     assert not [f for d in (out, out / "chunks") for f in os.listdir(d) if ".tmp" in f]
 
 
+@pytest.mark.slow  # subprocesses killed and resumed: seconds, not the unit lane
 def test_two_writers_no_lost_records(tmp_path, spec):
     out = tmp_path / "out"
     ps = [_writer(tmp_path, SPEC, out, env={"SLOW_RENAME": "0.05"}) for _ in range(2)]
