@@ -53,6 +53,12 @@ VARIANTS = {
     "remedy": (dict(use_reflex=True, shin_remedy=True), HEIGHTS + (0.30,)),
     "terrain_frame": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=1.0), HEIGHTS),
     "terrain_frame_no_remedy": (dict(use_reflex=True, terrain_adaptation=1.0), HEIGHTS),
+    # between the two frames: the remedy with the trunk following 60% / 80% of the feet plane, and in the full
+    # terrain frame with its roll/pitch targets bounded at 0.25 rad instead of 0.35 (tilt failures at 24 cm)
+    "remedy_adapt_0.6": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=0.6), HEIGHTS),
+    "remedy_adapt_0.8": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=0.8), HEIGHTS),
+    "terrain_frame_tilt_0.25": (dict(use_reflex=True, shin_remedy=True, terrain_adaptation=1.0, max_tilt=0.25),
+                                HEIGHTS),
     "short_step_off": (dict(use_reflex=False, max_step_length=0.15), (0.16, 0.21)),
 }
 #: A front swing ending deeper than this below its nominal foothold found the step (m).

@@ -239,7 +239,7 @@ def test_refused_tune_leaves_no_config_and_the_corrected_command_is_accepted(ws,
     assert not os.path.exists("t")
     # The corrected command passes validation (run only up to the checks: nothing simulated here).
     args = cli.build_parser().parse_args(["tune", "--seed", "1", "--out", "t"])
-    args._validate(args)
+    args.validate_command(args)
     assert os.path.isdir("t") and os.listdir("t") == []
 
 

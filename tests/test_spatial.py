@@ -102,3 +102,27 @@ def test_euler_rates_trace_quat_and_roll_pitch_frame(rpy, omega):
     np.testing.assert_allclose(o["rp_batch"][0], o["rp"], atol=0)
     np.testing.assert_allclose(o["rp_batch"][1], o["rp_neg"], atol=0)
     np.testing.assert_allclose(o["rates_batch"][0], o["rates"], atol=0)
+
+
+# ---------------------------------------------------------------- closed-form small solves (core.smallmat)
+
+
+def test_closed_form_small_solves_match_numpy_in_float64():
+    from hyqjax.core import smallmat
+
+    rng = np.random.default_rng(3)
+    a3 = rng.normal(size=(64, 3, 3)) + 3.0 * np.eye(3)
+    b3 = rng.normal(size=(64, 3))
+    m = rng.normal(size=(64, 6, 6))
+    a6 = m @ np.swapaxes(m, -1, -2) + 0.5 * np.eye(6)
+    b6 = rng.normal(size=(64, 6))
+    with jax.enable_x64(True):
+        x3 = np.asarray(jax.jit(smallmat.solve3)(jnp.asarray(a3), jnp.asarray(b3)))
+        x6 = np.asarray(jax.jit(smallmat.spd_solve)(jnp.asarray(a6), jnp.asarray(b6)))
+    np.testing.assert_allclose(x3, np.linalg.solve(a3, b3[..., None])[..., 0], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(x6, np.linalg.solve(a6, b6[..., None])[..., 0], rtol=1e-9, atol=1e-11)
+    # residuals in float32, the width the controller runs in
+    x3f = np.asarray(jax.jit(smallmat.solve3)(jnp.asarray(a3, jnp.float32), jnp.asarray(b3, jnp.float32)))
+    assert np.max(np.abs(np.einsum("bij,bj->bi", a3, x3f) - b3)) < 1e-5
+    x6f = np.asarray(jax.jit(smallmat.spd_solve)(jnp.asarray(a6, jnp.float32), jnp.asarray(b6, jnp.float32)))
+    assert np.max(np.abs(np.einsum("bij,bj->bi", a6, x6f) - b6)) < 1e-4

@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.__doc__, parents=[common],
                            formatter_class=argparse.ArgumentDefaultsHelpFormatter)
         mod.add_arguments(p)
-        p.set_defaults(_run=mod.run, _validate=getattr(mod, "validate", None))
+        p.set_defaults(run_command=mod.run, validate_command=getattr(mod, "validate", None))
     return parser
 
 
@@ -81,16 +81,16 @@ def _user_errors() -> tuple:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if not getattr(args, "_run", None):
+    if not getattr(args, "run_command", None):
         parser.print_help()
         return USAGE_EXIT
     prog = f"hyqjax {args.command}"
     debug = args.debug or os.environ.get("HYQJAX_DEBUG") == "1"
     noise = None
     try:
-        if args._validate is not None:
+        if args.validate_command is not None:
             try:
-                args._validate(args)
+                args.validate_command(args)
             except ValueError as e:  # raised while checking options: the user's to fix
                 raise UsageError(str(e)) from e
         if not args.no_cache:
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             # The command line itself (not main([...]) inside another program), not with Ray's processes.
             if argv is None and not debug and getattr(args, "executor", "local") != "ray":
                 noise = StderrFilter().start()
-        return int(args._run(args) or 0)
+        return int(args.run_command(args) or 0)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

@@ -61,7 +61,7 @@ def validate(args) -> None:
 
     check_options(args)
     prepare_out(args.out)
-    args._validated = True
+    args.options_checked = True
 
 
 def check_options(args) -> None:
@@ -116,9 +116,10 @@ def run(args) -> int:
     from hyqjax.bounding import experiment as bx
     from hyqjax.bounding import params as bd
     from hyqjax.bounding import summary as bs
+    from hyqjax.cli.common import user_options
     from hyqjax.io import atomic as io
 
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
     configs = configurations(args)
     n = args.instances
@@ -142,7 +143,7 @@ def run(args) -> int:
         per = summary.instances[g * n:(g + 1) * n]
         groups[name] = dict(kinematic_adjustment=kin, centrifugal=cf, aggregate=bs.aggregate(per),
                             instances=[p.to_dict() for p in per])
-    opts = {k: v for k, v in vars(args).items() if not k.startswith("_")}
+    opts = user_options(args)
     from hyqjax.sim import backend
 
     out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=backend.resolve_impl(args.impl),

@@ -125,3 +125,12 @@ def check_impl(impl: str, option: str = "--impl") -> None:
     if impl == "warp" and not backend.warp_installed():
         raise UsageError(f"{option} warp needs warp-lang, which is not installed: pip install 'hyqjax[warp]' "
                          f"(or use {option} jax)")
+
+
+#: Attributes the command line sets on its parsed options for itself (not options a user gave).
+INTERNAL_OPTIONS = ("options_checked", "run_command", "validate_command", "study_config", "spec_obj", "recorded")
+
+
+def user_options(args) -> dict:
+    """The options of a parsed command line as a user gave them (for ``results.json``)."""
+    return {k: v for k, v in vars(args).items() if k not in INTERNAL_OPTIONS and not callable(v)}

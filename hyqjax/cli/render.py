@@ -74,7 +74,7 @@ def validate(args) -> None:
         from hyqjax.cli.common import prepare_out
 
         prepare_out(os.path.dirname(os.path.abspath(args.out)), "--out")
-    args._validated = True
+    args.options_checked = True
 
 
 def check_archive(source: str) -> None:
@@ -161,7 +161,7 @@ def stride_for(args, rec, fmt: str) -> int:
 
 
 def run(args) -> int:
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
     rec, row = select(args)
     from hyqjax.io import recording

@@ -57,11 +57,11 @@ def validate(args) -> None:
                 if not isinstance(obj, dict):
                     raise ValueError(f"{p} is not a hyqjax results file (a JSON object expected)")
     prepare_out(os.path.dirname(os.path.abspath(args.out)) if args.out else args.dir, "--out")
-    args._validated = True
+    args.options_checked = True
 
 
 def run(args) -> int:
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
     from hyqjax.io import report
 

@@ -47,23 +47,28 @@ def validate(args) -> None:
     check_range("--instances", args.instances, 1, 100000, integer=True)
     check_range("--seed", args.seed, 0, SEED_MAX, integer=True)
     check_range("--duration", args.duration, 0.1, 600.0, "s")
-    check_range("--speed", args.speed, -0.3, 0.3, "m/s")
+    from hyqjax.core.params import param_ranges
+    from hyqjax.crawl.params import CrawlParams
+
+    v_f = param_ranges(CrawlParams)["forward_velocity"]  # the one declaration of the speed's range
+    check_range("--speed", args.speed, v_f.lo, v_f.hi, v_f.unit)
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
     check_impl(args.impl)
     args.recorded = _recorded_instances(args)
     prepare_out(args.out)
-    args._validated = True
+    args.options_checked = True
 
 
 def run(args) -> int:
     from hyqjax.crawl import controller as crawl
+    from hyqjax.cli.common import user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
     from hyqjax.studies import stepdown
     from hyqjax.studies import stepdown_figures
 
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
     recorded = args.recorded
     params = crawl.CrawlParams.make(forward_velocity=args.speed)
@@ -88,7 +93,7 @@ def run(args) -> int:
     os.makedirs(args.out, exist_ok=True)
     figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
-    config = {k: v for k, v in vars(args).items() if not k.startswith("_") and k != "recorded"}
+    config = user_options(args)
     io.write_json(os.path.join(args.out, "results.json"), dict(
         provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
         instances=instances, figures=figs, wall_time_s=wall))

@@ -159,7 +159,7 @@ def validate(args) -> None:
         except ImportError:
             raise ValueError("--executor ray needs Ray: pip install 'hyqjax[cluster]'") from None
     prepare_out(args.out)
-    args._validated = True
+    args.options_checked = True
 
 
 def run(args) -> int:

@@ -93,9 +93,9 @@ def validate(args) -> None:
     check_range("--offset", args.offset, 0, 5000, integer=True)
     check_range("--checkpoint-every", args.checkpoint_every, 1, 100000, integer=True)
     check_out_free(args.out)
-    args._cfg = _config(args)
+    args.study_config = _config(args)
     prepare_out(args.out)
-    args._validated = True
+    args.options_checked = True
 
 
 def _config(args):
@@ -125,9 +125,9 @@ def _config(args):
 
 
 def run(args) -> int:
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
-    cfg = args._cfg
+    cfg = args.study_config
     groups, base_list = cfg.groups, cfg.baselines
     from hyqjax.studies.tune import figure, study
 

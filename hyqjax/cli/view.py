@@ -53,11 +53,11 @@ def validate(args) -> None:
 
     _check(args)
     render_cmd.check_archive(args.source)
-    args._validated = True
+    args.options_checked = True
 
 
 def run(args) -> int:
-    if not getattr(args, "_validated", False):
+    if not getattr(args, "options_checked", False):
         validate(args)
     from hyqjax.cli import render as render_cmd
 

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import kinematics
-from hyqjax.core import robot
+from hyqjax.core import robot, smallmat
 from hyqjax.core import spatial
 
 #: Lever arm (m) by which the moment rows of the wrench residual are divided (about the hip half-width).
@@ -84,7 +84,7 @@ def least_norm_forces(a, stance, b):
     dtype = a.dtype
     w = jnp.repeat(jnp.asarray(stance, dtype), 3)
     a_s = a * w[None, :]
-    f = a_s.T @ jnp.linalg.solve(a_s @ a_s.T + 1e-6 * jnp.eye(6, dtype=dtype), b)
+    f = a_s.T @ smallmat.spd_solve(a_s @ a_s.T + 1e-6 * jnp.eye(6, dtype=dtype), b)
     return f * w
 
 

@@ -108,6 +108,9 @@ class ParamSpec:
         """Raise :class:`ParameterError` unless every element of ``value`` is in range and its trailing
         shape is one of :attr:`shapes` (leading batch dimensions are allowed)."""
         a = _as_float_array(value, owner, self.name, self.range_text)
+        if np.asarray(value).dtype == np.float32:  # float32(0.3) = 0.30000001 is the declared end 0.3 itself
+            f32 = np.asarray(value)
+            a = np.where(f32 == np.float32(self.lo), self.lo, np.where(f32 == np.float32(self.hi), self.hi, a))
         ok = self.in_range(a)
         if not ok.all():
             bad = a[~ok][0] if a.ndim else a

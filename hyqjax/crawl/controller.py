@@ -90,7 +90,7 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
 
     # --- mobility of every leg along the terrain normal (Eq. 12), at the measured configuration.
     jac = kinematics.foot_jacobians(obs.q)
-    mob = jax.vmap(lambda j: reflex.velocity_transformation_ratio(j, normal_b)[0])(jac)
+    mob = jax.vmap(lambda j: reflex.transmission_ratio(j, normal_b))(jac)  # m of Eq. 12 (no SVD)
 
     # --- phase logic.
     t_new = st.t_phase + dt

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import kinematics
-from hyqjax.core import robot
+from hyqjax.core import robot, smallmat
 from hyqjax.core import spatial
 
 #: Step fractions tried, longest first, when the full step leaves the leg's workspace.
@@ -25,7 +25,7 @@ REACH_MARGIN = 0.08
 def feet_plane(x):
     """Roll and pitch of the least-squares plane ``z = a x + b y + c`` through the feet ``(4, 3)``."""
     a_mat = jnp.stack([x[:, 0], x[:, 1], jnp.ones_like(x[:, 0])], -1)
-    coef = jnp.linalg.solve(a_mat.T @ a_mat + 1e-9 * jnp.eye(3, dtype=x.dtype), a_mat.T @ x[:, 2])
+    coef = smallmat.solve3(a_mat.T @ a_mat + 1e-9 * jnp.eye(3, dtype=x.dtype), a_mat.T @ x[:, 2])
     pitch = jnp.arctan(-coef[0])  # feet lower in front -> nose down (positive pitch in ZYX about +y)
     roll = jnp.arctan(coef[1])
     return jnp.stack([roll, pitch])

@@ -9,7 +9,7 @@ import numpy as np
 
 from hyqjax.control import impedance
 from hyqjax.core import robot
-from hyqjax.core.params import ParameterError, is_concrete, param_field, param_ranges
+from hyqjax.core.params import ParameterError, check_params, is_concrete, param_field, param_ranges, params_dataclass
 from hyqjax.reflex import step as reflex
 
 #: Foot sequences (leg indices LF=0, RF=1, LH=2, RH=3). Hind-then-front on each side, the usual crawl.
@@ -24,17 +24,6 @@ FOOT_SEQUENCES = {
 COM_OFFSET_B = np.array([0.00696, 0.0, -0.0426])
 
 
-def _at_declared_ends(spec, v) -> np.ndarray:
-    """``v`` in float64, where a float32 element equal to float32(lo) or float32(hi) counts as the end itself
-    (``make`` stores float32: ``0.3`` becomes 0.30000001, still the declared end of ``[-0.3, 0.3]``)."""
-    a = np.asarray(v)
-    out = a.astype(np.float64)
-    if a.dtype == np.float32:
-        out[a == np.float32(spec.lo)] = spec.lo
-        out[a == np.float32(spec.hi)] = spec.hi
-    return out
-
-
 def _as_float(v, name: str) -> np.ndarray:
     try:
         return np.asarray(v, np.float64)
@@ -42,8 +31,7 @@ def _as_float(v, name: str) -> np.ndarray:
         raise ParameterError("CrawlParams", name, v, "a number") from e
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
+@params_dataclass
 class CrawlParams:
     """Crawl parameters; every field but ``weight_qp`` is a PyTree leaf (vmap/grad reach it), ``foot_sequence``,
     ``use_reflex`` and ``shin_remedy`` included (given per instance as arrays).
@@ -163,15 +151,9 @@ class CrawlParams:
                            gains=gains or impedance.ImpedanceGains.make(),
                            reflex=reflex_params or reflex.ReflexParams.table1())
 
-    def validate(self) -> "CrawlParams":
-        """Check every concrete field, every element of batched leaves included, against its declared range,
-        the leg order, the gains and the reflex parameters; return ``self``. Raises
-        :class:`hyqjax.core.params.ParameterError` naming the parameter and its range. Construction and
-        :meth:`replace` do not validate (a float32 leaf at an end of its range is valid: see ``make``)."""
-        for name, spec in param_ranges(self).items():
-            v = getattr(self, name)
-            if not spec.static and is_concrete(v):
-                spec.check(_at_declared_ends(spec, v), "CrawlParams")
+    def __post_init__(self):
+        """Construction, ``dataclasses.replace`` and :meth:`replace` check the concrete leaves (ranges: by
+        :func:`hyqjax.core.params.check_params` after this), the static ``weight_qp`` and the leg order."""
         if not isinstance(self.weight_qp, (bool, np.bool_)):
             raise ParameterError("CrawlParams", "weight_qp", repr(self.weight_qp), "True or False (static)")
         seq = self.foot_sequence
@@ -182,9 +164,17 @@ class CrawlParams:
             if not ok.all():
                 raise ParameterError("CrawlParams", "foot_sequence", repr(tuple(rows[np.argmin(ok)].tolist())),
                                      "a permutation of (0, 1, 2, 3)", problem="is not a leg order")
+
+    def validate(self) -> "CrawlParams":
+        """Check every concrete field (every element of batched leaves), the leg order, the gains and the reflex
+        parameters; return ``self``. Raises :class:`hyqjax.core.params.ParameterError` naming the parameter and
+        its range. Construction and :meth:`replace` run the same checks on this class's own fields."""
+        self.__post_init__()
+        check_params(self)
         self.gains.validate()
         self.reflex.validate()
         return self
 
     def replace(self, **kw) -> "CrawlParams":
+        """``dataclasses.replace``, validated (construction checks)."""
         return dataclasses.replace(self, **kw)

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 
 from hyqjax.control import trajectories
 from hyqjax.core import kinematics
-from hyqjax.core import robot
+from hyqjax.core import robot, smallmat
 from hyqjax.core import spatial
 from hyqjax.crawl.params import CrawlParams
 from hyqjax.crawl.state import PHASE_BODY, CrawlState
@@ -69,6 +69,5 @@ def joint_velocities(q, xd_b):
     """``qd = J_f(q)^-1 xd`` per leg ``(12,)`` (damped near the stretched leg), clipped to the velocity limit."""
     jac = kinematics.foot_jacobians(q)
     eye = jnp.eye(3, dtype=jac.dtype)
-    qd = jnp.einsum("lji,lj->li", jac, jnp.linalg.solve(
-        jac @ jnp.swapaxes(jac, -1, -2) + JACOBIAN_DAMPING**2 * eye, xd_b[..., None])[..., 0])
+    qd = jnp.einsum("lji,lj->li", jac, smallmat.solve3(jac @ jnp.swapaxes(jac, -1, -2) + JACOBIAN_DAMPING**2 * eye, xd_b))
     return jnp.clip(qd.reshape(robot.N_JOINTS), -robot.VELOCITY_LIMIT, robot.VELOCITY_LIMIT)

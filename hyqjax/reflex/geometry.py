@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import robot
+from hyqjax.core.smallmat import adj3, cofactors3, det3  # noqa: F401  (re-exported: Eq. 6's closed form uses them)
 
 #: ``STANCE_LEGS[s]`` are the stance legs (in the order 1, 2, 3 of Eq. 4-6) when leg ``s`` swings
 #: (:data:`hyqjax.core.robot.STANCE_LEGS`).
@@ -192,21 +193,6 @@ def orientation_error(n_t: jax.Array, n_t_des: jax.Array) -> jax.Array:
 # ---------------------------------------------------------------------------------------------
 
 
-def cofactors3(m):
-    """Cofactor matrix of a 3x3 matrix: row ``i`` is ``r_{i+1} x r_{i+2}`` of the rows ``r``."""
-    return jnp.cross(jnp.roll(m, -1, axis=-2), jnp.roll(m, -2, axis=-2))
-
-
-def det3(m):
-    """Determinant of a 3x3 matrix, ``r_0 . (r_1 x r_2)``."""
-    return dot_last(m[..., 0, :], jnp.cross(m[..., 1, :], m[..., 2, :]))
-
-
-def _adj3(m):
-    """Adjugate (transposed cofactor matrix) of a 3x3 matrix: ``m @ adj(m) = det(m) I``."""
-    return jnp.swapaxes(cofactors3(m), -1, -2)
-
-
 def _regularised_gram(j_foot):
     g = usum(j_foot[..., :, None, :] * j_foot[..., None, :, :], -1)
     tr = g[..., 0, 0] + g[..., 1, 1] + g[..., 2, 2]
@@ -225,7 +211,7 @@ def transmission_ratio(j_foot: jax.Array, direction: jax.Array) -> jax.Array:
         v = safe_normalize(jnp.asarray(direction, dtype), fallback=jnp.asarray([0.0, 0.0, 1.0], dtype))
         g = _regularised_gram(j_foot)
         det = jnp.maximum(det3(g), 0.0)
-        quad = dot_last(v, matvec(_adj3(g), v))
+        quad = dot_last(v, matvec(adj3(g), v))
         # v^T G^{-1} v = v^T adj(G) v / det(G)  =>  m^2 = det(G) / (v^T adj(G) v).
         quad = jnp.maximum(quad, _tiny(dtype))
         floor = jnp.asarray(MOBILITY_FLOOR, dtype)

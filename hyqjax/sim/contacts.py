@@ -160,3 +160,22 @@ def overflow(d) -> jax.Array:
     if flag is None:
         return jnp.array(False)
     return jnp.any((jnp.asarray(flag) & BUFFER_OVERFLOW_MASK) != 0)
+
+
+def slot_geoms(d) -> np.ndarray:
+    """``(ncon, 2)`` geom ids of MJX-JAX's static contact slots (the candidate pairs, one row per slot, in a
+    fixed order), for code that needs a per-pair signed distance (:func:`slot_distances`). MJX-JAX only: MuJoCo
+    Warp keeps no per-instance contact slots (its contacts are read through the sensors above)."""
+    contact = getattr(getattr(d, "_impl", None), "contact", None)
+    if contact is None or not hasattr(contact, "geom"):
+        raise ValueError("contact slots exist only under impl='jax' (MuJoCo Warp shares one contact buffer)")
+    return np.asarray(contact.geom)
+
+
+def slot_distances(d) -> jax.Array:
+    """``(ncon,)`` signed distance of every static contact slot (negative: penetration), MJX-JAX only; a smooth
+    function of the state, which the tuner's clearance and foothold terms differentiate."""
+    contact = getattr(getattr(d, "_impl", None), "contact", None)
+    if contact is None or not hasattr(contact, "dist"):
+        raise ValueError("contact slots exist only under impl='jax' (MuJoCo Warp shares one contact buffer)")
+    return contact.dist

@@ -33,7 +33,7 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from hyqjax.core import kinematics
+from hyqjax.core import kinematics, smallmat
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
@@ -161,7 +161,7 @@ def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | N
     rhs = (bias - tau.reshape(4, 3))[..., None]
     reg = 1e-6 * jnp.eye(3, dtype=q.dtype)
     jt = jnp.swapaxes(jac, -1, -2)
-    force = jnp.linalg.solve(jt + reg, rhs)[..., 0]
+    force = smallmat.solve3(jt + reg, rhs[..., 0])
     return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
 
 

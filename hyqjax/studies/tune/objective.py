@@ -45,6 +45,7 @@ import numpy as np
 from hyqjax.core import kinematics, robot, spatial
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import params as rparams
+from hyqjax.sim import contacts
 from hyqjax.studies.tune import windows as wmod
 from hyqjax.studies.tune.space import ParamSpace
 
@@ -113,7 +114,7 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
     def body(carry, _):
         d, cs, tau = carry
         d1, cs1, tau1, info = wmod.tick(mx, ids, p, d, cs, tau, dt)
-        dist = d1._impl.contact.dist
+        dist = contacts.slot_distances(d1)
         clear = jnp.sum(_sp(obj.clearance - dist[strike_slots], obj.clearance_soft))
         q = d1.qpos[qadr]
         joint = jnp.sum(_sp(q - q_hi, obj.joint_soft) + _sp(q_lo - q, obj.joint_soft))
@@ -122,10 +123,10 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
         foot_d = jnp.stack([jnp.min(dist[s]) for s in slots.feet])
         trig = (info.touchdown | info.limit_stop).astype(dtype)
         foot = trig * jax.nn.relu(foot_d[info.swing_leg] - obj.foothold_tol)
-        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d1.qpos[3:7]))
+        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d1.qpos[robot.QPOS_BASE_QUAT]))
         sd = info.swing_down.astype(dtype)
         y = dict(clearance=clear, joint=joint, workspace=work, foothold=foot, tilt=rpy[0] ** 2 + rpy[1] ** 2,
-                 mobility=sd * jnp.sum(info.mobility), sd=sd, x=d1.qpos[0])
+                 mobility=sd * jnp.sum(info.mobility), sd=sd, x=d1.qpos[robot.QPOS_BASE_POS][0])
         return (d1, cs1, tau1), y
 
     _, ys = jax.lax.scan(body, (d, cs, tau), None, length=obj.ticks)
@@ -137,7 +138,7 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
         out = {k: cum[k][i] / n for k in ("clearance", "joint", "workspace", "tilt")}
         out["foothold"] = cum["foothold"][i]
         out["mobility"] = cum["mobility"][i] / jnp.maximum(cum["sd"][i], 1.0)
-        out["progress"] = (ys["x"][i] - d.qpos[0]) / (n * dt)
+        out["progress"] = (ys["x"][i] - d.qpos[robot.QPOS_BASE_POS][0]) / (n * dt)
         out["stability"] = stab
         return out
 

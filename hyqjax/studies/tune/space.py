@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hyqjax.core.params import ParameterError
+
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import step as hreflex
 
@@ -75,6 +77,16 @@ def _logit(p: float) -> float:
     return math.log(p / (1 - p))
 
 
+def shared_value(params, name: str) -> float:
+    """The one value of field ``name`` of ``params``; a per-instance field with different values is refused
+    (one parameter set per robot is tuned with ``objective.make_per_robot_value_and_jac``), never averaged."""
+    v = np.asarray(getattr(params, name), np.float64)
+    if v.size > 1 and not np.all(v == v.reshape(-1)[0]):
+        raise ParameterError(type(params).__name__, name, f"per-instance values {v.min():g}..{v.max():g}",
+                             "one value shared by every instance (tune per robot for per-instance parameters)")
+    return float(v.reshape(-1)[0])
+
+
 @dataclasses.dataclass(frozen=True)
 class ParamSpace:
     """A static set of coordinates (hashable: part of jit cache keys)."""
@@ -115,7 +127,7 @@ class ParamSpace:
 
     def theta_of(self, params: crawl.CrawlParams) -> np.ndarray:
         """The ``theta`` (float64 numpy) that reproduces ``params`` on the tuned coordinates."""
-        val = lambda c: float(np.asarray(getattr(params.reflex if c.owner == "reflex" else params, c.name)).mean())
+        val = lambda c: shared_value(params.reflex if c.owner == "reflex" else params, c.name)  # noqa: E731
         out = []
         for c in self.coords:
             v = val(c)
@@ -144,7 +156,7 @@ class ParamSpace:
         """Validated ``CrawlParams`` of a concrete ``theta`` (outside jit): for evaluation and reports."""
         base = base or crawl.CrawlParams.make()
         v = {k: float(x) for k, x in self.values(jnp.asarray(np.asarray(theta, np.float64))).items()}
-        rp = {f.name: float(np.asarray(getattr(base.reflex, f.name)).mean()) for f in dataclasses.fields(base.reflex)}
+        rp = {f.name: shared_value(base.reflex, f.name) for f in dataclasses.fields(base.reflex)}
         rp.update({c.name: v[c.name] for c in self.coords if c.owner == "reflex"})
         ck = {c.name: v[c.name] for c in self.coords if c.owner == "crawl"}
         out = dataclasses.replace(base, reflex=hreflex.ReflexParams(**rp).validate(),

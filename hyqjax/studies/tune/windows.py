@@ -32,6 +32,7 @@ from mujoco import mjx
 
 from hyqjax.core import robot
 from hyqjax.crawl import controller as crawl
+from hyqjax.sim import contacts
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
 from hyqjax.studies import stepdown
@@ -64,7 +65,7 @@ def setup(control_dt: float = 0.002, dtype: str = "float32") -> Setup:
         mx = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64) if hasattr(x, "dtype") and
                                     jnp.issubdtype(x.dtype, jnp.floating) else x, mx)
     d = jax.jit(mjx.forward)(mx, mjx.make_data(mx))
-    geom = np.asarray(d._impl.contact.geom)
+    geom = contacts.slot_geoms(d)
     shin = np.nonzero(np.isin(geom, ids.shin_geoms).any(1))[0]
     trunk = np.nonzero(np.isin(geom, [ids.trunk_geom]).any(1))[0]
     feet = [np.nonzero(np.isin(geom, [g]).any(1))[0] for g in ids.foot_geoms]
