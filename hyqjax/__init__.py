@@ -14,7 +14,9 @@ The public API is re-exported here and imported on first use (``import hyqjax`` 
 ``StepdownConfig``, ``Scenario``, ``make_scenarios``, ``make_stepdown_rollout``, ``StepdownOutcome``,
 ``run_batch``, ``summarize``, ``format_table``; ``CrawlParams``, ``ReflexParams``, ``batch_params``;
 ``SimConfig``, ``make_batch_runner``, ``rollout``, ``batch_mesh``; ``load_model``, ``model_ids``,
-``InstanceTerrain``, ``batch_model``; ``resolve_impl``.
+``InstanceTerrain``, ``batch_model``; ``resolve_impl``; the bound: ``BoundingRolloutConfig``,
+``make_bounding_rollout``, ``BoundingRollout``, ``BoundingOutcome``, ``BoundingParams`` (batches from
+``hyqjax.bounding.make_batch``).
 """
 from __future__ import annotations
 
@@ -50,6 +52,9 @@ _PUBLIC = {
     "make_batch_runner": "hyqjax.sim.runner", "batch_mesh": "hyqjax.sim.runner",
     "load_model": "hyqjax.sim.model", "model_ids": "hyqjax.sim.model", "InstanceTerrain": "hyqjax.sim.model",
     "batch_model": "hyqjax.sim.model", "resolve_impl": "hyqjax.sim.backend",
+    "BoundingRolloutConfig": "hyqjax.bounding.rollout", "make_bounding_rollout": "hyqjax.bounding.rollout",
+    "BoundingRollout": "hyqjax.bounding.rollout", "BoundingOutcome": "hyqjax.bounding.rollout",
+    "BoundingParams": "hyqjax.bounding.params",
 }
 __all__ = sorted(_PUBLIC)
 

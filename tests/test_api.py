@@ -1,6 +1,9 @@
 """The examples of docs/api.md, run as written (public names only), with checks of what they compute:
 a batch step-down with per-instance reflex parameters, and the forward-mode gradient of a closed-loop metric
-with respect to K_base and the reflex's damping bounds against central finite differences (float64)."""
+with respect to K_base and the reflex's damping bounds against central finite differences (float64); a bounding
+batch (the batch runner against the single-instance rollout under vmap), the forward-mode derivative of the
+bound's final speed with respect to the commanded speed against central finite differences (float64), and the
+retrace guard of the bounding rollout."""
 from __future__ import annotations
 
 import os
@@ -29,7 +32,7 @@ def _run_block(i: int) -> dict:
 
 def test_examples_use_public_names_only():
     blocks = _doc_blocks()
-    assert len(blocks) == 2
+    assert len(blocks) == 4
     for code in blocks:
         assert not re.search(r"\b_[a-z]\w*", code), "a private name in docs/api.md"
         assert "from hyqjax." not in code and "hyqjax._" not in code
@@ -96,6 +99,104 @@ def test_gradient_wrt_k_base_and_damping_bounds_matches_finite_differences():
     # not match at 1% steps (docs/api.md gives the numbers); only their finiteness is checked here.
     np.testing.assert_allclose(g[:3], fd[:3], rtol=0.02)
     assert abs(g[0] * x0[0]) > 1e-5  # K_base moves the trunk height by more than 10 um per unit log-change
+
+
+COMPILES: list[str] = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: COMPILES.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
+
+
+def test_bounding_rollout_config_names_the_bad_setting():
+    import hyqjax
+    from hyqjax.bounding.experiment import SettingError
+
+    for kwargs, name in ((dict(duration=0.0), "duration"), (dict(duration=float("nan")), "duration"),
+                         (dict(duration=601.0), "duration"), (dict(control_dt=0.05), "control_dt"),
+                         (dict(record_every=-1), "record_every"), (dict(record_every=2.0), "record_every"),
+                         (dict(impl="cuda"), "impl"), (dict(duration=0.8, record_every=3), "record_every"),
+                         (dict(duration=0.8011), "duration")):
+        with pytest.raises(SettingError, match=name) as e:
+            hyqjax.BoundingRolloutConfig(**kwargs)
+        assert e.value.name == name
+    cfg = hyqjax.BoundingRolloutConfig(duration=1.0)
+    assert hash(cfg) == hash(hyqjax.BoundingRolloutConfig(duration=1.0))
+    with pytest.raises(SettingError, match="multiple of the gait period 0.4"):
+        cfg.check_period(0.4)  # 1.0 s is 2.5 periods
+    with pytest.raises(SettingError, match="share the gait period"):
+        cfg.check_period([0.5, 0.25])
+    hyqjax.BoundingRolloutConfig(duration=1.2, record_every=10).check_period(np.full(3, 0.4))
+
+
+@pytest.mark.slow
+def test_bounding_batch_equals_single_instance_rollout_under_vmap():
+    import hyqjax
+
+    ns = _run_block(2)
+    out, res, batch, rollout = ns["outcome"], ns["result"], ns["batch"], ns["rollout"]
+    assert out.fell.shape == (2,) and res.data.qpos.shape == (2, 19) and res.trace is None
+    # 0.8 s from a randomised apex state: both bound on, neither fell nor diverged.
+    assert not np.any(np.asarray(out.fell)) and not np.any(np.asarray(out.diverged))
+    assert np.all(np.asarray(out.min_z) > 0.45) and np.all(np.asarray(out.fall_tick) == -1)
+    one, final = jax.jit(jax.vmap(rollout))(*hyqjax.bounding.instance_args(batch))
+    np.testing.assert_array_equal(np.asarray(one.fell), np.asarray(out.fell))
+    np.testing.assert_allclose(np.asarray(one.min_z), np.asarray(out.min_z), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(one.final_speed), np.asarray(out.final_speed), atol=1e-4)
+    np.testing.assert_allclose(np.asarray(final.qpos), np.asarray(res.data.qpos), atol=1e-4)
+    # The final position is the final data's; the heading stays near its start (yaw rates of 0.05 rad/s).
+    assert np.all(np.abs(np.asarray(out.final_yaw)) < 0.2)
+    np.testing.assert_allclose(np.asarray(out.final_position), np.asarray(res.data.qpos[:, :3]))
+
+
+@pytest.mark.slow
+def test_bounding_final_speed_derivative_wrt_command_matches_finite_differences():
+    """Block 3 in a fresh float64 process (``JAX_ENABLE_X64=1``): jax's scoped ``enable_x64`` after float32 traces
+    of the same code in one process reuses their int32 index constants (jax-ml/jax#11092: enable x64 at start)."""
+    from conftest import run_python
+
+    r = run_python(f"""
+    import json
+    import hyqjax
+    import jax
+    import numpy as np
+    assert jax.config.jax_enable_x64
+    ns = {{}}
+    exec(compile({_doc_blocks()[3]!r}, "docs/api.md block 3", "exec"), ns)
+    f, dv = ns["final_speed"], float(ns["dv"])
+    h = 0.005  # 1% of the commanded 0.5 m/s
+    vals = np.asarray(jax.jit(jax.vmap(f))(jax.numpy.asarray([0.5 + h, 0.5 - h])))
+    out = dict(dv=dv, fd=float(vals[0] - vals[1]) / (2 * h), dtype=str(ns["rollout"].setup.mx.qpos0.dtype),
+               speed_dtype=str(vals.dtype))
+    print("RESULT", json.dumps(out))
+    """, timeout=900, env={"JAX_ENABLE_X64": "1"})
+    lines = [x for x in r.stdout.splitlines() if x.startswith("RESULT ")]
+    assert r.returncode == 0 and lines, r.stderr[-3000:]
+    import json
+
+    res = json.loads(lines[-1][len("RESULT "):])
+    sys.stdout.write(f"jacfwd {res['dv']}\nfinite differences {res['fd']}\n")
+    assert res["dtype"] == "float64" and res["speed_dtype"] == "float64", res
+    assert np.isfinite(res["dv"]) and abs(res["dv"]) > 1e-3, res  # the command moves the final speed
+    np.testing.assert_allclose(res["dv"], res["fd"], rtol=1e-3)  # measured: 1e-8 (the gait's phases follow the clock)
+
+
+@pytest.mark.slow
+def test_bounding_rollout_is_cached_and_a_new_batch_compiles_nothing():
+    import hyqjax
+
+    ns = _run_block(2)
+    rollout, cfg = ns["rollout"], ns["cfg"]
+    assert rollout is hyqjax.make_bounding_rollout(hyqjax.BoundingRolloutConfig(duration=0.8, impl="jax"))
+    assert rollout is hyqjax.make_bounding_rollout(cfg)
+    compiled = rollout.runner().n_compiles
+    assert compiled >= 1
+    # New parameter values (same shapes): commanded speeds and a gain, new randomisation.
+    plist = [hyqjax.bounding.default_params(speed=s, k_roll=500.0) for s in (0.3, 0.7)]
+    batch2 = hyqjax.bounding.make_batch(plist, seed=1)
+    compiles = len(COMPILES)
+    out2, _ = rollout.run(batch2)
+    assert rollout.runner().n_compiles == compiled, "a batch with new parameter values traced the runner again"
+    assert len(COMPILES) == compiles, f"a batch with new parameter values compiled {len(COMPILES) - compiles} programs"
+    assert not np.array_equal(np.asarray(out2.final_speed), np.asarray(ns["outcome"].final_speed))
 
 
 def _resolve(dotted: str):

@@ -11,7 +11,9 @@ Modules, one concept each:
   cycle       apex return map through MJX, Levenberg-Marquardt cycle optimisation (optimistix), gradient check
   stability   linearised return map, apex feedback matrix and design, the stance reference table
   defaults    the stored limit cycle (``default_cycle.json``)
-  experiment  batched randomised instances, one compiled rollout, device fall metrics, setting validation
+  experiment  batched randomised instances, device fall metrics, setting validation, ``run`` (NumPy traces)
+  rollout     ``make_bounding_rollout``: the closed loop of one instance as a pure JAX function (jit / vmap /
+              jacfwd) with a typed ``BoundingOutcome``, and the batch through the one compiled runner
   summary     per-instance ``InstanceResult`` and per-group tracking metrics, ablation contributions
   plots       figures
 """
@@ -26,8 +28,17 @@ from hyqjax.bounding.params import (
     Switches,
     default_params,
 )
+from hyqjax.bounding.experiment import Batch, Randomisation, make_batch
+from hyqjax.bounding.rollout import (
+    BoundingOutcome,
+    BoundingRollout,
+    BoundingRolloutConfig,
+    instance_args,
+    make_bounding_rollout,
+)
 from hyqjax.bounding.state import BoundingInfo, BoundingState
 
-__all__ = ["APEX_NAMES", "Apex", "BoundingCommand", "BoundingGains", "BoundingInfo", "BoundingParams",
-           "BoundingState", "GaitParams", "Switches", "bounding_controller", "bounding_init", "bounding_step",
-           "default_params"]
+__all__ = ["APEX_NAMES", "Apex", "Batch", "BoundingCommand", "BoundingGains", "BoundingInfo", "BoundingOutcome",
+           "BoundingParams", "BoundingRollout", "BoundingRolloutConfig", "BoundingState", "GaitParams", "Randomisation",
+           "Switches", "bounding_controller", "bounding_init", "bounding_step", "default_params", "instance_args",
+           "make_batch", "make_bounding_rollout"]

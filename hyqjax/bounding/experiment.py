@@ -268,14 +268,6 @@ def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
     return dw.replace(qvel=d.qvel.astype(dw.qvel.dtype))
 
 
-@functools.lru_cache(maxsize=2)
-def _model(impl: str):
-    """``(m, mx_jax, mx_impl, ids)``: the bounding model (:func:`hyqjax.bounding.cycle.model`) and its MJX model
-    under the resolved ``impl``."""
-    m, mx, ids = bc.model()
-    return m, mx, (mx if impl == "jax" else backend.put_model(m, impl)), ids
-
-
 @functools.lru_cache(maxsize=8)
 def runner(cfg: sim.SimConfig):
     """The batch runner of the bound for a static configuration (:func:`hyqjax.sim.rollout.make_batch_runner`,
@@ -288,20 +280,16 @@ def runner(cfg: sim.SimConfig):
 
 def run(batch: Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,
         impl: str = "jax"):
-    """Simulate the batch (:func:`runner`); returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)``
-    (simulated seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax |
-    warp`` (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``)."""
-    m, mx_jax, mx, ids = _model(backend.resolve_impl(impl))
-    period = float(np.asarray(batch.params.gait.period).reshape(-1)[0])
-    if not np.allclose(np.asarray(batch.params.gait.period), period):
-        raise ValueError("all instances must share the gait period")
-    n_per = int(round(period / control_dt))
-    if abs(n_per * control_dt - period) > 1e-6 or n_per % record_every:
-        raise ValueError(f"the gait period ({period}) must be a multiple of record_every * control_dt "
-                         f"({record_every} x {control_dt})")
-    cfg = sim.SimConfig(control_dt=control_dt, duration=duration, record_every=record_every)
-    mxb = hmodel.batch_model(mx, ids, batch.terrain)
-    d0 = initial_data(batch, m, mx_jax, mxb)
-    res = runner(cfg)(mxb, d0, batch.params, batch.push, progress=progress)
-    trace = jax.tree_util.tree_map(np.asarray, res.trace)
-    return res, trace
+    """Simulate the batch; returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)`` (simulated
+    seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax | warp``
+    (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``).
+
+    The batch goes through ``make_bounding_rollout(BoundingRolloutConfig(duration, control_dt, record_every,
+    impl)).run(batch)`` (:mod:`hyqjax.bounding.rollout`, which also returns typed outcomes): the settings are
+    checked there (:class:`SettingError`; ``duration`` a whole number of gait periods, the period a multiple of
+    ``record_every * control_dt``)."""
+    from hyqjax.bounding.rollout import BoundingRolloutConfig, make_bounding_rollout
+
+    cfg = BoundingRolloutConfig(duration=duration, control_dt=control_dt, record_every=record_every, impl=impl)
+    _, res = make_bounding_rollout(cfg).run(batch, progress=progress)
+    return res, jax.tree_util.tree_map(np.asarray, res.trace)
