@@ -183,7 +183,7 @@ def run(args) -> int:
     t0 = time.time()
     try:
         res = render.render_recording(rec, row, out, opts, stride=stride, start=args.start, end=args.end,
-                                      speed=args.speed, stills=args.stills)
+                                      speed=args.speed, stills=args.stills, progress=True)
     except render.RenderBackendError as err:
         raise UsageError(str(err)) from None
     except ValueError as err:

@@ -314,11 +314,12 @@ def still_indices(inst: dict[str, np.ndarray], indices: np.ndarray, n: int) -> n
 
 def render_recording(rec: "recording.Recording", row: int, out_path: str, opts: RenderOptions = RenderOptions(),
                      stride: int = 1, start: float | None = None, end: float | None = None, speed: float = 1.0,
-                     stills: int = 0) -> dict:
+                     stills: int = 0, progress: bool = False) -> dict:
     """Render row ``row`` of a recording to ``out_path`` (and ``stills`` PNGs next to it).
 
     Playback runs at ``speed`` times real time: one frame per drawn sample, ``fps = speed / (sample_dt * stride)``.
-    Returns ``dict(video=..., frames=..., fps=..., stills=[...])``.
+    Returns ``dict(video=..., frames=..., fps=..., stills=[...])``. ``progress``: a tqdm bar over the frames
+    with an ETA (on stderr).
     """
     inst = rec.instance(row)
     idx = sample_indices(inst["time"], stride, start, end)
@@ -327,7 +328,13 @@ def render_recording(rec: "recording.Recording", row: int, out_path: str, opts: 
                          f"{float(inst['time'][0]):.2f}-{float(inst['time'][-1]):.2f} s)")
     fps = speed / (rec.sample_dt * max(stride, 1))
     window = (int(idx[0]), int(idx[-1]))
-    n = write_video(out_path, frames(inst, idx, opts, window), fps)
+    images = frames(inst, idx, opts, window)
+    if progress:
+        from tqdm.auto import tqdm
+
+        images = tqdm(images, total=len(idx), desc=f"render {os.path.basename(out_path)}", unit="frame",
+                      dynamic_ncols=True)
+    n = write_video(out_path, images, fps)
     still_paths = []
     if stills:
         base = os.path.splitext(out_path)[0]

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.io.atomic import atomic_write
+from hyqjax.io.atomic import atomic_write, dumps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,7 +106,7 @@ def run_adam(step_fn: Callable, theta0, cfg: AdamConfig, out_dir: str, config: d
     else:
         step, theta, spent = 0, jnp.asarray(theta0), 0
         opt_state = opt.init(theta)
-    lines = [json.dumps(r) + "\n" for r in read_log(out_dir) if r["step"] < step]
+    lines = [dumps(r, indent=None) + "\n" for r in read_log(out_dir) if r["step"] < step]
     atomic_write(lpath, lambda f: f.write("".join(lines).encode()))
     update = jax.jit(lambda g, s, th: opt.update(g, s, th))
     end = cfg.steps if stop_after is None else min(cfg.steps, step + stop_after)
@@ -131,7 +131,7 @@ def run_adam(step_fn: Callable, theta0, cfg: AdamConfig, out_dir: str, config: d
                     rec["params"] = describe(theta)
                 theta = optax.apply_updates(theta, upd)
                 spent += cost_per_step
-                log.write(json.dumps(rec) + "\n")
+                log.write(dumps(rec, indent=None) + "\n")  # strict JSON lines (non-finite -> null)
                 log.flush()
                 step += 1
                 bar.update(1)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
-from hyqjax.io.atomic import atomic_write, provenance
+from hyqjax.io.atomic import provenance, write_json
 from hyqjax.sim import backend
 from hyqjax.studies.tune import baselines, evaluate, kinematic, optimize, windows
 from hyqjax.studies.tune import objective as clobj
@@ -105,8 +105,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
 
     def save(r):  # after every stage, so an interrupted study keeps what it measured
         r["wall_s"] = time.time() - t_start
-        atomic_write(os.path.join(out_dir, "results.json"),
-                     lambda fh: fh.write(json.dumps(r, indent=1, default=float).encode()))
+        write_json(os.path.join(out_dir, "results.json"), r)  # strict JSON: a non-finite value is null
 
     space = spmod.ParamSpace.make(cfg.groups)
     base = crawl.CrawlParams.make()
