@@ -24,6 +24,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
     p.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
+    p.add_argument("--remedy", action="store_true",
+                   help="the shin-strike remedy with the trunk following 80%% of the feet plane's tilt "
+                        "(CrawlParams shin_remedy=True, terrain_adaptation=0.8; docs/stepdown.md); default: the "
+                        "paper's crawl")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
@@ -71,7 +75,8 @@ def run(args) -> int:
     if not getattr(args, "options_checked", False):
         validate(args)
     recorded = args.recorded
-    params = crawl.CrawlParams.make(forward_velocity=args.speed)
+    crawl_options = dict(shin_remedy=True, terrain_adaptation=0.8) if args.remedy else {}
+    params = crawl.CrawlParams.make(forward_velocity=args.speed, **crawl_options)
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every
