@@ -139,7 +139,7 @@ def start_qpos(stand_qpos, start_distance, lateral_offset, yaw, platform_height,
     zero = xp.zeros_like(start_distance)
     base = xp.stack([-start_distance - front_x, lateral_offset + zero, robot.STANDING_BASE_Z + platform_height + zero,
                      xp.cos(yaw / 2), zero, zero, xp.sin(yaw / 2)], -1)
-    joints = xp.broadcast_to(xp.asarray(stand_qpos)[7:], base.shape[:-1] + (robot.N_JOINTS,))
+    joints = xp.broadcast_to(xp.asarray(stand_qpos)[robot.QPOS_JOINTS], base.shape[:-1] + (robot.N_JOINTS,))
     return xp.concatenate([base, joints.astype(base.dtype)], -1)
 
 
@@ -178,8 +178,9 @@ class StepdownRollout:
     """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`).
 
     ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)``: ONE instance (``scenario`` without batch
-    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``; a
-    derivative under ``impl="warp"`` is a ``ValueError``). ``rollout.run(scenario)``: a batch through the
+    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``; under
+    ``impl="warp"`` a derivative, and the one-instance call itself, are a ``ValueError``: Warp runs batches, whose
+    contacts share one buffer). ``rollout.run(scenario)``: a batch through the
     jitted, sharded, chunked runner, compiled once per batch shape and mesh.
     """
 
@@ -201,6 +202,9 @@ class StepdownRollout:
     def __call__(self, params: crawl.CrawlParams, scenario: Scenario) -> tuple[StepdownOutcome, mjx.Data]:
         st = self.setup
         params, scenario = backend.forbid_derivatives((params, scenario), st.impl)
+        if st.impl == "warp":  # Warp shares one contact buffer over a batch: no per-instance mjx.Data
+            raise ValueError("the one-instance rollout needs impl='jax' (MuJoCo Warp keeps one contact buffer for a "
+                             "whole batch); run warp batches with rollout.run(scenario)")
         mx1 = hmodel.instance_model(st.mx, st.ids, scenario.terrain)
         q0 = start_qpos(jnp.asarray(hmodel.standing_qpos(st.m), st.mx.qpos0.dtype), scenario.start_distance,
                         scenario.lateral_offset, scenario.yaw, scenario.terrain.platform_height, xp=jnp)
