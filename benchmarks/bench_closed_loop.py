@@ -358,7 +358,7 @@ def bench_grad(batch: int, duration: float, fields: list[str], repeats: int, cfg
         return jnp.zeros((), d.qpos.dtype)
 
     def cost_update(acc, d, obs, info):
-        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[3:7]))
+        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
         return acc + dt * (rpy[0] ** 2 + rpy[1] ** 2)
 
     metrics = sim.Metrics(cost_init, cost_update)

@@ -13,6 +13,7 @@ Subpackages by concept (docs/architecture.md draws the layers):
 The public API is re-exported here and imported on first use (``import hyqjax`` loads no JAX):
 ``StepdownConfig``, ``Scenario``, ``make_scenarios``, ``make_stepdown_rollout``, ``StepdownOutcome``,
 ``run_batch``, ``summarize``, ``format_table``; ``CrawlParams``, ``ReflexParams``, ``batch_params``;
+``Observation``, ``Controller``, ``Metrics``, ``Push`` (MJX-free, :mod:`hyqjax.core.types`);
 ``SimConfig``, ``make_batch_runner``, ``rollout``, ``batch_mesh``; ``load_model``, ``model_ids``,
 ``InstanceTerrain``, ``batch_model``; ``resolve_impl``; the bound: ``BoundingRolloutConfig``,
 ``make_bounding_rollout``, ``BoundingRollout``, ``BoundingOutcome``, ``BoundingParams`` (batches from
@@ -47,8 +48,8 @@ _PUBLIC = {
     "summarize": "hyqjax.studies.stepdown_table", "format_table": "hyqjax.studies.stepdown_table",
     "CrawlParams": "hyqjax.crawl.controller", "ReflexParams": "hyqjax.reflex.params",
     "batch_params": "hyqjax.core.params",
-    "SimConfig": "hyqjax.sim.rollout", "rollout": "hyqjax.sim.rollout", "Observation": "hyqjax.sim.rollout",
-    "Controller": "hyqjax.sim.rollout", "Metrics": "hyqjax.sim.rollout", "Push": "hyqjax.sim.rollout",
+    "SimConfig": "hyqjax.sim.rollout", "rollout": "hyqjax.sim.rollout", "Observation": "hyqjax.core.types",
+    "Controller": "hyqjax.core.types", "Metrics": "hyqjax.core.types", "Push": "hyqjax.core.types",
     "make_batch_runner": "hyqjax.sim.runner", "batch_mesh": "hyqjax.sim.runner",
     "load_model": "hyqjax.sim.model", "model_ids": "hyqjax.sim.model", "InstanceTerrain": "hyqjax.sim.model",
     "batch_model": "hyqjax.sim.model", "resolve_impl": "hyqjax.sim.backend",

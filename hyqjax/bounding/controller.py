@@ -1,8 +1,8 @@
 """HyQ's bounding controller: stabilising feedback, speed and turning control, centrifugal compensation
 (Orsolino et al., "Turning maneuvers strategy for quadrupedal bounding gait").
 
-The controller is a :class:`hyqjax.sim.rollout.Controller`; it sees only an
-:class:`hyqjax.sim.rollout.Observation` (joint states and torques, IMU, foot forces, time). Base height
+The controller is a :class:`hyqjax.core.types.Controller`; it sees only an
+:class:`hyqjax.core.types.Observation` (joint states and torques, IMU, foot forces, time). Base height
 and velocity are estimated (:mod:`hyqjax.bounding.estimator`); the only exception is
 :func:`hyqjax.bounding.cycle.return_map`, which starts the estimator at the true apex state. One tick
 (:func:`bounding_step`) is: estimate -> apex event (:func:`apex_update`) -> centrifugal compensation ->
@@ -83,7 +83,7 @@ from hyqjax.control import impedance
 from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core import spatial
-from hyqjax.sim.rollout import Controller, Observation
+from hyqjax.core.types import Controller, Observation
 
 #: Bounds of the per-cycle integrators of :func:`apex_errors` (height m, pitch rad, x / y speed m/s).
 INTEGRATOR_LIMIT = np.array([0.5, 0.5, 2.0, 2.0])

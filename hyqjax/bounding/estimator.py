@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from hyqjax.core import robot
 from hyqjax.core import spatial
-from hyqjax.sim.rollout import Observation
+from hyqjax.core.types import Observation
 
 
 class Imu(NamedTuple):

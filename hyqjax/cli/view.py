@@ -77,6 +77,7 @@ def play(rec, row: int, speed: float, loop: bool, force_scale: float) -> int:
     import mujoco.viewer
     import numpy as np
 
+    from hyqjax.core import robot
     from hyqjax.io import recording
     from hyqjax.io import render
 
@@ -105,7 +106,7 @@ def play(rec, row: int, speed: float, loop: bool, force_scale: float) -> int:
                     scn.ngeom = 0
                     render.add_leg_links(scn, d, links)
                     if ff is not None:
-                        rot = render.quat_to_rot(qpos[i, 3:7])
+                        rot = render.quat_to_rot(qpos[i, robot.QPOS_BASE_QUAT])
                         render.add_force_arrows(scn, d.site_xpos[links.feet], np.asarray(ff[i], np.float64) @ rot.T,
                                                 force_scale)
                 viewer.sync()

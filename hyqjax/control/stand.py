@@ -17,7 +17,7 @@ from hyqjax.control import impedance
 from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core.params import param_field, params_dataclass
-from hyqjax.sim import rollout as sim
+from hyqjax.core.types import Controller, Observation
 from hyqjax.core import spatial
 
 
@@ -43,14 +43,14 @@ def weight_feedforward(q, quat, mass=robot.TOTAL_MASS):
     return -jnp.einsum("lij,i->lj", jac, f_b).reshape(12)
 
 
-def _init(params: StandParams, obs: sim.Observation):
+def _init(params: StandParams, obs: Observation):
     return ()
 
 
-def _step(params: StandParams, state, obs: sim.Observation):
+def _step(params: StandParams, state, obs: Observation):
     tau_ff = weight_feedforward(obs.q, obs.quat)
     tau = impedance.joint_impedance(params.gains, params.q_ref, jnp.zeros_like(obs.q), obs.q, obs.qd, tau_ff)
     return state, tau, ()
 
 
-stand_controller = sim.Controller(_init, _step)
+stand_controller = Controller(_init, _step)

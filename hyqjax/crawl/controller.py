@@ -39,10 +39,10 @@ from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
     CrawlInfo, CrawlState, crawl_init, start_body_phase, start_swing_phase,
 )
 from hyqjax.reflex import step as reflex
-from hyqjax.sim import rollout as sim
+from hyqjax.core.types import Controller, Observation
 
 
-def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: sim.Observation, rp_meas, p_des, v_des, rp_des):
+def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas, p_des, v_des, rp_des):
     """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP, as joint torques ``(12,)``."""
     dtype = p_des.dtype
     h_r_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1])
@@ -63,7 +63,7 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: sim.Observation, rp_m
     return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
 
 
-def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
+def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
     rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
     in_swing = st.phase == PHASE_SWING
@@ -133,6 +133,6 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: sim.Observation, dt: float):
     return st_next, tau, info
 
 
-def crawl_controller(dt: float) -> sim.Controller:
-    """The crawl as a :class:`hyqjax.sim.rollout.Controller` ticking every ``dt`` seconds."""
-    return sim.Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt))
+def crawl_controller(dt: float) -> Controller:
+    """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds."""
+    return Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt))

@@ -27,7 +27,7 @@ from hyqjax.crawl import footholds
 from hyqjax.crawl import remedy
 from hyqjax.crawl.params import COM_OFFSET_B, CrawlParams
 from hyqjax.reflex import step as reflex
-from hyqjax.sim import rollout as sim
+from hyqjax.core.types import Observation
 
 PHASE_BODY = 0
 PHASE_SWING = 1
@@ -85,7 +85,7 @@ class CrawlInfo:
     tilt_rp: jax.Array  # (2,) measured roll, pitch
 
 
-def feet_h(obs: sim.Observation):
+def feet_h(obs: Observation):
     """Feet in the current horizontal frame from the actual joints and IMU roll/pitch, and that roll/pitch."""
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))
     rp = rpy[:2]
@@ -93,7 +93,7 @@ def feet_h(obs: sim.Observation):
     return jnp.einsum("ij,lj->li", spatial.roll_pitch_to_rot(rp[0], rp[1]), x_b), rp
 
 
-def start_body_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
+def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
     """Body phase toward the support triangle of the next swing leg, from the actual state."""
     feet, rp = feet_h(obs)
     leg = st.sequence[st.seq_index]
@@ -104,7 +104,7 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> Cr
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
 
-def start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> CrawlState:
+def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
     """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7)."""
     feet, rp = feet_h(obs)
     leg = st.sequence[st.seq_index]
@@ -124,7 +124,7 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: sim.Observation) -> C
                                stance=stance)
 
 
-def crawl_init(p: CrawlParams, obs: sim.Observation) -> CrawlState:
+def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     """Initial state: a body phase toward the first swing leg's support triangle."""
     feet, rp = feet_h(obs)
     dtype = feet.dtype

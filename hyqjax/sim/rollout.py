@@ -15,6 +15,9 @@ Observations (:class:`Observation`) hold what HyQ measures: joint positions, vel
 torques, the IMU's orientation and angular velocity, and foot forces estimated from joint
 torques. Ground truth (``mjx.Data``) stays available to metrics, never to controllers.
 
+:class:`Observation`, :class:`Controller`, :class:`Metrics` and :class:`Push` are defined in
+:mod:`hyqjax.core.types` (no MJX import, so a controller does not load MJX) and re-exported here.
+
 Batches run through :mod:`hyqjax.sim.runner` (``vmap`` + ``jit`` + sharding + chunked progress), whose
 names are also reachable from this module.
 
@@ -34,6 +37,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.core import kinematics, smallmat
+from hyqjax.core.types import Observation, Controller, Metrics, Push  # noqa: F401
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
@@ -76,56 +80,6 @@ class SimConfig:
     @property
     def n_ticks(self) -> int:
         return int(round(self.duration / self.control_dt))
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Observation:
-    """What the robot measures at one control tick (all in the trunk frame ``B`` unless noted).
-
-    Attributes:
-      q, qd, tau: joint positions, velocities, applied torques, (12,).
-      quat: IMU orientation ``W_q_B`` (w, x, y, z).
-      gyro: trunk angular velocity in ``B``, (3,).
-      foot_force: ground reaction forces at the feet estimated from joint torques, (4, 3), in ``B``:
-        ``f = J_f^{-T} (h - tau)`` per leg with ``h`` the leg's bias torques (gravity, Coriolis).
-      time: seconds since the start.
-    """
-
-    q: jax.Array
-    qd: jax.Array
-    tau: jax.Array
-    quat: jax.Array
-    gyro: jax.Array
-    foot_force: jax.Array
-    time: jax.Array
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Push:
-    """A lateral push on the trunk: ``force`` (3,) N in the world frame, applied at the trunk's
-    centre of mass during ``[t_start, t_start + duration)``. Per instance under ``vmap``."""
-
-    force: jax.Array
-    t_start: jax.Array
-    duration: jax.Array
-
-    @staticmethod
-    def none(dtype=jnp.float32) -> "Push":
-        return Push(jnp.zeros(3, dtype), jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype))
-
-
-class Controller(NamedTuple):
-    init: Callable[[Any, Observation], Any]
-    step: Callable[[Any, Any, Observation], tuple[Any, jax.Array, Any]]
-
-
-class Metrics(NamedTuple):
-    """Metrics accumulated on the device: ``init(d) -> m``, ``update(m, d, obs, info) -> m``."""
-
-    init: Callable[[mjx.Data], Any]
-    update: Callable[[Any, mjx.Data, Observation, Any], Any]
 
 
 def no_metrics() -> Metrics:

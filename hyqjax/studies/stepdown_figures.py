@@ -11,8 +11,8 @@ import numpy as np  # noqa: E402
 
 from hyqjax.core import robot  # noqa: E402
 
-LEG_LABELS = ("LF", "RF", "LH", "RH")
-JOINT_LABELS = [f"{leg}_{j}".upper() for leg in ("lf", "rf", "lh", "rh") for j in ("haa", "hfe", "kfe")]
+LEG_LABELS = tuple(leg.upper() for leg in robot.LEG_NAMES)
+JOINT_LABELS = [f"{leg}_{j}".upper() for leg in robot.LEG_NAMES for j in robot.JOINT_NAMES]
 
 
 def _first_reflex_window(tr, k, pad=0.3):
@@ -43,7 +43,7 @@ def fig9_reflex(tr, k, path, title=""):
     ax[0].set_ylabel("reflex active")
     damp = tr["damping"][k][i0:i1]
     ax[1].plot(t, damp[:, 3 * leg], label=f"swing ({LEG_LABELS[leg]})")
-    stance = [j for j in range(4) if j != leg][0]
+    stance = int(robot.STANCE_LEGS[leg][0])
     ax[1].plot(t, damp[:, 3 * stance], label="stance")
     ax[1].set_ylabel("damping [Nms/rad]")
     ax[1].set_yscale("log")
@@ -56,9 +56,7 @@ def fig9_reflex(tr, k, path, title=""):
     ax[2].plot(t, tr["x_cmd_b"][k][i0:i1, leg, 2], label="reflex $x^r$")
     ax[2].set_ylabel(f"{LEG_LABELS[leg]} foot z (base) [m]")
     ax[2].legend(fontsize=8)
-    for j in range(4):
-        if j == leg:
-            continue
+    for j in robot.STANCE_LEGS[leg].tolist():
         ax[3].plot(t, tr["x_cmd_b"][k][i0:i1, j, 2], label=f"{LEG_LABELS[j]} $x^r$")
         ax[3].plot(t, tr["x_plan_b"][k][i0:i1, j, 2], ":", color=ax[3].lines[-1].get_color())
     ax[3].set_ylabel("stance feet z (base) [m]")

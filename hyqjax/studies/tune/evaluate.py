@@ -5,7 +5,7 @@ Held-out scenarios (:func:`heldout_scenarios`) come from a seed never used for t
 0.4-1.0, payload 0-15 kg at a random CoM offset, start 0-15 cm before the edge, +-5 cm lateral offset and
 +-0.1 rad yaw. Every method runs on the same instances (common random numbers), all methods in one batch.
 
-Per method and per height (Wilson 95% intervals, ``stepdown.wilson_interval``):
+Per method and per height (the per-height curves are ``statistics.success_curve``'s, Wilson 95% intervals):
 
 * **completed** and **clean** as ``hyqjax.studies.stepdown_outcome`` defines them (completed: no failure
   reason but a shin strike; clean: completed without a shin strike), with every failure reason counted;
@@ -23,6 +23,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.studies import stepdown
+from hyqjax.studies import statistics
 from hyqjax.studies import stepdown_outcome as so
 
 HELDOUT_HEIGHTS = tuple(round(0.14 + 0.02 * i, 2) for i in range(9))
@@ -87,14 +88,9 @@ def summarize(heights: np.ndarray, res: dict, i: int) -> dict:
     """Summary of parameter set ``i`` of :func:`run`'s output (see the module docstring)."""
     s, c, sh = res["clean"][i], res["completed"][i], res["shin_strike"][i]
     heights = np.asarray(heights)[: s.size]
-    curve = []
-    for h in sorted(set(heights.tolist())):
-        m = heights == h
-        n = int(m.sum())
-        ks, kc = int(s[m].sum()), int(c[m].sum())
-        curve.append(dict(height=h, n=n, clean=ks / n, clean_ci95=list(stepdown.wilson_interval(ks, n)),
-                          completed=kc / n, completed_ci95=list(stepdown.wilson_interval(kc, n)),
-                          shin_strike=float(sh[m].mean())))
+    curves = [statistics.success_curve(heights, v) for v in (s, c, sh)]
+    curve = [dict(height=a["height"], n=a["n"], clean=a["rate"], clean_ci95=a["ci95"], completed=b["rate"],
+                  completed_ci95=b["ci95"], shin_strike=x["rate"]) for a, b, x in zip(*curves)]
     n = int(s.size)
     reasons = {k: int(np.sum(res[k][i])) for k in so.FAILURE_REASONS}
     return dict(n=n, clean=float(s.mean()), clean_ci95=list(stepdown.wilson_interval(int(s.sum()), n)),
