@@ -165,6 +165,9 @@ def test_summary_maps_and_outputs(swept):
     store = sweep.SweepStore(full, spec)
     s = sweep.write_outputs(store)
     assert s["complete"] and s["n_instances"] == 8
+    # Both outcome levels from the real outcome columns: clean implies completed, per reflex setting and cell.
+    assert s["completed"] is not None and s["completed"] >= s["successes"] and "notes" not in s
+    assert all(r["completed"] >= r["successes"] for r in s["by_reflex"].values())
     assert {(m["x"], m["y"], m["reflex"]) for m in s["maps"]} == {
         ("height", "friction", False), ("height", "friction", True),
         ("height", "payload_mass", False), ("height", "payload_mass", True)}
@@ -173,6 +176,7 @@ def test_summary_maps_and_outputs(swept):
         assert n.sum() == 4
         lo, hi = np.asarray(m["ci95_lo"]), np.asarray(m["ci95_hi"])
         assert np.all(lo[n > 0] <= hi[n > 0]) and np.all(np.isnan(lo[n == 0]))
+        assert np.all(np.asarray(m["completed"]) >= np.asarray(m["successes"]))
     for name in ("summary.json", "instances.csv", "success_maps.png", "success_height.png"):
         assert os.path.exists(os.path.join(full, name)), name
     with open(os.path.join(full, "instances.csv")) as f:

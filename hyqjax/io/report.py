@@ -10,8 +10,8 @@ it finds:
   setting with its Wilson 95% interval, and the failed instances with their reasons;
 * bounding (``groups``): tracking, fall and periodicity numbers per configuration and, for an
   ablation, each part's contribution;
-* sweep (``summary.json``): instances run and planned, success per reflex setting with the largest
-  safe height (``h95``), the success-versus-height curves and the failure reasons;
+* sweep (``summary.json``): instances run and planned, completed and clean runs per reflex setting with
+  the largest safe height (``h95``) of each, both against height, and the failure reasons;
 * every PNG figure of the directory (success maps, the paper's figures, bounding tracking plots),
   and the stills and videos ``hyqjax render`` wrote to ``DIR/render/``.
 
@@ -40,8 +40,8 @@ CAPTIONS = {
     "fig11_pitch.png": "Trunk pitch while stepping down, per height and reflex setting (cf. Fig. 11).",
     "yaw_tracking.png": "Bounding: desired vs. actual heading (cf. Orsolino et al., Fig. 4).",
     "speed_tracking.png": "Bounding: desired vs. actual forward speed.",
-    "success_maps.png": "Sweep: success probability maps per reflex setting.",
-    "success_height.png": "Sweep: success probability vs. step height with 95% Wilson intervals.",
+    "success_maps.png": "Sweep: completed and clean probability maps per reflex setting.",
+    "success_height.png": "Sweep: completed and clean probability vs. step height with 95% Wilson intervals.",
 }
 MIME = {".png": "image/png", ".gif": "image/gif", ".mp4": "video/mp4"}
 STYLE = """
@@ -222,38 +222,55 @@ def ci(interval, spec: str = "{:.3f}") -> str:
     return f"[{fmt(lo, spec)}, {fmt(hi, spec)}]"
 
 
+#: Summary keys of a sweep's outcome levels (:data:`hyqjax.studies.sweep.outcomes.KEYS`): clean keeps the keys of
+#: summaries written before the levels, completed has ``completed``-named keys (absent or null in older ones).
+SWEEP_LEVELS = (("completed", "completed", "completed_rate", "completed_ci95", "h95_completed_wilson",
+                 "h95_completed_logistic"),
+                ("clean", "successes", "rate", "ci95", "h95_wilson", "h95_logistic"))
+
+
 def sweep_html(res: dict) -> str:
-    """A sweep's summary: counts, success and largest safe height per reflex setting, success vs. height."""
+    """A sweep's summary, completed and clean: counts, rates and largest safe height per reflex setting, both
+    levels vs. height, failure reasons and notes (an older summary without completed shows ``-`` for it)."""
+    totals = ", ".join(f"{fmt(res.get(count))} {name}" for name, count, *_ in SWEEP_LEVELS)
     out = (f"<h3>Sweep results</h3><p>{fmt(res.get('n_instances'))} of {fmt(res.get('n_planned'))} planned instances"
-           f" ({'complete' if res.get('complete') else 'incomplete'}), {fmt(res.get('successes'))} successes, "
-           f"{fmt(res.get('diverged'))} diverged.</p>")
+           f" ({'complete' if res.get('complete') else 'incomplete'}), {totals}, {fmt(res.get('diverged'))} diverged."
+           "</p>")
     by = res.get("by_reflex") or {}
     if by:
-        rows = [[esc(name), fmt(r.get("n")), fmt(r.get("successes")), fmt(r.get("rate"), "{:.1%}"), ci(r.get("ci95")),
-                 fmt(r.get("mean_mobility")), fmt(r.get("h95_wilson"), "{:.3f}"), fmt(r.get("h95_logistic"), "{:.3f}")]
-                for name, r in by.items()]
-        out += table(["reflex", "n", "successes", "rate", "95% CI", "mean mobility", "h95 Wilson [m]",
-                      "h95 logistic [m]"], rows, left=1)
-        out += ("<p>h95 Wilson: the largest height with the Wilson 95% lower bound of success >= 0.95 at it and every "
-                "lower level; h95 logistic: where a logistic fit of success vs. height crosses 0.95.</p>")
+        rows = [[esc(name), name_lv, fmt(r.get("n")), fmt(r.get(count)), fmt(r.get(rate), "{:.1%}"), ci(r.get(c95)),
+                 fmt(r.get("mean_mobility")), fmt(r.get(hw), "{:.3f}"), fmt(r.get(hl), "{:.3f}")]
+                for name, r in by.items() for name_lv, count, rate, c95, hw, hl in SWEEP_LEVELS]
+        out += table(["reflex", "outcome", "n", "instances", "rate", "95% CI", "mean mobility", "h95 Wilson [m]",
+                      "h95 logistic [m]"], rows, left=2)
+        out += ("<p>completed: all four feet on the lower ground, no lost foothold, no joint past its range, no trunk "
+                "strike, no tilt, finite; clean: completed and no shin or trunk contact above the strike force. "
+                "h95 Wilson: the largest height with the Wilson 95% lower bound >= 0.95 at it and every lower level; "
+                "h95 logistic: where a logistic fit vs. height crosses 0.95.</p>")
         for name, r in by.items():
             curve = r.get("height_curve") or []
             if curve:
-                out += f"<h4>Success vs. height, reflex {esc(name)}</h4>" + table(
-                    ["height [m]", "n", "successes", "rate", "95% CI"],
-                    [[fmt(c.get("height"), "{:.3f}"), fmt(c.get("n")), fmt(c.get("successes")),
-                      fmt(c.get("rate"), "{:.1%}"), ci(c.get("ci95"))] for c in curve])
+                out += f"<h4>Completed and clean vs. height, reflex {esc(name)}</h4>" + table(
+                    ["height [m]", "n", "completed", "rate", "95% CI", "clean", "rate", "95% CI"],
+                    [[fmt(c.get("height"), "{:.3f}"), fmt(c.get("n"))]
+                     + [cell for _, count, rate, c95, *_ in SWEEP_LEVELS
+                        for cell in (fmt(c.get(count)), fmt(c.get(rate), "{:.1%}"), ci(c.get(c95)))]
+                     for c in curve])
     reasons = res.get("failure_reasons") or {}
     if isinstance(reasons, dict) and reasons:
-        out += "<h4>Failure reasons</h4>" + table(["reason", "instances"],
-                                                   [[esc(k), fmt(v)] for k, v in reasons.items()], left=1)
+        out += "<h4>Failure reasons (instances not clean)</h4>" + table(
+            ["reason", "instances"], [[esc(k), fmt(v)] for k, v in reasons.items()], left=1)
+    notes = res.get("notes") or []
+    if notes:
+        out += "".join(f"<p>Note: {esc(t)}</p>" for t in notes)
     return out
 
 
 def other_html(res: dict) -> str:
     known = {"provenance", "config", "args", "summary", "instances", "groups", "contributions", "figures",
              "wall_time_s", "env_steps_per_s", "_sweep", "n_instances", "n_planned", "spec_hash", "successes",
-             "diverged", "failure_reasons", "by_reflex", "maps", "complete"}
+             "diverged", "failure_reasons", "by_reflex", "maps", "complete", "rate", "ci95", "completed",
+             "completed_rate", "completed_ci95", "notes"}
     rest = sorted(k for k in res if k not in known)
     return f"<p>Other entries of results.json: {', '.join(f'<code>{esc(k)}</code>' for k in rest)}</p>" if rest else ""
 

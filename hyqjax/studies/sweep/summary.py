@@ -1,14 +1,25 @@
-"""Sweep summary: counts, failure reasons, success maps with Wilson 95% intervals, largest safe height.
+"""Sweep summary: counts, failure reasons, probability maps with Wilson 95% intervals, largest safe height,
+for both outcome levels.
 
-:func:`summarize_sweep` reports success probability maps (e.g. height x friction) with Wilson 95%
-intervals per reflex setting and the largest safe height:
+Every step-down outcome has two levels (:mod:`hyqjax.studies.stepdown_outcome`): *completed* (the paper's
+criterion: all four feet on the lower ground, no lost foothold, no joint past its range, no trunk strike, no
+tilt, finite) and *clean* (completed and no shin or trunk contact above the strike force). The rows' ``success``
+column is ``clean``. :func:`summarize_sweep` reports, for each level, the counts and rates with their Wilson 95%
+intervals (overall and per reflex setting), the height curve, the 2-D maps (e.g. height x friction) and the
+largest safe height:
 
 * ``h95_wilson`` (conservative): the largest height level ``h`` such that, at every level ``<= h``,
-  the Wilson 95% lower bound of the success probability (pooled over all other axes) is ``>= 0.95``.
+  the Wilson 95% lower bound of the probability (pooled over all other axes) is ``>= 0.95``.
   It needs at least 73 instances per level (73/73 gives a lower bound of 0.950); None otherwise.
 * ``h95_logistic`` (point estimate): the height where a logistic fit
-  ``P(success | h) = sigmoid(a + b h)`` (maximum likelihood, Newton) crosses 0.95; None if the fit
-  has ``b >= 0`` or does not converge (e.g. all successes).
+  ``P(level | h) = sigmoid(a + b h)`` (maximum likelihood) crosses 0.95; None if the fit
+  has ``b >= 0`` or does not converge (e.g. all instances pass).
+
+The clean level keeps the keys of older summaries (:data:`KEYS`: ``successes``, ``rate``, ``ci95``,
+``h95_wilson``, ``h95_logistic``; ``ci95_lo`` / ``ci95_hi`` in a map); the completed level has ``completed``-named
+keys next to them (``completed``, ``completed_rate``, ``completed_ci95``, ``h95_completed_wilson``, ...). Rows
+without a ``completed`` column (a store written before the hierarchy) give None for every completed entry and
+a line in ``notes``; they never raise.
 
 Height levels are the grid values, or equal-width bins over ``[lo, hi]`` (``bins``) for a random axis.
 An empty map cell has rate and interval ``null`` in ``summary.json`` (strict JSON, no NaN).
@@ -22,6 +33,7 @@ import numpy as np
 
 from hyqjax.io.atomic import atomic_write, write_json
 from hyqjax.studies import statistics
+from hyqjax.studies.sweep.outcomes import KEYS, LEVELS, NO_COMPLETED_NOTE, level_columns
 from hyqjax.studies.sweep.plots import plot_height_curves, plot_maps
 from hyqjax.studies.sweep.spec import AXES, SweepSpec
 
@@ -53,30 +65,86 @@ def logistic_h95(h: np.ndarray, y: np.ndarray, target: float = 0.95):
     return statistics.h95_logistic(h, y, target)
 
 
+def rate_entries(y: np.ndarray | None, keys: dict[str, str]) -> dict[str, Any]:
+    """``{count, rate, ci95}`` (named by ``keys``, see :data:`KEYS`) of the booleans ``y``; None entries for an
+    absent level, rate None and interval NaNs for no instances."""
+    if y is None:
+        return {keys["count"]: None, keys["rate"]: None, keys["ci95"]: None}
+    k, n = int(y.sum()), int(y.size)
+    return {keys["count"]: k, keys["rate"]: k / n if n else None, keys["ci95"]: list(statistics.wilson_interval(k, n))}
+
+
+def height_entries(levels: dict, h_label: np.ndarray, h_index: np.ndarray, height: np.ndarray) -> dict[str, Any]:
+    """``height_curve`` (per height level ``n``, clean ``successes`` / ``rate`` / ``ci95`` and the ``completed``
+    ones) and both levels' h95 (Wilson and logistic) of one reflex setting's instances."""
+    out: dict[str, Any] = {}
+    curves = {}
+    for lv in LEVELS:
+        y, keys = levels[lv], KEYS[lv]
+        if y is None:
+            out[keys["h95_wilson"]] = out[keys["h95_logistic"]] = None
+            continue
+        curves[lv] = statistics.success_curve(h_label, y, levels=h_index)
+        out[keys["h95_wilson"]] = statistics.h95_wilson(curves[lv])
+        out[keys["h95_logistic"]] = logistic_h95(height.astype(float), y.astype(float))
+    curve = [dict(c) for c in curves["clean"]]
+    done = curves.get("completed")
+    keys = KEYS["completed"]
+    for i, c in enumerate(curve):
+        d = done[i] if done else dict(successes=None, rate=None, ci95=None)
+        c.update({keys["count"]: d["successes"], keys["rate"]: d["rate"], keys["ci95"]: d["ci95"]})
+    return dict(height_curve=curve, **out)
+
+
+def map_entries(levels: dict, m: np.ndarray, la: np.ndarray, lb: np.ndarray, shape: tuple[int, int]) -> dict:
+    """``n`` and, per level, counts, rates (NaN in an empty cell) and Wilson bounds of a 2-D map."""
+    nn = np.zeros(shape, int)
+    np.add.at(nn, (la[m], lb[m]), 1)
+    out: dict[str, Any] = {}
+    for lv in reversed(LEVELS):  # clean first: the keys of older summaries lead
+        y, keys = levels[lv], KEYS[lv]
+        if y is None:
+            out.update({keys[k]: None for k in ("count", "rate", "ci95_lo", "ci95_hi")})
+            continue
+        k = np.zeros(shape, int)
+        np.add.at(k, (la[m], lb[m]), y[m].astype(int))
+        ci = np.asarray([[statistics.wilson_interval(int(k[i, j]), int(nn[i, j])) for j in range(shape[1])]
+                         for i in range(shape[0])]).reshape(*shape, 2)
+        out.update({keys["count"]: k.tolist(), keys["rate"]: np.where(nn > 0, k / np.maximum(nn, 1), np.nan).tolist(),
+                    keys["ci95_lo"]: ci[..., 0].tolist(), keys["ci95_hi"]: ci[..., 1].tolist()})
+    return dict(n=nn.tolist(), **out)
+
+
 def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, Any]:
-    """Counts, failure reasons, success maps with Wilson 95% intervals and max safe heights per reflex setting."""
+    """Counts, failure reasons, maps with Wilson 95% intervals and max safe heights per reflex setting, for the
+    completed and the clean level (module docstring)."""
     n = int(rows["index"].shape[0]) if rows else 0
     summary: dict[str, Any] = dict(n_instances=n, n_planned=spec.n_instances, spec_hash=spec.spec_hash)
     if n == 0:
         return summary
-    succ = rows["success"].astype(bool)
+    levels = level_columns(rows)
+    succ = levels["clean"]
     reasons: dict[str, int] = {}
     for r in rows["failure_reason"][~succ]:
         for part in str(r).split("; "):
             reasons[part or "unspecified"] = reasons.get(part or "unspecified", 0) + 1
-    summary.update(successes=int(succ.sum()), diverged=int(rows["diverged"].sum()), failure_reasons=reasons)
+    for lv in reversed(LEVELS):
+        summary.update(rate_entries(levels[lv], KEYS[lv]))
+    summary.update(diverged=int(rows["diverged"].sum()), failure_reasons=reasons)
+    if levels["completed"] is None:
+        summary["notes"] = [NO_COMPLETED_NOTE]
     modes = sorted(set(rows["reflex"].tolist()))
+    hl, hlab = _levels(spec, rows, "height")
     by_reflex = {}
     for r in modes:
         m = rows["reflex"] == r
-        k, nn = int(succ[m].sum()), int(m.sum())
-        hl, hidx = _levels(spec, rows, "height")
-        curve = statistics.success_curve(np.asarray(hidx, float)[hl[m]], succ[m], levels=hl[m])
-        h95 = statistics.h95_wilson(curve)
-        by_reflex["on" if r else "off"] = dict(
-            n=nn, successes=k, rate=k / nn, ci95=list(statistics.wilson_interval(k, nn)),
-            mean_mobility=float(np.nanmean(rows["mean_mobility"][m])), height_curve=curve, h95_wilson=h95,
-            h95_logistic=logistic_h95(rows["height"][m].astype(float), succ[m].astype(float)))
+        lv_m = {lv: None if y is None else y[m] for lv, y in levels.items()}
+        entry: dict[str, Any] = dict(n=int(m.sum()))
+        for lv in reversed(LEVELS):
+            entry.update(rate_entries(lv_m[lv], KEYS[lv]))
+        entry["mean_mobility"] = float(np.nanmean(rows["mean_mobility"][m]))
+        entry.update(height_entries(lv_m, np.asarray(hlab, float)[hl[m]], hl[m], rows["height"][m]))
+        by_reflex["on" if r else "off"] = entry
     summary["by_reflex"] = by_reflex
     maps = []
     varying = set(spec.varying())
@@ -86,19 +154,10 @@ def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, A
         la, lab_a = _levels(spec, rows, a)
         lb, lab_b = _levels(spec, rows, b)
         for r in modes:
-            m = rows["reflex"] == r
-            k = np.zeros((len(lab_a), len(lab_b)), int)
-            nn = np.zeros_like(k)
-            np.add.at(k, (la[m], lb[m]), succ[m].astype(int))
-            np.add.at(nn, (la[m], lb[m]), 1)
-            ci = np.asarray([[statistics.wilson_interval(int(k[i, j]), int(nn[i, j])) for j in range(len(lab_b))]
-                             for i in range(len(lab_a))])
-            maps.append(dict(x=a, y=b, reflex=bool(r), x_levels=lab_a, y_levels=lab_b, successes=k.tolist(),
-                             n=nn.tolist(), rate=np.where(nn > 0, k / np.maximum(nn, 1), np.nan).tolist(),
-                             ci95_lo=ci[..., 0].tolist(), ci95_hi=ci[..., 1].tolist()))
+            maps.append(dict(x=a, y=b, reflex=bool(r), x_levels=lab_a, y_levels=lab_b,
+                             **map_entries(levels, rows["reflex"] == r, la, lb, (len(lab_a), len(lab_b)))))
     summary["maps"] = maps
     return summary
-
 
 
 def write_outputs(store) -> dict[str, Any]:
@@ -125,23 +184,41 @@ def write_outputs(store) -> dict[str, Any]:
     return summary
 
 
+def level_text(entry: dict, level: str, n: int | None = None, h95: bool = True) -> str:
+    """One level's ``k/n = rate [lo, hi]`` (and h95) of a summary entry; ``n/a`` where the level is absent."""
+    keys = KEYS[level]
+    k, rate, ci = entry.get(keys["count"]), entry.get(keys["rate"]), entry.get(keys["ci95"])
+    if k is None:
+        return f"{level} n/a"
+    n = entry.get("n") if n is None else n
+    lo, hi = (ci if ci and None not in ci else [float("nan")] * 2)
+    text = f"{level} {k}/{n}" + ("" if rate is None else f" = {rate:.2f}") + f" [{lo:.2f}, {hi:.2f}]"
+    if h95:
+        hw, hl = entry.get(keys["h95_wilson"]), entry.get(keys["h95_logistic"])
+        text += (f", h95 Wilson {'-' if hw is None else f'{hw:.3f} m'}, "
+                 f"logistic {'-' if hl is None else f'{hl:.3f} m'}")
+    return text
+
+
 def format_summary(summary: dict) -> str:
-    lines = [f"{summary.get('n_instances', 0)}/{summary.get('n_planned', 0)} instances, "
-             f"{summary.get('successes', 0)} successes, {summary.get('diverged', 0)} diverged"]
+    """The summary as text: totals, per reflex setting one line per level (completed, clean), the height curve
+    (both levels on one line per height), failure reasons and notes."""
+    n = summary.get("n_instances", 0)
+    lines = [f"{n}/{summary.get('n_planned', 0)} instances"
+             + "".join(f", {level_text(summary, lv, n, h95=False)}" for lv in LEVELS if n)
+             + f", {summary.get('diverged', 0)} diverged"]
     for name, r in summary.get("by_reflex", {}).items():
-        lo, hi = r["ci95"]
-        h95w, h95l = r["h95_wilson"], r["h95_logistic"]
-        lines.append(f"reflex {name:>3}: success {r['successes']}/{r['n']} = {r['rate']:.2f} [{lo:.2f}, {hi:.2f}], "
-                     f"mean mobility {r['mean_mobility']:.3f}, h95 (Wilson) "
-                     f"{'-' if h95w is None else f'{h95w:.3f} m'}, h95 (logistic) "
-                     f"{'-' if h95l is None else f'{h95l:.3f} m'}")
+        mob = r.get("mean_mobility")
+        lines.append(f"reflex {name:>3} (n = {r['n']}, mean mobility {'-' if mob is None else f'{mob:.3f}'}):")
+        lines += [f"  {level_text(r, lv)}" for lv in LEVELS]
         for c in r["height_curve"]:
-            lines.append(f"    h = {c['height']:.3f} m: {c['successes']}/{c['n']} [{c['ci95'][0]:.2f}, "
-                         f"{c['ci95'][1]:.2f}]")
+            lines.append(f"    h = {c['height']:.3f} m: " + ", ".join(level_text(c, lv, h95=False) for lv in LEVELS))
     if summary.get("failure_reasons"):
-        lines.append("failure reasons: " + ", ".join(f"{k} x{v}" for k, v in
-                                                     sorted(summary["failure_reasons"].items(), key=lambda t: -t[1])))
+        lines.append("failure reasons (not clean): " + ", ".join(
+            f"{k} x{v}" for k, v in sorted(summary["failure_reasons"].items(), key=lambda t: -t[1])))
+    lines += [f"note: {t}" for t in summary.get("notes", [])]
     return "\n".join(lines)
 
 
-__all__ = ["format_summary", "logistic_h95", "summarize_sweep", "write_outputs"]
+__all__ = ["format_summary", "height_entries", "level_text", "logistic_h95", "map_entries", "rate_entries",
+           "summarize_sweep", "write_outputs"]
