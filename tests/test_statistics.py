@@ -70,9 +70,10 @@ def test_logistic_fit_is_the_likelihood_maximum(seed):
         for db in np.linspace(-1e-3, 1e-3, 5) * max(1, abs(b)):
             assert nll(a + da, b + db) >= best - 1e-9 * max(1.0, best)
     h = S.h95_logistic(x, y)
-    if b < 0:
+    crossing = (math.log(19.0) - a) / b if b < 0 else None
+    if crossing is not None and x.min() <= crossing <= x.max():
         assert 1 / (1 + math.exp(-(a + b * h))) == pytest.approx(0.95, abs=1e-9)
-    else:
+    else:  # no fit, b >= 0, or a crossing outside the measured heights (no extrapolation)
         assert h is None
 
 
@@ -88,3 +89,15 @@ def test_mean_interval():
     v = np.random.default_rng(0).normal(2.0, 1.0, 10000)
     lo, hi = S.mean_interval(v)
     assert lo < v.mean() < hi and hi - lo == pytest.approx(2 * 1.959964 * v.std(ddof=1) / 100, rel=1e-6)
+
+
+def test_h95_logistic_does_not_extrapolate_a_flat_fit():
+    from hyqjax.studies import statistics
+
+    rng = np.random.default_rng(0)
+    x = np.repeat([0.12, 0.16, 0.20, 0.24], 200)
+    y = (rng.random(x.size) < 0.6).astype(float)  # flat at 60%: the 95% crossing is not in the data
+    assert statistics.h95_logistic(x, y) is None
+    y2 = (rng.random(x.size) < 1 / (1 + np.exp(-(12 - 60 * x)))).astype(float)  # crosses 95% near 0.15 m
+    h = statistics.h95_logistic(x, y2)
+    assert h is not None and 0.12 <= h <= 0.24

@@ -117,14 +117,18 @@ def logistic_fit(x, y, ridge: float = 1e-6) -> tuple[float, float] | None:
 
 
 def h95_logistic(x, y, target: float = 0.95) -> float | None:
-    """``x`` where the logistic fit (:func:`logistic_fit`) equals ``target``; ``None`` if ``b >= 0`` or no fit."""
+    """``x`` where the logistic fit (:func:`logistic_fit`) equals ``target``; ``None`` if ``b >= 0``, no fit, or
+    the crossing lies outside the measured ``[min x, max x]`` (an extrapolation the data do not support: a nearly
+    flat fit crosses the target arbitrarily far away)."""
     fit = logistic_fit(x, y)
     if fit is None:
         return None
     a, b = fit
     if not b < 0:
         return None
-    return float((math.log(target / (1 - target)) - a) / b)
+    h = float((math.log(target / (1 - target)) - a) / b)
+    x = np.asarray(x, np.float64)
+    return h if x.min() <= h <= x.max() else None
 
 
 def height_summary(x, success, levels=None, target: float = 0.95) -> dict[str, Any]:
