@@ -7,7 +7,8 @@ LLVM (about 2 minutes on 2 cores, cached in ``~/.cache/warp`` afterwards).
 
 The runs happen in a fresh process: Warp's LLVM JIT in a process that has already compiled hundreds of XLA
 programs (and switched float64 on and off) aborted the whole test session once, and a crash there must fail
-this test, not end the others. Skipped when warp-lang is not installed (it is part of the ``test`` extra).
+this test, not end the others. Skipped when warp-lang is not installed (``pip install -e ".[test,warp]"``; CI
+does not install it: docs/warp.md says why).
 """
 from __future__ import annotations
 
