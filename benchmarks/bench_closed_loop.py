@@ -91,13 +91,10 @@ def scenario(batch: int, seed: int = 0):
 def closed_loop_fn(scen, cfg: stepdown.StepdownConfig, mesh=None, metrics=None, params=None):
     """What ``stepdown.run_batch`` builds (no traces): the jitted batch rollout and its arguments."""
     st = stepdown.setup(cfg)
-    m, mx, ids = st.m, st.mx, st.ids
+    mx, ids = st.mx, st.ids
     scfg = cfg.sim_config()
-    b = scen.batch_size
     mb = hmodel.batch_model(mx, ids, scen.terrain)
-    qpos = stepdown.initial_qpos(m, scen)
-    # warp: data from the MjModel, terrain poses from the batched model (see sim.initial_data)
-    d0 = sim.initial_data(mb, qpos, b, m=m) if st.impl == "warp" else sim.initial_data(mx, qpos, b)
+    d0 = stepdown.initial_batch_data(st, mb, scen)  # under warp: terrain poses in the data
     metrics = metrics or stepdown.make_metrics(ids, cfg)
     fn, args = sim.batch_rollout_fn(mb, ids, d0, crawl.crawl_controller(scfg.control_dt),
                                     scen.params if params is None else params, scfg, metrics=metrics,

@@ -73,7 +73,7 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
     padded = {k: np.concatenate([v, np.repeat(v[-1:], pad_to - n, 0)], 0) for k, v in rows.items()}
     scenario, sensor = build_scenario(padded, spec)
     cfg = dataclasses.replace(spec.stepdown_config(), impl=impl)
-    run, m, mx, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
+    run, _, mx, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
     mb = hmodel.batch_model(mx, ids, scenario.terrain)
     d0 = stepdown.initial_batch_data(stepdown.setup(cfg), mb, scenario)
     params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)
