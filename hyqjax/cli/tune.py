@@ -30,9 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/tune", help="run directory (the gradient run resumes from its checkpoint)")
     p.add_argument("--objective", default="closed_loop", choices=["closed_loop", "kinematic"],
                    help="closed_loop: jacfwd through MJX windows (default); kinematic: the reflex-only surrogate")
-    p.add_argument("--groups", default="k_base,damping,mobility,k_x,delta,body_height,step_length,step_height",
+    p.add_argument("--groups", default="k_base,damping,mobility,k_x,delta,body_height,step_length,step_height,"
+                                       "search_forward,terrain_adaptation",
                    help="tuned groups, comma-separated, from k_base, damping, mobility, k_x, delta, k_kl, "
-                        "body_height, step_length, step_height, search_speed")
+                        "body_height, step_length, step_height, search_speed, search_forward, terrain_adaptation")
+    p.add_argument("--paper-crawl", action="store_true",
+                   help="tune the paper's crawl (no shin-strike remedy; search_forward then has no effect); "
+                        "default: the crawl with the remedy (docs/tuning.md)")
     p.add_argument("--steps", type=int, default=20, help="Adam steps (total, across resumes)")
     p.add_argument("--lr", type=float, default=0.1, help="Adam learning rate (unconstrained parameters)")
     p.add_argument("--seed", type=int, default=0, help="training seed")
@@ -115,7 +119,8 @@ def _config(args):
             warm_start=args.warm_start, baselines=base_list, sigma=args.sigma,
             success_instances=args.success_instances, success_duration=args.success_duration,
             heldout=args.heldout, heldout_seed=args.heldout_seed, heldout_duration=args.heldout_duration,
-            curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s, impl=args.impl)
+            curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s, impl=args.impl,
+            remedy=not args.paper_crawl)
     except ValueError as e:
         msg = str(e)
         for field in ("groups", "baselines", "objective"):

@@ -9,7 +9,8 @@ parameter inside its allowed range, so every ``theta`` gives valid parameters (`
 * ``gap``: ``p = p_ref + (hi - p_ref) sigmoid(theta)`` for an upper bound above its lower bound
   (``D_max`` above ``D_min``), so ``D_min < D_max <= hi`` always holds;
 * ``box``: ``p = lo + (hi - lo) sigmoid(theta)`` for a parameter in ``(lo, hi)`` (``K_x`` in
-  ``(0, K_x,max)``, ``Delta`` in ``(0, 0.5)``, the crawl's trunk height, step length, apex, search speed);
+  ``(0, K_x,max)``, ``Delta`` in ``(0, 0.5)``, the crawl's trunk height, step length, apex, search speed, and the remedy's
+  forward search per metre of depth and terrain adaptation);
 * ``ratio``: ``m_min = m_max sigmoid(theta)`` (``0 < m_min < m_max``).
 
 Every ``(lo, hi)`` lies inside the range ``ReflexParams`` / ``CrawlParams`` declare for the field (checked
@@ -66,10 +67,14 @@ GROUPS: dict[str, tuple[Coord, ...]] = {
     "step_length": (Coord("max_step_length", "box", "crawl", 0.12, 0.34),),
     "step_height": (Coord("step_height", "box", "crawl", 0.04, 0.18),),
     "search_speed": (Coord("search_speed", "box", "crawl", 0.05, 0.35),),
+    "search_forward": (Coord("search_forward", "box", "crawl", 0.0, 1.5),),
+    "terrain_adaptation": (Coord("terrain_adaptation", "box", "crawl", 0.0, 1.0),),
 }
 REFLEX_GROUPS = ("k_base", "damping", "mobility", "k_x", "delta")
 CRAWL_GROUPS = ("body_height", "step_length", "step_height")
-DEFAULT_GROUPS = REFLEX_GROUPS + CRAWL_GROUPS
+#: The shin-strike remedy's continuous parameters (:mod:`hyqjax.crawl.remedy`; they act with ``shin_remedy`` on).
+REMEDY_GROUPS = ("search_forward", "terrain_adaptation")
+DEFAULT_GROUPS = REFLEX_GROUPS + CRAWL_GROUPS + REMEDY_GROUPS
 
 
 def _logit(p: float) -> float:

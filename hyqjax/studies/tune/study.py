@@ -16,6 +16,15 @@
 5. held-out evaluation (:mod:`.evaluate`) of Table I and every method on ``heldout`` instances, and of each
    method's best point at fractions of the budget on ``curve_instances`` instances (the figure);
 6. ``results.json`` and ``tuning.png``.
+
+The tuned crawl runs with the shin-strike remedy (``remedy=True``, :mod:`hyqjax.crawl.remedy`): every method
+starts from Table I and the default crawl with ``shin_remedy`` on (``start``) and tunes the remedy's continuous
+parameters (forward search, terrain adaptation) with the rest. The reference ``table1`` is always the paper's
+crawl with Table I; with ``remedy=True`` the held-out evaluation also reports ``start``, so what the tuning adds
+to its starting point is measured, not only what it adds to the paper.
+
+Resuming: ``results.json`` is written after every stage; the same command on the same directory (same
+configuration) keeps every finished stage (the gradient resumes from its checkpoint) and runs the rest.
 """
 from __future__ import annotations
 
@@ -59,12 +68,17 @@ class StudyConfig:
     curve_instances: int = 0
     curve_fractions: tuple = (0.25, 0.5)
     baseline_wall_s: float = 0.0
+    #: the tuned crawl runs with the shin-strike remedy (``CrawlParams.shin_remedy``); the ``table1`` reference
+    #: is the paper's crawl either way
+    remedy: bool = True
     #: MJX implementation of the forward-only runs (held-out evaluation, success baselines); the gradient's
     #: windows always run under impl jax (MuJoCo Warp is not differentiable).
     impl: str = "auto"
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
+        if not isinstance(self.remedy, bool):
+            raise ValueError(f"remedy must be True or False, got {self.remedy!r}")
         if self.objective not in ("closed_loop", "kinematic"):
             raise ValueError(f"objective must be 'closed_loop' or 'kinematic', got {self.objective!r}")
         spmod.ParamSpace.make(self.groups)
@@ -108,10 +122,11 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
         write_json(os.path.join(out_dir, "results.json"), r)  # strict JSON: a non-finite value is null
 
     space = spmod.ParamSpace.make(cfg.groups)
-    base = crawl.CrawlParams.make()
-    theta0 = spmod.table1_theta(space)
+    base = start_params(cfg)
+    theta0 = space.theta_of(base)
+    prev = _previous(out_dir, cfg)
     su = windows.setup()
-    sc, _ = evaluate.scenarios(cfg.train_heights, cfg.train_per_height, cfg.seed)
+    sc, _ = evaluate.scenarios(cfg.train_heights, cfg.train_per_height, cfg.seed, params=base)
     t = time.time()
     win = windows.make_windows(sc, cfg.window, su)
     valid = np.asarray(win.valid)
@@ -121,7 +136,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     eval_cost = clobj.physics_steps(n_win, cfg.loss)
     budget = cfg.adam.steps * step_cost
     res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
-                     config=cfg.to_dict(), params=list(space.names), theta_table1=theta0.tolist(),
+                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(), start="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
                      windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
                                   heights=np.asarray(win.height)[valid].tolist()),
                      budget_physics_steps=budget, step_physics_steps=step_cost, eval_physics_steps=eval_cost)
@@ -142,40 +157,53 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     snaps: dict[str, list] = {m: [] for m in METHODS}
     fracs = sorted(cfg.curve_fractions)
 
-    def on_step(step, th, spent):
-        for f in fracs:
-            if step == max(1, round(f * cfg.adam.steps)):
-                snaps["gradient"].append((spent, th.tolist()))
-
     t = time.time()
     if cfg.objective == "closed_loop":
+        gdir = os.path.join(out_dir, "gradient")
         gres = optimize.run_adam(lambda th: vj(th, win), jnp.asarray(theta_start, jnp.float32), cfg.adam,
-                                 os.path.join(out_dir, "gradient"), cfg.to_dict(), step_cost, space.describe,
-                                 progress=progress, on_step=on_step)
+                                 gdir, cfg.to_dict(), step_cost, space.describe, progress=progress)
         theta_grad = gres["theta"]
+        # budget-curve points from the log (row ``s`` holds theta after ``s`` steps), so a resumed run has them
+        rows = {r["step"]: r for r in optimize.read_log(gdir)}
+        for s_f in sorted({max(1, round(f * cfg.adam.steps)) for f in fracs}):
+            th = rows[s_f]["theta"] if s_f in rows else (np.asarray(theta_grad).tolist() if s_f == cfg.adam.steps
+                                                          else None)
+            if th is not None:
+                snaps["gradient"].append((s_f * step_cost, th))
     else:
         theta_grad = theta_start
     res["gradient"] = dict(theta=np.asarray(theta_grad).tolist(), params=space.describe(theta_grad),
-                           wall_s=time.time() - t, log_dir="gradient")
+                           wall_s=(prev.get("gradient", {}).get("wall_s", 0.0) if prev else 0.0) + time.time() - t,
+                           log_dir="gradient")
     save(res)
     # ---- cost of a tuning step vs forward evaluations of the same windows: a population of 1 + P candidates
     # (the same physics budget; one CMA-ES generation) and, per candidate, one forward evaluation.
     th32 = jnp.asarray(theta0, jnp.float32)
     pop_n = 1 + n_tan
-    t_step = _timed(vj, th32, win)
-    t_pop = _timed(fval, jnp.tile(th32[None], (pop_n, 1)), win)
-    res["cost"] = dict(t_step_s=t_step, t_population_s=t_pop, population=pop_n, t_forward_per_candidate_s=t_pop / pop_n,
-                       step_over_population=t_step / t_pop, step_over_forward=t_step / (t_pop / pop_n), tangents=n_tan)
-    log(f"one tuning step {t_step:.3f} s; {pop_n} forward evaluations of the same windows {t_pop:.3f} s "
-        f"({t_step / t_pop:.2f}x); budget {budget:,} physics steps")
-    # ---- gradient statistics across windows and window lengths, at Table I
-    r0 = vj(th32, win)
-    res["gradient_stats"] = gradient_stats(r0, cfg.loss.lengths, list(space.names))
-    save(res)
+    if prev and "cost" in prev and "gradient_stats" in prev:
+        res["cost"], res["gradient_stats"] = prev["cost"], prev["gradient_stats"]
+    else:
+        t_step = _timed(vj, th32, win)
+        t_pop = _timed(fval, jnp.tile(th32[None], (pop_n, 1)), win)
+        res["cost"] = dict(t_step_s=t_step, t_population_s=t_pop, population=pop_n,
+                           t_forward_per_candidate_s=t_pop / pop_n, step_over_population=t_step / t_pop,
+                           step_over_forward=t_step / (t_pop / pop_n), tangents=n_tan)
+        # ---- gradient statistics across windows and window lengths, at the start point
+        r0 = vj(th32, win)
+        res["gradient_stats"] = gradient_stats(r0, cfg.loss.lengths, list(space.names))
+        save(res)
+    c = res["cost"]
+    log(f"one tuning step {c['t_step_s']:.3f} s; {pop_n} forward evaluations of the same windows "
+        f"{c['t_population_s']:.3f} s ({c['step_over_population']:.2f}x); budget {budget:,} physics steps")
     # ---- baselines
-    found = {"table1": theta0, "gradient": np.asarray(theta_grad)}
+    found = {"start": theta0, "gradient": np.asarray(theta_grad)}
     pop = lambda xs: np.asarray(fval(jnp.asarray(xs, jnp.float32), win))
     for name in cfg.baselines:
+        if prev and name in prev:  # finished before a resume
+            res[name] = prev[name]
+            found[name] = np.asarray(prev[name]["theta"])
+            snaps[name] = [tuple(x) for x in prev[name].get("curve_points", [])]
+            continue
         t = time.time()
         if name.endswith("_success"):
             per = max(1, cfg.success_instances // len(cfg.train_heights))
@@ -207,12 +235,16 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
                          objective="clean success (negated)" if name.endswith("_success") else "window objective",
                          stopped_by_wall_limit=out["budget_spent"] + lam * cost <= budget, popsize=lam,
                          cost_per_candidate=cost,
-                         history=[{k: v for k, v in r.items() if k != "theta"} for r in out["history"]])
+                         history=[{k: v for k, v in r.items() if k != "theta"} for r in out["history"]],
+                         curve_points=[[b, list(map(float, th))] for b, th in snaps[name]])
         save(res)
         log(f"{name}: best {out['value']:.4f} after {out['budget_spent']:,} physics steps ({time.time() - t:.1f} s)")
     # ---- held-out evaluation (the budget-curve points on a subset, in the same batch)
-    if cfg.heldout:
-        params = {k: space.concrete(v, base) for k, v in found.items()}
+    if cfg.heldout and prev and "heldout" in prev and prev.get("complete"):
+        res["heldout"], res["budget_curve"] = prev["heldout"], prev.get("budget_curve", [])
+    elif cfg.heldout:
+        params = {"table1": crawl.CrawlParams.make()}
+        params.update({k: space.concrete(v, base) for k, v in found.items() if cfg.remedy or k != "start"})
         pts = [(m, b, th) for m, v in snaps.items() for b, th in v] if cfg.curve_instances else []
         extra = {f"{m}@{b}": space.concrete(np.asarray(th), base) for m, b, th in pts}
         ho = evaluate.evaluate(params, cfg.heldout, cfg.heldout_seed, duration=cfg.heldout_duration, extra=extra,
@@ -228,6 +260,27 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     res["complete"] = True
     save(res)
     return res
+
+
+def start_params(cfg: StudyConfig) -> crawl.CrawlParams:
+    """Where every method starts: Table I and the default crawl, with the shin-strike remedy if ``cfg.remedy``."""
+    return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
+
+
+def _previous(out_dir: str, cfg: StudyConfig) -> dict | None:
+    """The ``results.json`` of an earlier run of the same configuration in ``out_dir`` (its finished stages are
+    kept), None if there is none; a study of another configuration there is refused."""
+    path = os.path.join(out_dir, "results.json")
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            prev = json.load(f)
+    except (OSError, ValueError):
+        return None  # unreadable (e.g. cut off by a kill before the atomic writes): start over
+    if prev.get("config") != cfg.to_dict():
+        raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
+    return prev
 
 
 def gradient_stats(r: dict, lengths, names) -> dict:
