@@ -59,7 +59,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--curve-instances", type=int, default=0,
                    help="held-out instances per point of the success-vs-budget curve (0: final points only)")
     p.add_argument("--baseline-wall-s", type=float, default=0.0,
-                   help="also stop each baseline after this many wall seconds (0: budget only)")
+                   help="also stop each success baseline after this many wall seconds (0: budget only; the "
+                        "window-objective baselines always get the whole budget)")
+    p.add_argument("--select-instances", type=int, default=16,
+                   help="keep the gradient iterate with the best clean success over this many full runs of "
+                        "selection scenarios (counted in the budget; 0: the last iterate)")
+    p.add_argument("--select-every", type=int, default=5, help="iterates compared by the selection: every N steps")
     p.add_argument("--offset", type=int, default=0, help="window start, control ticks after the snapshot trigger")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period (Adam steps)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -95,6 +100,8 @@ def validate(args) -> None:
     check_range("--curve-instances", args.curve_instances, 0, 10**6, integer=True)
     check_range("--baseline-wall-s", args.baseline_wall_s, 0.0, 1e7, "s")
     check_range("--offset", args.offset, 0, 5000, integer=True)
+    check_range("--select-instances", args.select_instances, 0, 100000, integer=True)
+    check_range("--select-every", args.select_every, 1, 100000, integer=True)
     check_range("--checkpoint-every", args.checkpoint_every, 1, 100000, integer=True)
     check_out_free(args.out)
     args.study_config = _config(args)
@@ -120,7 +127,7 @@ def _config(args):
             success_instances=args.success_instances, success_duration=args.success_duration,
             heldout=args.heldout, heldout_seed=args.heldout_seed, heldout_duration=args.heldout_duration,
             curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s, impl=args.impl,
-            remedy=not args.paper_crawl)
+            remedy=not args.paper_crawl, select_instances=args.select_instances, select_every=args.select_every)
     except ValueError as e:
         msg = str(e)
         for field in ("groups", "baselines", "objective"):

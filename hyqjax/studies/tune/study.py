@@ -6,9 +6,12 @@
    snapshot windows (:mod:`.windows`, Table I parameters);
 2. the gradient method: optionally ``warm_start`` steps of the kinematic surrogate (:mod:`.kinematic`),
    then Adam on the closed-loop objective (:mod:`.objective`, ``jax.jacfwd``), checkpointed
-   (:mod:`.optimize`); with ``objective="kinematic"`` Adam on the surrogate alone (the former tuner);
+   (:mod:`.optimize`); with ``objective="kinematic"`` Adam on the surrogate alone (the former tuner); with
+   ``select_instances`` the iterate kept is the one with the best clean success on selection scenarios
+   (every ``select_every`` steps, the start included), its full runs counted in the budget;
 3. the cost of one tuning step against one forward evaluation of the same windows (wall time, jitted,
-   after compilation) and the simulation budget ``B = steps x W x n x (1 + P)`` physics steps;
+   after compilation) and the simulation budget ``B = steps x W x n x (1 + P)`` physics steps, plus the
+   selection's ``candidates x instances x duration / dt``;
 4. baselines with budget ``B``: CMA-ES and random search on the same window objective, and CMA-ES and
    random search on closed-loop clean success of full runs on the training scenarios (:mod:`.baselines`),
    population ``1 + P``; with ``baseline_wall_s`` a baseline also stops at that wall time (recorded as
@@ -67,7 +70,15 @@ class StudyConfig:
     heldout_duration: float = 24.0
     curve_instances: int = 0
     curve_fractions: tuple = (0.25, 0.5)
+    #: wall-time limit (s) of each success baseline (0: budget only); the window-objective baselines always get
+    #: the whole budget
     baseline_wall_s: float = 0.0
+    #: selection among the gradient's iterates (every ``select_every`` steps, the start and the last included)
+    #: by clean success over ``select_instances`` full runs of selection scenarios (a seed of the training
+    #: distribution used for nothing else); its physics steps count in the gradient's budget. 0: no selection
+    #: (the last iterate)
+    select_instances: int = 0
+    select_every: int = 5
     #: the tuned crawl runs with the shin-strike remedy (``CrawlParams.shin_remedy``); the ``table1`` reference
     #: is the paper's crawl either way
     remedy: bool = True
@@ -86,7 +97,8 @@ class StudyConfig:
         if bad:
             raise ValueError(f"baselines must be a subset of {list(METHODS[1:])}, got {list(self.baselines)}")
         for k, lo, hi in (("train_per_height", 1, 100000), ("heldout", 0, 10**6), ("warm_start", 0, 10000),
-                          ("success_instances", 1, 100000), ("curve_instances", 0, 10**6)):
+                          ("success_instances", 1, 100000), ("curve_instances", 0, 10**6),
+                          ("select_instances", 0, 100000), ("select_every", 1, 100000)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
@@ -134,7 +146,10 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     n_win, n_tan = win.size, space.size
     step_cost = clobj.physics_steps(n_win, cfg.loss, n_tan)
     eval_cost = clobj.physics_steps(n_win, cfg.loss)
-    budget = cfg.adam.steps * step_cost
+    sel_steps = selection_steps(cfg)
+    per_sel = max(1, cfg.select_instances // len(cfg.train_heights)) if sel_steps else 0
+    sel_cost = len(sel_steps) * per_sel * len(cfg.train_heights) * int(round(cfg.success_duration / 0.002))
+    budget = cfg.adam.steps * step_cost + sel_cost
     res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
                      config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(), start="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
                      windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
@@ -172,9 +187,26 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
                 snaps["gradient"].append((s_f * step_cost, th))
     else:
         theta_grad = theta_start
+    if sel_steps:
+        if prev and "selection" in prev.get("gradient", {}):
+            sel = prev["gradient"]["selection"]
+        else:
+            rows = {r["step"]: r["theta"] for r in optimize.read_log(os.path.join(out_dir, "gradient"))}
+            rows[cfg.adam.steps] = np.asarray(theta_grad).tolist()
+            cands = np.asarray([rows[k] for k in sel_steps], np.float64)
+            ssc, _ = evaluate.scenarios(cfg.train_heights, per_sel, cfg.seed + 2)
+            rates = evaluate.success_objective(cands, space, base, ssc, cfg.success_duration, cfg.impl)
+            best = int(max(range(len(sel_steps)), key=lambda i: (rates[i], sel_steps[i])))  # ties: the later
+            sel = dict(steps=list(sel_steps), clean=[float(x) for x in rates], chosen_step=sel_steps[best],
+                       instances=int(ssc.batch_size), physics_steps=sel_cost, theta=cands[best].tolist())
+        theta_grad = np.asarray(sel["theta"])
+        log(f"selection: clean success {['%.3f' % x for x in sel['clean']]} at steps {sel['steps']}; "
+            f"step {sel['chosen_step']} chosen")
     res["gradient"] = dict(theta=np.asarray(theta_grad).tolist(), params=space.describe(theta_grad),
                            wall_s=(prev.get("gradient", {}).get("wall_s", 0.0) if prev else 0.0) + time.time() - t,
-                           log_dir="gradient")
+                           log_dir="gradient", budget_spent=budget)
+    if sel_steps:
+        res["gradient"]["selection"] = sel
     save(res)
     # ---- cost of a tuning step vs forward evaluations of the same windows: a population of 1 + P candidates
     # (the same physics budget; one CMA-ES generation) and, per candidate, one forward evaluation.
@@ -219,12 +251,13 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
         # One population size for every baseline (1 + P: a generation costs what a gradient step costs on the
         # windows), so each objective compiles once.
         lam = int(min(pop_n, max(2, budget // cost)))
+        wall = cfg.baseline_wall_s if name.endswith("_success") else 0.0
         if name.startswith("cma_es"):
             out = baselines.cma_es(f, theta0, budget, cost, cfg.sigma, popsize=lam, seed=cfg.seed,
-                                   max_wall_s=cfg.baseline_wall_s)
+                                   max_wall_s=wall)
         else:
             out = baselines.random_search(f, theta0, budget, cost, cfg.sigma, chunk=lam, seed=cfg.seed,
-                                          max_wall_s=cfg.baseline_wall_s)
+                                          max_wall_s=wall)
         found[name] = out["theta"]
         for fr in fracs:
             h = [r for r in out["history"] if r["budget"] <= fr * budget]
@@ -260,6 +293,13 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     res["complete"] = True
     save(res)
     return res
+
+
+def selection_steps(cfg: StudyConfig) -> tuple:
+    """Adam steps whose iterates the selection compares (empty without selection)."""
+    if not (cfg.select_instances and cfg.objective == "closed_loop"):
+        return ()
+    return tuple(sorted({0, *range(cfg.select_every, cfg.adam.steps + 1, cfg.select_every), cfg.adam.steps}))
 
 
 def start_params(cfg: StudyConfig) -> crawl.CrawlParams:

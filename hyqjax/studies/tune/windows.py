@@ -176,7 +176,7 @@ def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
         d, cs, tau, snaps, (valid, legs, ticks), count, pending, pend_leg = carry
         d1, cs1, tau1, info = tick(mx, ids, p, d, cs, tau, dt)
         new_body = (cs.phase == crawl.PHASE_SWING) & (cs1.phase == crawl.PHASE_BODY)
-        leg = p.foot_sequence[cs1.seq_index]
+        leg = cs1.sequence[cs1.seq_index]  # the remedy may have brought the other front leg forward
         foot_x = d.site_xpos[sites][leg, 0]
         trig = new_body & (foot_x < 0.0) & (foot_x > -spec.reach) & (count < k_slots) & (pending < 0)
         # offset 0: the trigger tick's inputs; offset > 0: the inputs ``offset`` ticks later.
