@@ -231,3 +231,28 @@ def test_per_robot_gradients_match_single_robot(cl64):
             np.testing.assert_allclose(float(r["loss"][i]), float(alone["loss"]), rtol=1e-9)
             np.testing.assert_allclose(np.asarray(r["grad"][i]), np.asarray(alone["grad"]), rtol=1e-6, atol=1e-12)
         assert not np.allclose(np.asarray(r["grad"][0]), np.asarray(r["grad"][1]))
+
+
+def test_line_search_never_raises_the_objective_even_with_a_biased_gradient(tmp_path):
+    """Adam with backtracking (``AdamConfig.line_search``): with a gradient whose first component has the
+    wrong sign (the kind of bias a pathwise gradient through contact events has), plain Adam raises the
+    objective while the line search only ever lowers it, and the budget counts its evaluations."""
+    target = jnp.asarray([1.0, -1.0, 0.5])
+    loss = lambda th: float(jnp.sum((th - target) ** 2) + 3.0 * (th[0] - target[0]) ** 2)  # noqa: E731
+
+    def step_fn(th):
+        g = 2.0 * (th - target) * jnp.asarray([4.0, 1.0, -1.0])  # biased: points the wrong way along x2
+        return dict(loss=loss(th), grad=g)
+
+    evaluate = lambda ths: np.asarray([loss(t) for t in ths])  # noqa: E731
+    th0 = jnp.zeros(3)
+    ls = optimize.AdamConfig(steps=16, lr=0.1, line_search=(0.25, 0.5, 1.0))
+    r = optimize.run_adam(step_fn, th0, ls, str(tmp_path / "ls"), dict(k="ls"), 10, progress=False, evaluate=evaluate)
+    losses = [row["loss"] for row in r["log"]] + [loss(jnp.asarray(r["theta"]))]
+    assert all(b <= a + 1e-12 for a, b in zip(losses, losses[1:])) and losses[-1] < losses[0]
+    assert r["spent"] == 16 * 10
+    plain = optimize.run_adam(step_fn, th0, optimize.AdamConfig(steps=16, lr=0.1), str(tmp_path / "plain"),
+                              dict(k="plain"), 10, progress=False)
+    assert any(b > a for a, b in zip([row["loss"] for row in plain["log"]], [row["loss"] for row in plain["log"]][1:]))
+    with pytest.raises(ValueError, match="line_search"):
+        optimize.AdamConfig(line_search=(0.0,))

@@ -39,6 +39,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "default: the crawl with the remedy (docs/tuning.md)")
     p.add_argument("--steps", type=int, default=20, help="Adam steps (total, across resumes)")
     p.add_argument("--lr", type=float, default=0.1, help="Adam learning rate (unconstrained parameters)")
+    p.add_argument("--line-search", type=_floats, default=(0.125, 0.25, 0.5, 1.0, 2.0),
+                   help="scales of the Adam update tried per step (one batched forward evaluation of the windows, "
+                        "counted in the budget); the best is taken only if it lowers the objective; '' for plain Adam")
     p.add_argument("--seed", type=int, default=0, help="training seed")
     p.add_argument("--train-heights", type=_floats, default=(0.16, 0.20, 0.24, 0.28), help="training heights (m)")
     p.add_argument("--train-per-height", type=int, default=2, help="training scenarios per height")
@@ -82,6 +85,8 @@ def validate(args) -> None:
 
     check_range("--steps", args.steps, 0, 100000, integer=True)
     check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
+    for c in args.line_search:
+        check_range("--line-search", c, 0.0, 10.0, lo_open=True)
     check_range("--seed", args.seed, 0, 2**32 - 1, integer=True)
     check_all("--train-heights", args.train_heights, 0.0, 0.45, "m")
     check_range("--train-per-height", args.train_per_height, 1, 100000, integer=True)
@@ -122,7 +127,8 @@ def _config(args):
             window=windows.WindowSpec(per_scenario=args.windows_per_scenario, lead=args.lead, offset=args.offset),
             loss=objective.ClosedLoopObjective(ticks=args.window_ticks,
                                                prefixes=tuple(n for n in args.prefixes if n < args.window_ticks)),
-            adam=optimize.AdamConfig(steps=args.steps, lr=args.lr, checkpoint_every=args.checkpoint_every),
+            adam=optimize.AdamConfig(steps=args.steps, lr=args.lr, checkpoint_every=args.checkpoint_every,
+                                     line_search=tuple(args.line_search)),
             warm_start=args.warm_start, baselines=base_list, sigma=args.sigma,
             success_instances=args.success_instances, success_duration=args.success_duration,
             heldout=args.heldout, heldout_seed=args.heldout_seed, heldout_duration=args.heldout_duration,

@@ -8,6 +8,11 @@ physics steps spent so far and the wall time; ``checkpoint.npz`` (``theta``, Ada
 atomically every ``checkpoint_every`` steps and at the end. The same call on the same directory resumes;
 a larger ``steps`` continues; another configuration (hash of everything except ``steps``) is refused.
 Non-finite gradients skip the update (``optax.apply_if_finite``). A ``tqdm`` bar shows the ETA.
+
+With ``line_search`` (scales ``c_1..c_K``) a step is Adam with backtracking: the Adam update ``u`` is a
+direction, ``theta + c_k u`` are evaluated in one batch and the best is taken only if it lowers the
+objective below its value at ``theta``; otherwise ``theta`` stays (Adam's moments still advance). The
+objective on the fixed training windows then never rises, whatever the bias of the pathwise gradient.
 """
 from __future__ import annotations
 
@@ -31,6 +36,9 @@ class AdamConfig:
     lr: float = 0.1
     clip: float = 1.0
     checkpoint_every: int = 5
+    #: backtracking on the Adam update: the step tries ``theta + c u`` for every ``c`` here (one batched forward
+    #: evaluation) and moves to the best only if it lowers the objective; empty: plain Adam
+    line_search: tuple = ()
 
     def __post_init__(self):
         for k, lo, hi in (("steps", 0, 100000), ("checkpoint_every", 1, 100000)):
@@ -41,6 +49,8 @@ class AdamConfig:
             raise ValueError(f"lr must be in (0, 1], got {self.lr}")
         if not (0.0 < self.clip <= 1e3):
             raise ValueError(f"clip must be in (0, 1000], got {self.clip}")
+        if any(not (0.0 < float(c) <= 10.0) for c in self.line_search) or len(self.line_search) > 16:
+            raise ValueError(f"line_search must be at most 16 scales in (0, 10], got {self.line_search}")
 
 
 def make_optimizer(cfg: AdamConfig):
@@ -82,11 +92,14 @@ def read_log(out_dir: str) -> list[dict]:
 
 def run_adam(step_fn: Callable, theta0, cfg: AdamConfig, out_dir: str, config: dict, cost_per_step: int,
              describe: Callable | None = None, stop_after: int | None = None, progress: bool = True,
-             on_step: Callable | None = None) -> dict:
+             on_step: Callable | None = None, evaluate: Callable | None = None) -> dict:
     """Adam on ``theta`` (see the module docstring). ``config`` is the run's full configuration (hashed);
-    ``cost_per_step`` its physics steps per gradient step; ``describe(theta) -> dict`` the parameter values;
-    ``on_step(step, theta, spent)`` is called after every step (e.g. to snapshot for a budget curve).
-    Returns ``dict(step, theta, spent, log)``."""
+    ``cost_per_step`` its physics steps per step (line-search evaluations included); ``describe(theta) ->
+    dict`` the parameter values; ``on_step(step, theta, spent)`` is called after every step (e.g. to
+    snapshot for a budget curve); ``evaluate(thetas (N, P)) -> (N,)`` objective values, for
+    ``cfg.line_search``. Returns ``dict(step, theta, spent, log)``."""
+    if cfg.line_search and evaluate is None:
+        raise ValueError("line_search needs an evaluate function")
     import optax
     from tqdm.auto import tqdm
 
@@ -129,7 +142,19 @@ def run_adam(step_fn: Callable, theta0, cfg: AdamConfig, out_dir: str, config: d
                         rec["grad_std"] = [float(x) for x in pw[ok].std(0, ddof=1)]
                 if describe is not None:
                     rec["params"] = describe(theta)
-                theta = optax.apply_updates(theta, upd)
+                if cfg.line_search:
+                    scales = jnp.asarray(cfg.line_search, theta.dtype)
+                    cands = theta[None] + scales[:, None] * jnp.asarray(upd, theta.dtype)[None]
+                    vals = np.asarray(evaluate(cands), np.float64)
+                    vals = np.where(np.isfinite(vals), vals, np.inf)
+                    i = int(np.argmin(vals))
+                    accept = bool(vals[i] < rec["loss"])
+                    rec["line_search"] = dict(scales=[float(c) for c in cfg.line_search],
+                                              losses=[float(v) if np.isfinite(v) else None for v in vals],
+                                              chosen=float(cfg.line_search[i]) if accept else 0.0)
+                    theta = cands[i] if accept else theta
+                else:
+                    theta = optax.apply_updates(theta, upd)
                 spent += cost_per_step
                 log.write(dumps(rec, indent=None) + "\n")  # strict JSON lines (non-finite -> null)
                 log.flush()

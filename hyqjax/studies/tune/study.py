@@ -144,8 +144,8 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     valid = np.asarray(win.valid)
     log(f"windows: {int(valid.sum())} of {valid.size} triggered ({time.time() - t:.1f} s incl. compile)")
     n_win, n_tan = win.size, space.size
-    step_cost = clobj.physics_steps(n_win, cfg.loss, n_tan)
     eval_cost = clobj.physics_steps(n_win, cfg.loss)
+    step_cost = clobj.physics_steps(n_win, cfg.loss, n_tan) + len(cfg.adam.line_search) * eval_cost
     sel_steps = selection_steps(cfg)
     per_sel = max(1, cfg.select_instances // len(cfg.train_heights)) if sel_steps else 0
     sel_cost = len(sel_steps) * per_sel * len(cfg.train_heights) * int(round(cfg.success_duration / 0.002))
@@ -176,7 +176,8 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     if cfg.objective == "closed_loop":
         gdir = os.path.join(out_dir, "gradient")
         gres = optimize.run_adam(lambda th: vj(th, win), jnp.asarray(theta_start, jnp.float32), cfg.adam,
-                                 gdir, cfg.to_dict(), step_cost, space.describe, progress=progress)
+                                 gdir, cfg.to_dict(), step_cost, space.describe, progress=progress,
+                                 evaluate=lambda ths: fval(ths, win))
         theta_grad = gres["theta"]
         # budget-curve points from the log (row ``s`` holds theta after ``s`` steps), so a resumed run has them
         rows = {r["step"]: r for r in optimize.read_log(gdir)}
