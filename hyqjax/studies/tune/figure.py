@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-LABELS = {"gradient": "gradient (jacfwd, Adam)", "cma_es": "CMA-ES (window objective)",
+LABELS = {"gradient": "gradient (jacfwd, Adam + line search)", "cma_es": "CMA-ES (window objective)",
           "random_search": "random search (window objective)", "cma_es_success": "CMA-ES (success)",
           "random_search_success": "random search (success)"}
 

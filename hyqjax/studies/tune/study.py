@@ -151,7 +151,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     sel_cost = len(sel_steps) * per_sel * len(cfg.train_heights) * int(round(cfg.success_duration / 0.002))
     budget = cfg.adam.steps * step_cost + sel_cost
     res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
-                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(), start="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
+                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(), start_point="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
                      windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
                                   heights=np.asarray(win.height)[valid].tolist()),
                      budget_physics_steps=budget, step_physics_steps=step_cost, eval_physics_steps=eval_cost)
