@@ -155,28 +155,41 @@ def test_cli_bad_input_is_one_line():
 
 @pytest.fixture(scope="module")
 def cl64():
-    """Float64 windows of one 24 cm step-down (the swing leg searching over the edge with the reflex on) and
-    the jitted jacfwd objective of a short window."""
+    """Float64 windows of one 24 cm step-down with the shin-strike remedy (what ``hyqjax tune`` tunes), both front
+    legs' snapshots, and the jitted jacfwd objective of a window that runs from just before the first front
+    leg's swing is planned into its haptic search over the edge (the tuned search direction acts there)."""
     with jax.enable_x64(True):
         su = windows.setup(dtype="float64")
         from hyqjax.studies.tune import evaluate
 
-        sc, _ = evaluate.scenarios([0.24], 1, 3)
-        win = windows.make_windows(sc, windows.WindowSpec(per_scenario=1, lead=4.0, offset=330), su)
-        sp = spmod.ParamSpace.make(("k_base", "damping", "mobility", "body_height"))
+        start = crawl.CrawlParams.make(shin_remedy=True)
+        sc, _ = evaluate.scenarios([0.24], 1, 3, params=start)
+        both = windows.make_windows(sc, windows.WindowSpec(per_scenario=2, lead=6.0, offset=190), su)
+        win = both.take([0])
+        sp = spmod.ParamSpace.make(("k_base", "damping", "body_height", "search_forward", "terrain_adaptation"))
         base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(
-            jnp.asarray(x).dtype, jnp.floating) else x, crawl.CrawlParams.make())
-        obj = objective.ClosedLoopObjective(ticks=40)
+            jnp.asarray(x).dtype, jnp.floating) else x, start)
+        obj = objective.ClosedLoopObjective(ticks=260)
         vj = objective.make_value_and_jac(win, base, sp, obj, su)
-        yield win, sp, vj
+        yield win, sp, vj, base, obj, both
+
+
+@pytest.mark.slow
+def test_windows_follow_the_remedy_leg_order(cl64):
+    """With the remedy the other front leg swings right after the first one stepped down: both front legs get
+    a window (RF first in this scenario's rh-rf-lh-lf cycle, then LF brought forward)."""
+    both = cl64[-1]
+    assert np.asarray(both.valid).all()
+    assert np.asarray(both.leg).tolist() == [1, 0]
+    assert int(both.tick[1]) > int(both.tick[0])
 
 
 @pytest.mark.slow
 def test_closed_loop_gradient_matches_central_differences(cl64):
-    win, sp, vj = cl64
+    win, sp, vj, base, _, _ = cl64
     with jax.enable_x64(True):
         assert bool(win.valid[0])
-        th = jnp.asarray(spmod.table1_theta(sp))
+        th = jnp.asarray(sp.theta_of(base))
         r = vj(th, win)
         traced = TRACED.count(vj.__name__)
         g = np.asarray(r["grad"])
@@ -187,15 +200,21 @@ def test_closed_loop_gradient_matches_central_differences(cl64):
             eps = 1e-6
             fd = (float(vj(th + eps * v, win)["loss"]) - float(vj(th - eps * v, win)["loss"])) / (2 * eps)
             assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
+        # the remedy's forward search, alone: it moves the searching foot, so its gradient is not zero
+        e = np.zeros(sp.size)
+        e[sp.names.index("search_forward")] = 1.0
+        fd = (float(vj(th + 1e-6 * e, win)["loss"]) - float(vj(th - 1e-6 * e, win)["loss"])) / 2e-6
+        assert abs(g[sp.names.index("search_forward")]) > 1e-7
+        assert float(g @ e) == pytest.approx(fd, rel=2e-3, abs=1e-10)
         # Retrace guard: the tuner step with new values of theta reuses its program.
         assert TRACED.count(vj.__name__) == traced, "the closed-loop tuner step was traced again"
 
 
 @pytest.mark.slow
 def test_closed_loop_gradient_steps_lower_objective(cl64):
-    win, sp, vj = cl64
+    win, sp, vj, base, _, _ = cl64
     with jax.enable_x64(True):
-        th = jnp.asarray(spmod.table1_theta(sp))
+        th = jnp.asarray(sp.theta_of(base))
         r0 = vj(th, win)
         losses = [float(r0["loss"])]
         g = np.asarray(r0["grad"])
@@ -216,14 +235,12 @@ def test_closed_loop_gradient_steps_lower_objective(cl64):
 def test_per_robot_gradients_match_single_robot(cl64):
     """Per-robot batched tuning: two robots with their own parameters on (copies of) the window get the
     gradient each would get alone."""
-    win, sp, vj = cl64
+    win, sp, vj, base, obj, _ = cl64
     with jax.enable_x64(True):
         su = windows.setup(dtype="float64")
-        base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(
-            jnp.asarray(x).dtype, jnp.floating) else x, crawl.CrawlParams.make())
         wins, axes = windows.grouped(win.take([0, 0]), 2)
-        f = objective.make_per_robot_value_and_jac(base, sp, objective.ClosedLoopObjective(ticks=40), su, axes)
-        th0 = jnp.asarray(spmod.table1_theta(sp))
+        f = objective.make_per_robot_value_and_jac(base, sp, obj, su, axes)
+        th0 = jnp.asarray(sp.theta_of(base))
         thetas = jnp.stack([th0, th0 + 0.3])
         r = f(thetas, wins)
         for i in range(2):
@@ -256,3 +273,19 @@ def test_line_search_never_raises_the_objective_even_with_a_biased_gradient(tmp_
     assert any(b > a for a, b in zip([row["loss"] for row in plain["log"]], [row["loss"] for row in plain["log"]][1:]))
     with pytest.raises(ValueError, match="line_search"):
         optimize.AdamConfig(line_search=(0.0,))
+
+
+@pytest.mark.parametrize("kw, match", [(dict(select_instances=-1), "select_instances must be"),
+                                       (dict(select_every=0), "select_every must be"),
+                                       (dict(remedy="yes"), "remedy must be")])
+def test_study_selection_and_remedy_validation(kw, match):
+    with pytest.raises(ValueError, match=match):
+        study.StudyConfig(**kw)
+
+
+def test_selection_steps_include_start_and_last():
+    assert study.selection_steps(study.StudyConfig(select_instances=8, select_every=5,
+                                                   adam=optimize.AdamConfig(steps=12))) == (0, 5, 10, 12)
+    assert study.selection_steps(study.StudyConfig(select_instances=0)) == ()
+    assert study.start_params(study.StudyConfig()).shin_remedy == 1.0
+    assert study.start_params(study.StudyConfig(remedy=False)).shin_remedy == 0.0
