@@ -2,12 +2,14 @@
 from __future__ import annotations
 
 import atexit
+import gc
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
 import textwrap
+import warnings
 
 import hyqjax  # noqa: F401  (sets the XLA:CPU flags before jax is imported)
 import jax
@@ -50,6 +52,46 @@ def pytest_configure(config):
 
 def pytest_runtest_setup(item):
     _RUNNING["item"] = item
+
+
+def _memory_map_count() -> int | None:
+    """Memory mappings of this process (Linux), else None."""
+    try:
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None
+
+
+def _max_map_count() -> int | None:
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _release_compiled_programs():
+    """Drop JAX's compiled programs after each test module.
+
+    Every XLA:CPU program loaded in a process keeps about three memory mappings per compiled kernel (code,
+    constants, data) for as long as JAX caches it, and JAX caches every program it compiled (functions held
+    by the hyqjax modules keep theirs). In one pytest process over the whole suite that grew to ~54,000
+    mappings by the last test module, and with Warp's in-process run in test_stepdown to the kernel's
+    per-process limit (``vm.max_map_count``, 65,530 by default) while test_tune compiled its gradients:
+    LLVM's mmap failed ("LLVM compilation error: Cannot allocate memory") and the session died of SIGABRT
+    / SIGSEGV. Clearing the caches between modules keeps the count to what one module needs; a module that
+    compiles a program another one compiled loads it from the session's persistent compilation cache.
+    """
+    yield
+    gc.collect()
+    jax.clear_caches()
+    gc.collect()
+    n, limit = _memory_map_count(), _max_map_count()
+    if n is not None and limit is not None and n > 0.6 * limit:
+        warnings.warn(f"{n} memory mappings after this module's JAX caches were cleared (vm.max_map_count "
+                      f"{limit}): something outside JAX's caches keeps compiled programs alive", stacklevel=1)
 
 
 @pytest.fixture
