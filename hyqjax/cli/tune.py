@@ -46,7 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--train-heights", type=_floats, default=(0.16, 0.20, 0.24, 0.28), help="training heights (m)")
     p.add_argument("--train-per-height", type=int, default=2, help="training scenarios per height")
     p.add_argument("--windows-per-scenario", type=int, default=2, help="snapshot windows per scenario (legs over the edge)")
-    p.add_argument("--lead", type=float, default=8.0, help="forward run that takes the snapshots (s)")
+    p.add_argument("--lead", type=float, default=10.0, help="forward run that takes the snapshots (s)")
     p.add_argument("--window-ticks", type=int, default=750, help="window length (control ticks of 2 ms)")
     p.add_argument("--prefixes", type=_ints, default=(50, 125, 250, 500),
                    help="shorter window lengths (ticks) at which the gradient statistics are also reported")
