@@ -41,7 +41,8 @@ def plot_study(res: dict, path: str) -> str:
     if gs:
         n = [p["ticks"] for p in gs["per_length"]]
         a2.semilogy(n, [p["median_norm"] for p in gs["per_length"]], "o-", label="median |grad| per window")
-        a2.semilogy(n, [float(np.mean(p["snr"])) for p in gs["per_length"]], "s-", label="mean SNR over parameters")
+        a2.semilogy(n, [float(np.mean([np.nan if x is None else x for x in p["snr"]])) for p in gs["per_length"]], "s-",
+                    label="mean SNR over parameters")
         a2.set_xlabel("window length [control ticks, 2 ms]")
         a2.grid(alpha=0.3)
         a2.legend(fontsize=8)
@@ -79,7 +80,7 @@ def summary_markdown(res: dict) -> str:
         lines += ["", "| window (ticks) | median per-window norm | max norm | mean SNR | min / max SNR |",
                   "|---:|---:|---:|---:|---|"]
         for p in gs["per_length"]:
-            snr = np.asarray(p["snr"])
+            snr = np.asarray([np.nan if x is None else x for x in p["snr"]], float)
             lines.append(f"| {p['ticks']} | {p['median_norm']:.3g} | {p['max_norm']:.3g} | {snr.mean():.2f} | "
                          f"{snr.min():.2f} / {snr.max():.2f} |")
     return "\n".join(lines)

@@ -334,7 +334,9 @@ def gradient_stats(r: dict, lengths, names) -> dict:
     for i, n in enumerate(lengths):
         gi = g[:, i]
         mean, std = gi.mean(0), gi.std(0, ddof=1) if len(gi) > 1 else np.zeros(gi.shape[1])
-        snr = np.abs(mean) / np.maximum(std / np.sqrt(max(len(gi), 1)), 1e-30)
+        # undefined with one window (no spread across scenarios): NaN, written as null
+        snr = (np.abs(mean) / np.maximum(std / np.sqrt(len(gi)), 1e-30) if len(gi) > 1
+               else np.full(gi.shape[1], np.nan))
         out["per_length"].append(dict(ticks=int(n), mean=mean.tolist(), std=std.tolist(), snr=snr.tolist(),
                                       median_norm=float(np.median(np.linalg.norm(gi, axis=1))),
                                       max_norm=float(np.max(np.linalg.norm(gi, axis=1)))))
