@@ -75,14 +75,15 @@ def _max_map_count() -> int | None:
 def _release_compiled_programs():
     """Drop JAX's compiled programs after each test module.
 
-    Every XLA:CPU program loaded in a process keeps about three memory mappings per compiled kernel (code,
-    constants, data) for as long as JAX caches it, and JAX caches every program it compiled (functions held
-    by the hyqjax modules keep theirs). In one pytest process over the whole suite that grew to ~54,000
-    mappings by the last test module, and with Warp's in-process run in test_stepdown to the kernel's
-    per-process limit (``vm.max_map_count``, 65,530 by default) while test_tune compiled its gradients:
-    LLVM's mmap failed ("LLVM compilation error: Cannot allocate memory") and the session died of SIGABRT
-    / SIGSEGV. Clearing the caches between modules keeps the count to what one module needs; a module that
-    compiles a program another one compiled loads it from the session's persistent compilation cache.
+    Every XLA:CPU program loaded in a process holds three memory mappings per compiled object (code,
+    constants, data), and JAX keeps a program for as long as its jitted function lives (module-level functions
+    and hyqjax's own caches live for the whole session). In one pytest process over the whole suite
+    with warp-lang installed (test_stepdown's warp test runs in-process) the count grew to 53,600 by the middle
+    of test_tune, and its next gradient program took it to the kernel's per-process limit
+    (``vm.max_map_count``, 65,530 by default): LLVM's mmap failed ("LLVM compilation error: Cannot allocate
+    memory") and the session died of SIGABRT or SIGSEGV. Releasing the programs after each module keeps the
+    count to what one module needs (at most 12,624 after any test of the suite); a module that compiles a
+    program an earlier one compiled loads it from the session's persistent compilation cache.
     """
     yield
     gc.collect()

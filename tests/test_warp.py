@@ -5,10 +5,12 @@ only around it: the batch runner, the Warp data with per-instance terrain poses,
 overflow flag and the derivative guard. The first warp call of a machine compiles Warp's kernels through
 LLVM (about 2 minutes on 2 cores, cached in ``~/.cache/warp`` afterwards).
 
-The runs happen in a fresh process: Warp's LLVM JIT in a process that has already compiled hundreds of XLA
-programs (and switched float64 on and off) aborted the whole test session once, and a crash there must fail
-this test, not end the others. Skipped when warp-lang is not installed (``pip install -e ".[test,warp]"``; CI
-does not install it: docs/warp.md says why).
+The runs happen in a fresh process, so that a crash in Warp's native code fails this test instead of ending the
+session. (The whole session with warp-lang installed once died around here of SIGABRT; the cause was the pytest
+process reaching the kernel's limit on memory mappings with the XLA programs of ~440 tests, not this file:
+tests/conftest.py now releases JAX's compiled programs after each test module.)
+The test extra installs warp-lang (``pip install -e ".[test]"``), so CI runs this file; it is skipped where
+warp-lang is not installed.
 """
 from __future__ import annotations
 
