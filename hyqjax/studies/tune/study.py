@@ -148,10 +148,11 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     step_cost = clobj.physics_steps(n_win, cfg.loss, n_tan) + len(cfg.adam.line_search) * eval_cost
     sel_steps = selection_steps(cfg)
     per_sel = max(1, cfg.select_instances // len(cfg.train_heights)) if sel_steps else 0
-    sel_cost = len(sel_steps) * per_sel * len(cfg.train_heights) * int(round(cfg.success_duration / 0.002))
+    sel_cost = len(sel_steps) * _full_runs_cost(per_sel * len(cfg.train_heights), cfg.success_duration)
     budget = cfg.adam.steps * step_cost + sel_cost
     res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
-                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(), start_point="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
+                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(),
+                     start_point="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
                      windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
                                   heights=np.asarray(win.height)[valid].tolist()),
                      budget_physics_steps=budget, step_physics_steps=step_cost, eval_physics_steps=eval_cost)
@@ -174,27 +175,23 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
 
     t = time.time()
     if cfg.objective == "closed_loop":
-        gdir = os.path.join(out_dir, "gradient")
         gres = optimize.run_adam(lambda th: vj(th, win), jnp.asarray(theta_start, jnp.float32), cfg.adam,
-                                 gdir, cfg.to_dict(), step_cost, space.describe, progress=progress,
+                                 os.path.join(out_dir, "gradient"), cfg.to_dict(), step_cost, space.describe, progress=progress,
                                  evaluate=lambda ths: fval(ths, win))
         theta_grad = gres["theta"]
-        # budget-curve points from the log (row ``s`` holds theta after ``s`` steps), so a resumed run has them
-        rows = {r["step"]: r for r in optimize.read_log(gdir)}
+        # theta after ``s`` steps is log row ``s``'s (the last one is the result), so a resumed run has them all
+        iterate = {r["step"]: r["theta"] for r in gres["log"]}
+        iterate[cfg.adam.steps] = np.asarray(theta_grad).tolist()
         for s_f in sorted({max(1, round(f * cfg.adam.steps)) for f in fracs}):
-            th = rows[s_f]["theta"] if s_f in rows else (np.asarray(theta_grad).tolist() if s_f == cfg.adam.steps
-                                                          else None)
-            if th is not None:
-                snaps["gradient"].append((s_f * step_cost, th))
+            if s_f in iterate:
+                snaps["gradient"].append((s_f * step_cost, iterate[s_f]))
     else:
         theta_grad = theta_start
     if sel_steps:
         if prev and "selection" in prev.get("gradient", {}):
             sel = prev["gradient"]["selection"]
         else:
-            rows = {r["step"]: r["theta"] for r in optimize.read_log(os.path.join(out_dir, "gradient"))}
-            rows[cfg.adam.steps] = np.asarray(theta_grad).tolist()
-            cands = np.asarray([rows[k] for k in sel_steps], np.float64)
+            cands = np.asarray([iterate[k] for k in sel_steps], np.float64)
             ssc, _ = evaluate.scenarios(cfg.train_heights, per_sel, cfg.seed + 2)
             rates = evaluate.success_objective(cands, space, base, ssc, cfg.success_duration, cfg.impl)
             best = int(max(range(len(sel_steps)), key=lambda i: (rates[i], sel_steps[i])))  # ties: the later
@@ -241,7 +238,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
         if name.endswith("_success"):
             per = max(1, cfg.success_instances // len(cfg.train_heights))
             ssc, _ = evaluate.scenarios(cfg.train_heights, per, cfg.seed + 1)
-            cost = ssc.batch_size * int(round(cfg.success_duration / 0.002))
+            cost = _full_runs_cost(ssc.batch_size, cfg.success_duration)
             f = lambda xs, ssc=ssc: -evaluate.success_objective(xs, space, base, ssc,  # noqa: E731
                                                                  cfg.success_duration, cfg.impl)
         else:
@@ -294,6 +291,11 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     res["complete"] = True
     save(res)
     return res
+
+
+def _full_runs_cost(runs: int, duration: float, dt: float = 0.002) -> int:
+    """Physics steps of ``runs`` full closed-loop runs of ``duration`` seconds."""
+    return int(runs) * int(round(duration / dt))
 
 
 def selection_steps(cfg: StudyConfig) -> tuple:
