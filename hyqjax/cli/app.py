@@ -4,6 +4,13 @@ Each command module in :mod:`hyqjax.cli` defines ``NAME``, ``HELP``, ``add_argum
 ``validate(args)`` (option checks and output directories, before JAX is imported or anything compiled)
 and ``run(args) -> int``; this file collects them.
 
+Import hygiene: this module, the command modules at import, their ``add_arguments`` and the option checks of
+their ``validate`` import nothing heavy (no JAX, MuJoCo, pyarrow or matplotlib; the compilation cache is set
+through JAX's environment variables until JAX is imported), so a usage error is printed a fraction of a
+second after the start (``benchmarks/bench_cli_refusal.py``). Checks that need a declaration made in JAX
+(parameter ranges of a sweep spec or of tuned groups) import JAX's parameter classes, never MJX; heavy
+imports are in ``run``.
+
 Exit status: 0 done, 2 a user error (one line naming the option and what is allowed, no traceback; the
 parser's own errors too), 1 any other error (one line; ``--debug`` shows the traceback), 130 interrupted.
 Every command takes ``--debug`` and ``--no-cache`` (JAX's persistent compilation cache is on by default in
@@ -69,12 +76,17 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _user_errors() -> tuple:
-    """Exception types that are the user's to fix (bad spec, busy or foreign store), besides UsageError."""
-    errs = [UsageError]
-    if "hyqjax.studies.sweep" in sys.modules:
-        from hyqjax.studies import sweep
+    """Exception types that are the user's to fix (bad spec, busy or foreign store or run directory, a resume with
+    other settings), besides UsageError; from the modules loaded only (one not loaded raised nothing)."""
+    from hyqjax.io.fingerprint import SettingsMismatch
+    from hyqjax.io.lock import Busy
 
-        errs += [sweep.SpecError, sweep.StoreMismatch, sweep.StoreBusy, sweep.StoreCorrupt]
+    errs = [UsageError, Busy, SettingsMismatch]
+    if "hyqjax.studies.sweep.axes" in sys.modules:
+        errs.append(sys.modules["hyqjax.studies.sweep.axes"].SpecError)
+    if "hyqjax.studies.sweep.store" in sys.modules:
+        store = sys.modules["hyqjax.studies.sweep.store"]
+        errs += [store.StoreMismatch, store.StoreCorrupt]
     return tuple(errs)
 
 

@@ -18,8 +18,6 @@ import argparse
 import os
 import time
 
-import numpy as np
-
 
 NAME = "bound"
 HELP = "bounding gait: in place, forward, turning; yaw / speed tracking, falls, ablation"
@@ -157,6 +155,8 @@ def run(args) -> int:
         idx = {name: list(range(g * n, (g + 1) * n)) for g, (name, _, _) in enumerate(configs)}
         out["figures"] = bp.tracking_figures(trace, idx, args.out)
     # Traces of every instance in hyqjax.io.recording's format, for `hyqjax render` / `hyqjax view`.
+    import numpy as np
+
     from hyqjax.io import recording
 
     inputs = dict(friction=np.asarray(batch.terrain.friction), payload_mass=np.asarray(batch.terrain.payload_mass),

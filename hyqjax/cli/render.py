@@ -85,6 +85,11 @@ def check_archive(source: str) -> None:
     from hyqjax.io import recording
 
     tp = recording.traces_path(source)
+    from hyqjax.cli.verify import sweep_source_problem
+
+    sweep_problem = sweep_source_problem(source)  # a sweep store: verified, its damaged chunks named
+    if sweep_problem:
+        raise ValueError(sweep_problem)
     if not os.path.isfile(tp):
         raise ValueError(f"SOURCE {source}: no trace archive at {tp} (run e.g. `hyqjax stepdown --out DIR` without "
                          f"--no-figures to record one)")

@@ -7,6 +7,8 @@ the bounding tracking table and ablation contributions, or a sweep's success per
 largest safe height; every PNG figure in the directory; and
 the stills and videos that ``hyqjax render --stills N`` wrote to DIR/render/. Images are embedded,
 so the page is a single file. Run ``hyqjax render DIR --stills 4`` first to include frames.
+Every sweep store is verified (``hyqjax verify``): a damaged one is marked on the page and named on
+stderr, and the command exits with status 1.
 """
 from __future__ import annotations
 
@@ -63,9 +65,12 @@ def validate(args) -> None:
 def run(args) -> int:
     if not getattr(args, "options_checked", False):
         validate(args)
+    from hyqjax.cli import verify
     from hyqjax.io import report
 
-    path, dirs = report.build_report(args.dir, args.out, args.title, args.max_embed_mb)
+    checks = verify.check_dirs(report.find_result_dirs(args.dir))  # every sweep store verified, damage named
+    path, dirs = report.build_report(args.dir, args.out, args.title, args.max_embed_mb,
+                                     checks={d: (c.ok, c.lines()) for d, c in checks.items()})
     print(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB) from {len(dirs)} results.json: "
           + ", ".join(os.path.relpath(d, args.dir) for d in dirs))
-    return 0
+    return verify.tell(checks, "hyqjax report")

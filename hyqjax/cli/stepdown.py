@@ -10,8 +10,6 @@ import argparse
 import os
 import time
 
-import numpy as np
-
 NAME = "stepdown"
 HELP = "step down from a platform with the height reflex on and off (the paper's headline experiment)"
 ORDER = 10
@@ -111,7 +109,7 @@ def run(args) -> int:
     return 0
 
 
-def _recorded_instances(args) -> np.ndarray:
+def _recorded_instances(args) -> "np.ndarray":  # noqa: F821
     """Rows to write to traces.npz, checked (with --record-every) before anything is compiled."""
     from hyqjax.io import recording
 

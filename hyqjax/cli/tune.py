@@ -7,7 +7,9 @@ DIR holds gradient/ (config.json, log.jsonl: one line per Adam step, checkpoint.
 command), results.json (parameters, costs, gradient statistics, baselines, held-out success with Wilson
 intervals per height) and tuning.png (held-out success against simulation budget). --objective kinematic
 runs the former kinematic surrogate instead; --warm-start N starts the closed-loop tuning from N
-surrogate steps.
+surrogate steps. One run at a time holds DIR/.lock (--wait queues behind it); DIR/fingerprint.json records
+every setting that changes the results, and a resume with other settings is refused naming them, before
+anything is compiled.
 """
 from __future__ import annotations
 
@@ -16,6 +18,10 @@ import argparse
 NAME = "tune"
 HELP = "tune the height reflex and crawl by gradient through the closed-loop MJX step-down"
 ORDER = 30
+
+#: The baselines (the names of :data:`hyqjax.studies.tune.study.METHODS` after the gradient), checked here before
+#: anything heavy is imported.
+BASELINES = ("cma_es", "random_search", "cma_es_success", "random_search_success")
 
 
 def _floats(s):
@@ -51,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prefixes", type=_ints, default=(50, 125, 250, 500),
                    help="shorter window lengths (ticks) at which the gradient statistics are also reported")
     p.add_argument("--warm-start", type=int, default=0, help="kinematic-surrogate steps before the closed loop")
-    p.add_argument("--baselines", default="cma_es,random_search,cma_es_success,random_search_success",
+    p.add_argument("--baselines", default=",".join(BASELINES),
                    help="baselines at the same budget (comma-separated; empty for none)")
     p.add_argument("--sigma", type=float, default=0.5, help="initial step of CMA-ES and random search (theta units)")
     p.add_argument("--success-instances", type=int, default=8, help="full runs per candidate for the success baselines")
@@ -71,6 +77,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--offset", type=int, default=0, help="window start, control ticks after the snapshot trigger")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period (Adam steps)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--wait", action="store_true", help="if another run is writing DIR, wait for it instead of stopping")
     from hyqjax.cli.common import add_impl_argument
 
     add_impl_argument(p)  # the forward-only runs; the gradient always runs under impl jax
@@ -108,18 +115,29 @@ def validate(args) -> None:
     check_range("--select-instances", args.select_instances, 0, 100000, integer=True)
     check_range("--select-every", args.select_every, 1, 100000, integer=True)
     check_range("--checkpoint-every", args.checkpoint_every, 1, 100000, integer=True)
+    bad = [b for b in _names(args.baselines) if b not in BASELINES]
+    if bad:
+        raise ValueError(f"--baselines must be a subset of {list(BASELINES)}, got {bad}")
+    from hyqjax.studies.tune import space  # the groups' declarations (JAX's parameter classes, no MJX)
+
+    try:
+        space.ParamSpace.make(_names(args.groups))
+    except ValueError as e:
+        raise ValueError(f"--groups: {e}") from None
     check_out_free(args.out)
-    args.study_config = _config(args)
     prepare_out(args.out)
     args.options_checked = True
+
+
+def _names(text: str) -> tuple:
+    return tuple(x.strip() for x in text.split(",") if x.strip())
 
 
 def _config(args):
     """The study configuration; its own checks (groups, baselines, ...) name the option that was given."""
     from hyqjax.studies.tune import objective, optimize, study, windows
 
-    groups = tuple(g.strip() for g in args.groups.split(",") if g.strip())
-    base_list = tuple(b.strip() for b in args.baselines.split(",") if b.strip())
+    groups, base_list = _names(args.groups), _names(args.baselines)
     try:
         return study.StudyConfig(
             objective=args.objective, groups=groups, seed=args.seed, train_per_height=args.train_per_height,
@@ -145,13 +163,27 @@ def _config(args):
 def run(args) -> int:
     if not getattr(args, "options_checked", False):
         validate(args)
-    cfg = args.study_config
+    from hyqjax.io.lock import DirLock
+
+    # The run directory's lock first, before anything heavy is imported: a second run stops (or waits) at once.
+    with DirLock(args.out, wait=args.wait, what="tune run"):
+        return _run_locked(args)
+
+
+def _run_locked(args) -> int:
+    from hyqjax.cli.common import UsageError
+
+    try:
+        cfg = args.study_config = _config(args)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     groups, base_list = cfg.groups, cfg.baselines
     from hyqjax.studies.tune import figure, study
 
     print(f"hyqjax tune: {cfg.objective} objective, {cfg.adam.steps} steps, groups {list(groups)}, "
           f"baselines {list(base_list)}, out {args.out}", flush=True)
-    res = study.run_study(cfg, args.out, progress=not args.no_progress, log=lambda s: print(s, flush=True))
+    res = study.run_study(cfg, args.out, progress=not args.no_progress, log=lambda s: print(s, flush=True),
+                          locked=True)
     import os
 
     fig = figure.plot_study(res, os.path.join(args.out, "tuning.png"))

@@ -32,7 +32,11 @@ def cache_dir() -> str:
 
 def enable_compilation_cache(path: str | None = None) -> str | None:
     """Turn on JAX's persistent compilation cache in ``path`` (default :func:`cache_dir`). Returns the
-    directory, or None when it cannot be created or written (the run then compiles as usual)."""
+    directory, or None when it cannot be created or written (the run then compiles as usual).
+
+    Before JAX is imported this only sets the environment variables JAX reads its configuration from when it
+    is imported (so a command that never needs JAX, or is refused first, does not pay for importing it);
+    after, it updates ``jax.config``."""
     path = path or cache_dir()
     try:
         os.makedirs(path, exist_ok=True)
@@ -40,6 +44,10 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
         return None
     if not os.access(path, os.W_OK):
         return None
+    if "jax" not in sys.modules:
+        os.environ.update(JAX_COMPILATION_CACHE_DIR=path, JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+                          JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES="0")
+        return path
     import jax
 
     jax.config.update("jax_compilation_cache_dir", path)

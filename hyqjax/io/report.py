@@ -270,7 +270,7 @@ def other_html(res: dict) -> str:
     known = {"provenance", "config", "args", "summary", "instances", "groups", "contributions", "figures",
              "wall_time_s", "env_steps_per_s", "_sweep", "n_instances", "n_planned", "spec_hash", "successes",
              "diverged", "failure_reasons", "by_reflex", "maps", "complete", "rate", "ci95", "completed",
-             "completed_rate", "completed_ci95", "notes"}
+             "completed_rate", "completed_ci95", "notes", "damaged_chunks"}
     rest = sorted(k for k in res if k not in known)
     return f"<p>Other entries of results.json: {', '.join(f'<code>{esc(k)}</code>' for k in rest)}</p>" if rest else ""
 
@@ -316,13 +316,23 @@ def renders_html(directory: str, max_embed_bytes: int) -> str:
     return out
 
 
-def section(directory: str, root: str, max_embed_bytes: int) -> str:
+def check_html(lines: list[str], ok: bool) -> str:
+    """The result of checking an experiment's stored data (e.g. a sweep store's chunks), first in its section."""
+    cls = "ok" if ok else "fail"
+    return (f"<div class='{cls}'><p><strong>{'Store verified' if ok else 'Store damaged'}:</strong> {esc(lines[0])}</p>"
+            + "".join(f"<p>{esc(t.strip())}</p>" for t in lines[1:]) + "</div>")
+
+
+def section(directory: str, root: str, max_embed_bytes: int, check: tuple[bool, list[str]] | None = None) -> str:
     res = load_results(directory)
     rel = os.path.relpath(directory, root)
     title = os.path.basename(os.path.abspath(directory)) if rel == "." else rel
     kind = ("sweep" if res.get("_sweep") else "step-down" if "summary" in res and "instances" in res
             else "bounding" if "groups" in res else "experiment")
-    out = f"<h2>{esc(title)} <small>({kind})</small></h2>" + provenance_html(res) + options_html(res)
+    out = f"<h2>{esc(title)} <small>({kind})</small></h2>"
+    if check is not None:
+        out += check_html(check[1], check[0])
+    out += provenance_html(res) + options_html(res)
     if kind == "step-down":
         out += stepdown_html(res)
     elif kind == "bounding":
@@ -334,9 +344,12 @@ def section(directory: str, root: str, max_embed_bytes: int) -> str:
 
 
 def build_report(root: str, out_path: str | None = None, title: str | None = None,
-                 max_embed_mb: float = 8.0) -> tuple[str, list[str]]:
+                 max_embed_mb: float = 8.0, checks: dict[str, tuple[bool, list[str]]] | None = None
+                 ) -> tuple[str, list[str]]:
     """Write the HTML report of ``root`` (default ``root/report.html``); returns ``(path, experiment dirs)``.
 
+    ``checks``: per experiment directory, ``(ok, lines)`` of a check of its stored data (``hyqjax report`` verifies
+    every sweep store, :func:`hyqjax.studies.sweep.verify_store`), shown first in its section.
     Raises ``FileNotFoundError`` when ``root`` holds no results.json at any depth.
     """
     if not os.path.isdir(root):
@@ -353,7 +366,7 @@ def build_report(root: str, out_path: str | None = None, title: str | None = Non
              f"<p>Built {esc(stamp)} from <code>{esc(os.path.abspath(root))}</code>: {len(dirs)} experiment(s).</p>"]
     for d in dirs:
         try:
-            parts.append(section(d, os.path.abspath(root), int(max_embed_mb * 1e6)))
+            parts.append(section(d, os.path.abspath(root), int(max_embed_mb * 1e6), (checks or {}).get(d)))
         except (OSError, ValueError) as err:
             parts.append(f"<h2>{esc(os.path.relpath(d, root))}</h2><p class='fail'>could not read: {esc(err)}</p>")
     parts.append("</body></html>")

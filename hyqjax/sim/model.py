@@ -19,15 +19,18 @@ from __future__ import annotations
 import dataclasses
 import functools
 import importlib.resources
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from hyqjax.core import robot
 from hyqjax.sim import contacts
+
+if TYPE_CHECKING:  # MJX only in annotations: importing this module (e.g. for a sweep's ranges) loads no MJX
+    from mujoco import mjx
 
 #: Half sizes (m) of the platform box. Its top is at ``h`` and its bottom at ``h - 2 * 0.25``.
 PLATFORM_HALF_SIZE = (2.0, 2.0, 0.25)

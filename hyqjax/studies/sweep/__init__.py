@@ -8,24 +8,45 @@ The package, one concept per module:
 * :mod:`~hyqjax.studies.sweep.runner`: the compiled chunk runner and :func:`run_sweep` (local executor);
 * :mod:`~hyqjax.studies.sweep.cluster`: the Ray executor (``hyqjax sweep --executor ray``);
 * :mod:`~hyqjax.studies.sweep.store`: the locked, verified Parquet store and its manifest;
+  :mod:`~hyqjax.studies.sweep.chunkfile`: a chunk file and its content checksum;
+  :mod:`~hyqjax.studies.sweep.verify`: a reader's check of a whole sweep directory (``hyqjax verify``);
   :mod:`~hyqjax.studies.sweep.legacy`: stores of the first format (read as they are, converted on request);
 * :mod:`~hyqjax.studies.sweep.outcomes`, :mod:`~hyqjax.studies.sweep.summary`,
   :mod:`~hyqjax.studies.sweep.plots`: failures with reasons, Wilson maps, largest safe height, figures.
-"""
-from hyqjax.studies.sweep.legacy import convert_v1
-from hyqjax.studies.sweep.outcomes import CRITICAL_METRICS, count_outcomes
-from hyqjax.studies.sweep.plots import plot_height_curves, plot_maps
-from hyqjax.studies.sweep.runner import (LocalExecutor, compute_chunk, default_chunk_size, device_layout, run_rows,
-                                         run_sweep)
-from hyqjax.studies.sweep.scenario import SensedParams, SensedState, SensorParams, build_scenario, sensed_controller
-from hyqjax.studies.sweep.spec import AXES, Axis, SpecError, SweepSpec, load_spec, load_spec_dict
-from hyqjax.studies.sweep.store import (SCHEMA, StoreBusy, StoreCorrupt, StoreMismatch, SweepStore, open_store,
-                                        parquet_to_rows, rows_to_parquet)
-from hyqjax.studies.sweep.summary import format_summary, logistic_h95, summarize_sweep, write_outputs
 
-__all__ = ["AXES", "Axis", "CRITICAL_METRICS", "LocalExecutor", "SCHEMA", "SensedParams", "SensedState",
-           "SensorParams", "SpecError", "StoreBusy", "StoreCorrupt", "StoreMismatch", "SweepSpec", "SweepStore",
-           "build_scenario", "compute_chunk", "convert_v1", "count_outcomes", "default_chunk_size", "device_layout",
-           "format_summary", "load_spec", "load_spec_dict", "logistic_h95", "open_store", "parquet_to_rows", "plot_height_curves",
-           "plot_maps", "rows_to_parquet", "run_rows", "run_sweep", "sensed_controller", "summarize_sweep",
-           "write_outputs"]
+Names are imported on first use (``from hyqjax.studies import sweep`` loads neither JAX nor MuJoCo; the spec
+loads JAX's parameter declarations, the runner MJX).
+"""
+from __future__ import annotations
+
+_PUBLIC = {
+    "convert_v1": "legacy",
+    "CRITICAL_METRICS": "outcomes", "count_outcomes": "outcomes",
+    "plot_height_curves": "plots", "plot_maps": "plots",
+    "LocalExecutor": "runner", "compute_chunk": "runner", "default_chunk_size": "runner", "device_layout": "runner",
+    "run_rows": "runner", "run_sweep": "runner",
+    "SensedParams": "scenario", "SensedState": "scenario", "SensorParams": "scenario", "build_scenario": "scenario",
+    "sensed_controller": "scenario",
+    "AXES": "spec", "Axis": "spec", "SpecError": "spec", "SweepSpec": "spec", "load_spec": "spec",
+    "load_spec_dict": "spec",
+    "SCHEMA": "store", "StoreBusy": "store", "StoreCorrupt": "store", "StoreMismatch": "store", "SweepStore": "store",
+    "open_store": "store",
+    "CHECKSUM": "chunkfile", "ChunkDamaged": "chunkfile", "parquet_to_rows": "chunkfile", "rows_to_parquet": "chunkfile",
+    "StoreCheck": "verify", "verify_store": "verify",
+    "format_summary": "summary", "logistic_h95": "summary", "summarize_sweep": "summary", "write_outputs": "summary",
+}
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name):
+    if name in _PUBLIC:
+        import importlib
+
+        value = getattr(importlib.import_module(f"{__name__}.{_PUBLIC[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_PUBLIC))

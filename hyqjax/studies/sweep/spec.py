@@ -32,7 +32,6 @@ import numpy as np
 
 from hyqjax.reflex import step as hreflex
 from hyqjax.sim import model as hmodel
-from hyqjax.studies import stepdown
 from hyqjax.studies.sweep.axes import AXES, SENSOR_AXES, Axis, SpecError, axis_value, get_axis  # noqa: F401
 
 _TOP_KEYS = ("seed", "samples", "paired", "duration", "control_dt", "max_tilt", "min_progress", "blocks",
@@ -224,7 +223,9 @@ class SweepSpec:
     def max_delay(self) -> int:
         return int(round(self.axis_max("latency") / self.control_dt))
 
-    def stepdown_config(self) -> stepdown.StepdownConfig:
+    def stepdown_config(self) -> "stepdown.StepdownConfig":  # noqa: F821
+        from hyqjax.studies import stepdown  # MJX: imported when a sweep runs, not when a spec is checked
+
         layout = hmodel.TerrainLayout(n_blocks_x=self.blocks[0], n_blocks_y=self.blocks[1])
         return stepdown.StepdownConfig(duration=self.duration, control_dt=self.control_dt, record_every=0,
                                        max_tilt=self.max_tilt, min_progress=self.min_progress, layout=layout)

@@ -15,13 +15,22 @@ Guarantees:
   write, and a chunk already recorded with a valid file is never written again.
 * **Atomic files.** Chunk and manifest are written to a temporary and renamed; a kill at any point leaves
   the old or the new file. The next writer removes dead writers' temporaries and adopts a chunk file
-  written but not yet recorded once its metadata and row range check out.
-* **Verified on load.** Each recorded chunk's size and SHA-256 must match the manifest, its metadata must
-  name this sweep and chunk, its ``index`` column must be its row range and its columns the store's
-  (another hyqjax version's rows never mix in: :meth:`SweepStore.write_chunk` refuses them). A chunk that
-  fails is named in :attr:`SweepStore.problems`, left out of :meth:`SweepStore.load`, and recomputed.
+  written but not yet recorded once its content checksum, metadata and row range check out.
+* **Chunks that check themselves.** Every chunk file carries a SHA-256 of its own contents in its metadata
+  (:mod:`hyqjax.studies.sweep.chunkfile`), checked whenever it is read, so damage is caught with or without
+  the manifest. A chunk file written by an earlier hyqjax has no such checksum: it is trusted only while
+  the manifest records it with a matching SHA-256 of the whole file (:attr:`SweepStore.unchecked` lists
+  those chunks); without the manifest its contents cannot be verified, so it is never adopted but
+  recomputed.
+* **Verified on load.** Each recorded chunk's size and SHA-256 must match the manifest, its content its
+  checksum, its metadata must name this sweep and chunk, its ``index`` column must be its row range and its
+  columns the store's (another hyqjax version's rows never mix in: :meth:`SweepStore.write_chunk` refuses
+  them). A chunk that fails is named in :attr:`SweepStore.problems` and left out of :meth:`SweepStore.load`;
+  a writer moves its file to ``DIR/damaged/`` (so ``DIR/chunks`` read with pandas or DuckDB holds no damaged
+  rows) and recomputes it.
 * **Strict JSON** (no bare NaN). A corrupt or missing manifest is named, set aside and rebuilt by a writer
-  from the chunk files, keeping their chunk size and layout; chunk files of another sweep are refused.
+  from the chunk files whose content checksums verify, keeping their chunk size and layout; chunk files of
+  another sweep are refused.
 * **Device layout.** An instance's result depends on the batch shape each device compiles for (XLA's
   vectorisation and fusion), not on which rows share a chunk. The layout (platform, device kind, devices
   per program, chunk size) is recorded, and a resume with another one is refused (:class:`StoreMismatch`).
@@ -40,12 +49,14 @@ import numpy as np
 from hyqjax.io.atomic import atomic_write, clean_temporaries, write_json
 from hyqjax.io.lock import Busy, DirLock
 from hyqjax.studies.sweep import legacy
-from hyqjax.studies.sweep.chunkfile import META_KEY, chunk_metas, chunk_size_of, parquet_to_rows, rows_to_parquet
+from hyqjax.studies.sweep.chunkfile import (CHECKSUM, META_KEY, ChunkDamaged, chunk_size_of, parquet_to_rows,
+                                            rows_to_parquet)
 from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
 SCHEMA = legacy.SCHEMA
 OLD_SCHEMAS = legacy.OLD_SCHEMAS
 MANIFEST = "manifest.json"
+DAMAGED_DIR = "damaged"
 
 
 class StoreMismatch(RuntimeError):
@@ -89,9 +100,12 @@ class SweepStore:
         self.path = os.path.join(out_dir, MANIFEST)
         self.chunks_dir = os.path.join(out_dir, "chunks")
         self.problems: dict[int, str] = {}
+        #: verified chunks without a content checksum (an earlier hyqjax's): trusted through the manifest's SHA-256
+        self.unchecked: set[int] = set()
         self._lock: DirLock | None = None
         self._writer = writer
         self._verified: dict[int, dict[str, np.ndarray]] = {}
+        self._scan: dict | None = None
         self._requested = dict(chunk_size=chunk_size, layout=layout, default_chunk_size=default_chunk_size)
         if chunk_size is not None and chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -103,6 +117,9 @@ class SweepStore:
                 spec = SweepSpec.from_dict(man.get("spec"))
             except SpecError as e:
                 raise StoreCorrupt(f"{self.path}: its spec is not readable by this hyqjax ({e})") from None
+            if man.get("schema") not in OLD_SCHEMAS and spec.spec_hash != man.get("spec_hash"):
+                raise StoreCorrupt(f"{self.path}: its spec does not match its spec hash (corrupt, or written by another "
+                                   f"hyqjax version)")
         self.spec = spec
         if writer:
             self._lock = DirLock(out_dir, wait=wait, timeout=timeout, what=f"sweep {spec.spec_hash[:12]}").acquire()
@@ -228,23 +245,43 @@ class SweepStore:
             return f"its index column is not the row range [{want['start']}, {want['stop']})"
         return None
 
-    def _verify_chunk(self, c: int, entry: dict) -> tuple[dict | None, str | None]:
+    def _read_file(self, path: str) -> tuple[bytes | None, dict | None, dict | None, str | None]:
+        """``(data, rows, meta, None)`` of the chunk file ``path`` if it reads and its content checksum matches (or
+        it has none), else ``(data or None, None, None, reason)``."""
+        try:
+            with open(path, "rb") as f:
+                data = f.read()
+        except OSError:
+            return None, None, None, f"{path} is missing"
+        try:
+            rows, meta = parquet_to_rows(data)
+        except ChunkDamaged as e:
+            return data, None, None, f"{path}: {e}"
+        return data, rows, meta, None
+
+    def _verify_chunk(self, c: int, entry: dict) -> tuple[dict | None, dict | None, str | None]:
+        """``(rows, meta, None)`` of recorded chunk ``c`` if its file matches its manifest entry (size, SHA-256),
+        its content checksum, this sweep and chunk, its row range and the store's columns; else
+        ``(None, None, reason)``."""
         path = os.path.join(self.dir, entry.get("file", ""))
         try:
             with open(path, "rb") as f:
                 data = f.read()
         except OSError:
-            return None, f"{path} is missing"
+            return None, None, f"{path} is missing"
         if entry.get("bytes") is not None and len(data) != entry["bytes"]:
-            return None, f"{path} has {len(data)} bytes, the manifest {entry['bytes']} (truncated or replaced)"
+            return None, None, f"{path} has {len(data)} bytes, the manifest {entry['bytes']} (truncated or replaced)"
         if entry.get("sha256") is not None and sha256_bytes(data) != entry["sha256"]:
-            return None, f"{path} does not match its SHA-256 in the manifest (corrupt or replaced)"
+            return None, None, f"{path} does not match its SHA-256 in the manifest (corrupt or replaced)"
         try:
             rows, meta = parquet_to_rows(data)
-        except Exception as e:  # pyarrow raises several types for a damaged file
-            return None, f"{path} is not a readable Parquet file ({type(e).__name__})"
+        except ChunkDamaged as e:
+            return None, None, f"{path}: {e}"
+        if CHECKSUM not in meta and entry.get("sha256") is None:
+            return None, None, (f"{path} has neither a content checksum nor a SHA-256 in the manifest: its contents "
+                                f"cannot be verified")
         why = self._check_rows(c, rows, meta) or self._check_columns(rows)
-        return (None, f"{path}: {why}") if why else (rows, None)
+        return (None, None, f"{path}: {why}") if why else (rows, meta, None)
 
     def _check_columns(self, rows: dict) -> str | None:
         want = self.manifest.get("columns")
@@ -256,7 +293,7 @@ class SweepStore:
 
     def verify(self) -> dict[int, str]:
         """Check every recorded chunk; returns (and keeps in :attr:`problems`) ``{chunk: reason}`` of bad ones."""
-        self._verified, self.problems = {}, {}
+        self._verified, self.problems, self.unchecked = {}, {}, set()
         if self.manifest.get("schema") in OLD_SCHEMAS:
             for key, entry in self.manifest["chunks"].items():
                 rows, why = legacy.load_v1_chunk(self, int(key), entry)
@@ -264,80 +301,124 @@ class SweepStore:
                     self.problems[int(key)] = why
                 else:
                     self._verified[int(key)] = rows
+                    self.unchecked.add(int(key))
             return self.problems
         for key, entry in sorted(self.manifest["chunks"].items(), key=lambda t: int(t[0])):
             c = int(key)
             if not 0 <= c < self.n_chunks:
                 self.problems[c] = f"chunk {c} is outside the sweep's {self.n_chunks} chunks"
                 continue
-            rows, why = self._verify_chunk(c, entry)
+            rows, meta, why = self._verify_chunk(c, entry)
             if why:
                 self.problems[c] = why
             else:
                 self._verified[c] = rows
+                if CHECKSUM not in meta:
+                    self.unchecked.add(c)
         return self.problems
 
     # ---------------------------------------------------------------- writing (under the lock)
     def _refresh(self) -> None:
-        """Under the lock: remove dead writers' temporaries, read (or rebuild a corrupt) manifest, check it,
-        convert an old schema, adopt written-but-unrecorded chunks, re-verify, write the manifest."""
+        """Under the lock: remove dead writers' temporaries, read (or rebuild a missing or corrupt) manifest, check
+        it, adopt written-but-unrecorded chunks, re-verify, set damaged chunk files aside, write the manifest."""
         for d in (self.dir, self.chunks_dir):
             for p in clean_temporaries(d, all_writers=True):
                 print(f"note: removed {p}, the temporary file of a writer that stopped")
+        self._scan = None
         try:
-            man, corrupt = self._read_manifest(), False
+            man, state = self._read_manifest(), None
         except StoreCorrupt:
-            man, corrupt = None, True
+            man, state = None, "corrupt"
         if man is None:
+            state = state or ("missing" if self._scan_files() else None)
             man = self._rebuilt_manifest()
         self._check(man, self._requested["chunk_size"], self._requested["layout"])
-        if corrupt:
+        if state == "corrupt":
             bad = f"{self.path}.corrupt-{datetime.datetime.now().strftime('%Y%m%dT%H%M%S')}"
             os.replace(self.path, bad)
-            print(f"note: {self.path} was corrupt: kept as {bad}, rebuilding the manifest from the chunk files")
+            print(f"note: {self.path} was corrupt (kept as {bad}): rebuilding it from the chunk files whose "
+                  f"content checksums verify")
+        elif state == "missing":
+            print(f"note: {self.path} was missing: rebuilding it from the chunk files whose content checksums verify")
         if man.get("layout") is None and self._requested["layout"] is not None:
             man["layout"] = dict(self._requested["layout"], chunk_size=man["chunk_size"])
         self.manifest = man
         os.makedirs(self.chunks_dir, exist_ok=True)
-        self._adopt_unlisted()
+        self._adopt_unlisted(rebuilding=state is not None)
+        self._scan = None
         self.verify()
         for c, why in sorted(self.problems.items()):
-            print(f"note: chunk {c} failed verification and is recomputed: {why}")
+            moved = self._set_aside(self.chunk_file(c)) if 0 <= c < self.n_chunks else ""
+            print(f"note: chunk {c} failed verification ({why}): {moved}recomputed")
             self.manifest["chunks"].pop(str(c), None)
         write_json(self.path, self.manifest)
 
+    def _scan_files(self) -> dict[int, tuple]:
+        """``{chunk: (path, data, rows, meta, reason)}`` of the files ``chunks/NNNNN.parquet`` (read once while a
+        writer opens the store; ``reason`` None when the file reads and its content checksum matches)."""
+        if self._scan is None:
+            self._scan = {}
+            names = os.listdir(self.chunks_dir) if os.path.isdir(self.chunks_dir) else []
+            for name in sorted(names):
+                if name.endswith(".parquet") and name[:-8].isdigit():
+                    path = os.path.join(self.chunks_dir, name)
+                    self._scan[int(name[:-8])] = (path, *self._read_file(path))
+        return self._scan
+
     def _rebuilt_manifest(self) -> dict:
-        """A manifest for a directory without a readable one, from its chunk files' metadata: refused if they are
-        another sweep's; their chunk size and device layout kept, so the checks still apply."""
-        metas = chunk_metas(self.chunks_dir)
-        foreign = sorted({str(m.get("spec_hash")) for m in metas.values()} - {self.spec.spec_hash})
+        """A manifest for a directory without a readable one, from the metadata of its chunk files whose content
+        checksums verify: refused if they are another sweep's (or any file without a checksum is: an earlier
+        hyqjax's chunk of another sweep is not overwritten either); their chunk size and device layout kept, so
+        the checks still apply. Damaged files tell nothing here."""
+        scan = self._scan_files()
+        readable = {c: meta for c, (_, _, _, meta, why) in scan.items() if why is None}
+        verified = {c: m for c, m in readable.items() if CHECKSUM in m}
+        foreign = sorted({str(m.get("spec_hash")) for m in readable.values()} - {self.spec.spec_hash})
         if foreign:
             raise StoreMismatch(f"{self.dir} has no readable {MANIFEST} and its chunk files hold a different sweep "
                                 f"(spec hash {foreign[0][:12]}); use another --out directory or remove {self.dir}")
-        cs = chunk_size_of(metas, self.spec.n_instances) or self._requested["chunk_size"]
-        layout = next((m["layout"] for m in metas.values() if isinstance(m.get("layout"), dict)), None)
+        cs = chunk_size_of(verified, self.spec.n_instances) or self._requested["chunk_size"]
+        layout = next((m["layout"] for m in verified.values() if isinstance(m.get("layout"), dict)), None)
         return self._new_manifest(cs, layout or self._requested["layout"])
 
-    def _adopt_unlisted(self) -> None:
-        """Chunk files not in the manifest (a writer killed between the chunk's and the manifest's rename)."""
-        for name in sorted(os.listdir(self.chunks_dir)):
-            c = int(name[:-8]) if name.endswith(".parquet") and name[:-8].isdigit() else -1
+    def _set_aside(self, path: str) -> str:
+        """Move a damaged chunk file out of ``chunks/`` into ``DIR/damaged/`` (so that the chunk table read with
+        pandas, polars or DuckDB holds no damaged rows); returns the words for the note."""
+        if not os.path.isfile(path):
+            return ""
+        d = os.path.join(self.dir, DAMAGED_DIR)
+        os.makedirs(d, exist_ok=True)
+        dst = os.path.join(d, f"{os.path.basename(path)}.{datetime.datetime.now().strftime('%Y%m%dT%H%M%S%f')}")
+        os.replace(path, dst)
+        return f"moved to {dst}, "
+
+    def _adopt_unlisted(self, rebuilding: bool) -> None:
+        """Record chunk files not in the manifest whose content checksum, metadata and row range verify: after a
+        writer was killed between the chunk's and the manifest's rename, or (``rebuilding``) when the manifest
+        was missing or corrupt. A file that does not verify, or has no content checksum (an earlier hyqjax's,
+        whose contents nothing else vouches for here), is named, set aside and recomputed: never adopted."""
+        kept = []
+        for c, (path, data, rows, meta, why) in sorted(self._scan_files().items()):
             if str(c) in self.manifest["chunks"] or not 0 <= c < self.n_chunks:
                 continue
-            path = os.path.join(self.chunks_dir, name)
-            with open(path, "rb") as f:
-                data = f.read()
-            try:
-                rows, meta = parquet_to_rows(data)
+            if why is None and CHECKSUM not in meta:
+                why = (f"{path} has no content checksum (written by an earlier hyqjax) and is not in the manifest, "
+                       f"so its contents cannot be verified")
+            elif why is None:
                 why = self._check_rows(c, rows, meta) or self._check_columns(rows)
-            except Exception as e:
-                why = f"not a readable Parquet file ({type(e).__name__})"
+                why = why and f"{path}: {why}"
             if why:
-                print(f"note: ignoring {path}: {why}; the chunk is recomputed")
+                print(f"note: {why}: not adopted, {self._set_aside(path)}the chunk is recomputed")
                 continue
             self.manifest["chunks"][str(c)] = self._entry(c, data, wall_s=meta.get("wall_s"), adopted=True)
             self.manifest.setdefault("columns", sorted(rows))
-            print(f"note: {path} was written but not recorded (the writer stopped in between): verified and kept")
+            kept.append(c)
+            if not rebuilding:
+                print(f"note: {path} was written but not recorded in the manifest (its writer stopped in between): "
+                      f"content checksum, metadata and row range verified, kept")
+        if rebuilding:
+            print(f"note: {self.path} rebuilt with {len(kept)} chunk file(s) whose content checksum, metadata and "
+                  f"row range verify")
 
     def _entry(self, c: int, data: bytes, wall_s=None, worker=None, adopted=False) -> dict:
         start, stop = self.chunk_range(c)
@@ -357,7 +438,7 @@ class SweepStore:
             raise RuntimeError("SweepStore.write_chunk needs a writer: SweepStore(..., writer=True)")
         man = self._read_manifest() or self.manifest  # merge what is on disk (under the lock)
         entry = man["chunks"].get(str(c))
-        if entry is not None and self._verify_chunk(c, entry)[1] is None:
+        if entry is not None and self._verify_chunk(c, entry)[2] is None:
             self.manifest = man
             return False
         meta = dict(self._meta(c), wall_s=wall_s, layout=man.get("layout"))
@@ -370,13 +451,15 @@ class SweepStore:
             raise StoreMismatch(f"{self.dir}: the rows computed for chunk {c} do not fit the store: {why}; the "
                                 f"store's chunks were computed by another hyqjax version: use another --out directory")
         data = rows_to_parquet(rows, meta)
+        back = parquet_to_rows(data)[0]  # read back (content checksum checked) before anything is renamed
         atomic_write(self.chunk_file(c), lambda f: f.write(data))
         man["chunks"][str(c)] = self._entry(c, data, wall_s, worker)
         man["columns"] = sorted(rows)
         write_json(self.path, man)
         self.manifest = man
-        self._verified[c] = parquet_to_rows(data)[0]
+        self._verified[c] = back
         self.problems.pop(c, None)
+        self.unchecked.discard(c)
         return True
 
     # ---------------------------------------------------------------- reading
@@ -395,6 +478,6 @@ def open_store(out_dir: str) -> SweepStore:
     return SweepStore(out_dir, None)
 
 
-__all__ = ["MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt", "StoreMismatch", "SweepStore", "open_store",
+__all__ = ["CHECKSUM", "ChunkDamaged", "DAMAGED_DIR", "MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt", "StoreMismatch", "SweepStore", "open_store",
            "parquet_to_rows", "rows_to_parquet"]
 

@@ -162,7 +162,8 @@ def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, A
 
 def write_outputs(store) -> dict[str, Any]:
     """``instances.csv`` (one row per finished instance), ``summary.json`` and the figures of a
-    :class:`hyqjax.studies.sweep.store.SweepStore` (its verified chunks)."""
+    :class:`hyqjax.studies.sweep.store.SweepStore`, from its verified chunks only; damaged chunks are named in
+    ``summary["damaged_chunks"]`` and a note."""
     import csv
     import io
 
@@ -180,6 +181,11 @@ def write_outputs(store) -> dict[str, Any]:
                                           plot_height_curves(summary, os.path.join(store.dir, "success_height.png")))
                               if p]
     summary["complete"] = len(store.done()) == store.n_chunks
+    if store.problems:  # named, never silently dropped: these rows are in neither file
+        summary["damaged_chunks"] = {str(c): why for c, why in sorted(store.problems.items())}
+        summary.setdefault("notes", []).append(
+            f"{len(store.problems)} damaged chunk(s) left out of this summary and instances.csv (chunks "
+            f"{sorted(store.problems)}; `hyqjax verify {store.dir}` names them; the next run recomputes them)")
     write_json(os.path.join(store.dir, "summary.json"), summary)
     return summary
 

@@ -28,6 +28,11 @@ to its starting point is measured, not only what it adds to the paper.
 
 Resuming: ``results.json`` is written after every stage; the same command on the same directory (same
 configuration) keeps every finished stage (the gradient resumes from its checkpoint) and runs the rest.
+A study holds the directory's lock (:class:`hyqjax.io.lock.DirLock`) from start to end, so a second study
+into it is refused (or waits, ``wait=True``); its first start records :func:`fingerprint` (every setting
+that changes the results, for the closed-loop and the kinematic objective) in ``fingerprint.json``, and a
+resume with other settings is refused naming them (:class:`hyqjax.io.fingerprint.SettingsMismatch`) before
+anything is computed. Every objective checkpoints every ``adam.checkpoint_every`` steps.
 """
 from __future__ import annotations
 
@@ -124,8 +129,62 @@ def _timed(fn, *args, repeats=2):
     return float(np.median(ts))
 
 
-def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) -> dict:
-    """Run (or resume the gradient part of) a study into ``out_dir``; returns the results dict."""
+#: kinematic-surrogate scenarios of the kinematic objective and of the warm start
+KINEMATIC_SCENARIOS = 64
+
+
+def fingerprint(cfg: StudyConfig) -> dict:
+    """Every setting that changes a study's results: the configuration without ``adam.checkpoint_every`` (when
+    checkpoints are written changes nothing), plus the kinematic surrogate's fixed settings (scenario count,
+    objective weights) when it runs (``objective="kinematic"`` or a warm start)."""
+    return settings_of(cfg.to_dict())
+
+
+def settings_of(config: dict) -> dict:
+    """:func:`fingerprint` of a configuration as stored (``StudyConfig.to_dict()``, e.g. in results.json)."""
+    s = json.loads(json.dumps(config))
+    s.get("adam", {}).pop("checkpoint_every", None)
+    if s.get("objective") == "kinematic" or s.get("warm_start"):
+        s["kinematic"] = dict(scenarios=KINEMATIC_SCENARIOS, objective=dataclasses.asdict(kinematic.Objective()))
+    return s
+
+
+def kinematic_adam(cfg: StudyConfig) -> tuple[optimize.AdamConfig, dict]:
+    """The kinematic surrogate's Adam settings (the study's learning rate, clip and checkpoint period; its steps
+    the warm start's or the study's) and the configuration its checkpoints are tied to."""
+    kcfg = optimize.AdamConfig(steps=cfg.warm_start or cfg.adam.steps, lr=cfg.adam.lr, clip=cfg.adam.clip,
+                               checkpoint_every=cfg.adam.checkpoint_every)
+    return kcfg, dict(kind="kinematic", **{k: v for k, v in fingerprint(cfg).items()
+                                           if k in ("groups", "seed", "remedy", "adam", "warm_start", "kinematic")})
+
+
+def _legacy_settings(out_dir: str) -> dict | None:
+    """The settings of a study recorded before ``fingerprint.json`` existed (from its results.json or its gradient
+    run's config.json), None if there is none."""
+    for path in (os.path.join(out_dir, "results.json"), os.path.join(out_dir, "gradient", "config.json")):
+        try:
+            with open(path) as f:
+                config = json.load(f).get("config")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(config, dict) and "adam" in config:
+            return settings_of(config)
+    return None
+
+
+def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print, wait: bool = False,
+              locked: bool = False) -> dict:
+    """Run (or resume) a study into ``out_dir``; returns the results dict. Holds ``out_dir``'s lock throughout
+    (``wait``: queue behind another study instead of :class:`hyqjax.io.lock.Busy`; ``locked``: the caller holds
+    it) and refuses a resume with other settings (module docstring) before anything is computed."""
+    if not locked:
+        from hyqjax.io.lock import DirLock
+
+        with DirLock(out_dir, wait=wait, what="tune study"):
+            return run_study(cfg, out_dir, progress, log, locked=True)
+    from hyqjax.io.fingerprint import check_or_record
+
+    check_or_record(out_dir, fingerprint(cfg), "tuning study", legacy=_legacy_settings(out_dir))
     t_start = time.time()
     os.makedirs(out_dir, exist_ok=True)
 
@@ -160,12 +219,11 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     vj = clobj.make_value_and_jac(win, base, space, cfg.loss, su)
     fval = clobj.make_value(base, space, cfg.loss, su)
     if cfg.warm_start or cfg.objective == "kinematic":
-        ksc = kinematic.make_scenarios(64, cfg.seed)
+        ksc = kinematic.make_scenarios(KINEMATIC_SCENARIOS, cfg.seed)
         kf = kinematic.make_value_and_grad(space, ksc, kinematic.Objective(), base)
-        kcfg = optimize.AdamConfig(steps=cfg.warm_start or cfg.adam.steps, lr=cfg.adam.lr, clip=cfg.adam.clip)
+        kcfg, kconfig = kinematic_adam(cfg)
         kres = optimize.run_adam(kf, jnp.asarray(theta0, jnp.float32), kcfg, os.path.join(out_dir, "kinematic"),
-                                 dict(kind="kinematic", groups=list(cfg.groups), seed=cfg.seed), 0,
-                                 space.describe, progress=progress)
+                                 kconfig, 0, space.describe, progress=progress)
         res["kinematic"] = dict(theta=kres["theta"].tolist(), params=space.describe(kres["theta"]))
         theta_start = kres["theta"]
     else:
@@ -176,7 +234,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print) 
     t = time.time()
     if cfg.objective == "closed_loop":
         gres = optimize.run_adam(lambda th: vj(th, win), jnp.asarray(theta_start, jnp.float32), cfg.adam,
-                                 os.path.join(out_dir, "gradient"), cfg.to_dict(), step_cost, space.describe, progress=progress,
+                                 os.path.join(out_dir, "gradient"), fingerprint(cfg), step_cost, space.describe, progress=progress,
                                  evaluate=lambda ths: fval(ths, win))
         theta_grad = gres["theta"]
         # theta after ``s`` steps is log row ``s``'s (the last one is the result), so a resumed run has them all
@@ -321,7 +379,7 @@ def _previous(out_dir: str, cfg: StudyConfig) -> dict | None:
             prev = json.load(f)
     except (OSError, ValueError):
         return None  # unreadable (e.g. cut off by a kill before the atomic writes): start over
-    if prev.get("config") != cfg.to_dict():
+    if not isinstance(prev.get("config"), dict) or settings_of(prev["config"]) != fingerprint(cfg):
         raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
     return prev
 
