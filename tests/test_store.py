@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import random
+import shutil
 import signal
 import subprocess
 import sys
@@ -280,6 +281,171 @@ def test_rows_of_another_version_refused_and_such_a_chunk_named(tmp_path, spec):
     ro = sweep.SweepStore(str(tmp_path), spec)
     assert set(ro.problems) == {1} and "missing ['mean_mobility']" in ro.problems[1]
     assert ro.load()["index"].tolist() == list(range(5))
+
+
+# ------------------------------------------------------------------------------------------------
+# Content checksums: damage caught with or without the manifest; readers that say what is damaged
+# ------------------------------------------------------------------------------------------------
+
+def _flip(data: bytes, bit: int) -> bytes:
+    d = bytearray(data)
+    d[bit // 8] ^= 1 << (bit % 8)
+    return bytes(d)
+
+
+def _same_bits(a, b) -> bool:
+    return sorted(a) == sorted(b) and all(a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes() for k in a)
+
+
+def _without_checksum(rows, meta) -> bytes:
+    """A chunk file as hyqjax wrote it before chunks carried a content checksum."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from hyqjax.studies.sweep import chunkfile
+
+    table = pa.table({k: pa.array(v.astype(str).tolist()) if v.dtype.kind in "US" else
+                      (pa.ListArray.from_arrays(pa.array(np.arange(len(v) + 1, dtype=np.int32) * v.shape[1]),
+                                                pa.array(v.reshape(-1))) if v.ndim == 2 else pa.array(v))
+                      for k, v in rows.items()})
+    table = table.replace_schema_metadata({chunkfile.META_KEY: json.dumps(meta).encode()})
+    sink = pa.BufferOutputStream()
+    pq.write_table(table, sink, compression="zstd")
+    return sink.getvalue().to_pybytes()
+
+
+def test_bit_flips_never_reach_the_store_with_or_without_the_manifest(tmp_path, spec, capsys):
+    """Single-bit flips of one chunk file (benchmarks/bitflip_store.py flips every bit): with the manifest a
+    reader names the chunk; without it the rebuilding writer adopts the file only when what it reads is bitwise
+    the original, so no changed value reaches the store (and hence the summary or a report). The sample holds
+    flips that Parquet still reads with other values, which only the content checksum catches."""
+    from hyqjax.studies.sweep import chunkfile
+
+    fill(tmp_path, spec, chunks=[1])
+    path = tmp_path / "chunks" / "00001.parquet"
+    pristine, manifest = path.read_bytes(), (tmp_path / "manifest.json").read_bytes()
+    want = sweep.SweepStore(str(tmp_path), spec).load()
+    rng = random.Random(3)
+    kinds: dict[str, list[int]] = {"checksum": [], "unreadable": [], "unchanged": []}
+    for bit in rng.sample(range(len(pristine) * 8), 400):  # classified by the chunk reader alone (fast)
+        try:
+            chunkfile.parquet_to_rows(_flip(pristine, bit))
+            kind = "unchanged"
+        except chunkfile.ChunkDamaged as e:
+            kind = "checksum" if "checksum" in str(e) else "unreadable"
+        kinds[kind].append(bit)
+    assert kinds["checksum"], "no flip in the sample parses with other values: the sample misses the point"
+    bits = kinds["checksum"][:8] + kinds["unreadable"][:6] + kinds["unchanged"][:6]
+    for bit in bits:
+        path.write_bytes(_flip(pristine, bit))
+        (tmp_path / "manifest.json").write_bytes(manifest)
+        ro = sweep.SweepStore(str(tmp_path), spec)
+        assert 1 in ro.problems and ro.load() == {}, bit  # with the manifest: named, nothing read
+        chk = sweep.verify_store(str(tmp_path))
+        assert not chk.ok and 1 in chk.damaged and not chk.files, bit
+        os.remove(tmp_path / "manifest.json")
+        with sweep.SweepStore(str(tmp_path), spec, None, LAYOUT, writer=True) as st:
+            adopted = 1 in st.done()
+        rows = sweep.SweepStore(str(tmp_path), spec).load()
+        if adopted:
+            assert bit in kinds["unchanged"] and _same_bits(rows, want), bit
+        else:
+            assert rows == {} and not path.exists() and os.listdir(tmp_path / "damaged"), bit  # set aside
+            shutil.rmtree(tmp_path / "damaged")
+    out = capsys.readouterr().out
+    assert "not adopted" in out and "writer stopped" not in out
+
+
+def test_written_chunk_carries_a_checksum_that_covers_rows_and_metadata(spec):
+    from hyqjax.studies.sweep import chunkfile
+
+    rows = inputs_outcome(spec, 0, 5)
+    meta = dict(schema=sweep.SCHEMA, spec_hash=spec.spec_hash, chunk=0, start=0, stop=5, wall_s=1.5)
+    back, m = chunkfile.parquet_to_rows(chunkfile.rows_to_parquet(rows, meta))
+    assert len(m[chunkfile.CHECKSUM]) == 64 and {k: v for k, v in m.items() if k != chunkfile.CHECKSUM} == meta
+    same_rows(back, rows)
+    import pyarrow as pa
+
+    table, _ = chunkfile.read_table(chunkfile.rows_to_parquet(rows, meta))
+    assert chunkfile.content_sha256(table, m) == m[chunkfile.CHECKSUM]
+    assert chunkfile.content_sha256(table, dict(m, wall_s=1.6)) != m[chunkfile.CHECKSUM]  # metadata covered
+    t2 = table.set_column(table.column_names.index("peak_pitch"), "peak_pitch",
+                          pa.array(np.nextafter(rows["peak_pitch"], 1.0)))
+    assert chunkfile.content_sha256(t2, m) != m[chunkfile.CHECKSUM]  # one ulp of one column
+
+
+def test_chunks_without_a_checksum_trusted_only_through_the_manifest(tmp_path, spec, capsys):
+    """Policy for chunk files of an earlier hyqjax (no content checksum): recorded in the manifest with a matching
+    SHA-256 they are verified (and listed as such); without the manifest nothing vouches for their contents, so
+    they are named and recomputed, never adopted."""
+    with sweep.SweepStore(str(tmp_path), spec, 5, LAYOUT, writer=True) as st:
+        for c in (0, 1):
+            data = _without_checksum(inputs_outcome(spec, *st.chunk_range(c)), dict(st._meta(c), layout=st.layout))
+            (tmp_path / "chunks" / f"{c:05d}.parquet").write_bytes(data)
+            st.manifest["chunks"][str(c)] = st._entry(c, data)
+            st.manifest["columns"] = sorted(inputs_outcome(spec, 0, 1))
+        from hyqjax.io.atomic import write_json
+
+        write_json(st.path, st.manifest)
+    ro = sweep.SweepStore(str(tmp_path), spec)
+    assert ro.done() == {0, 1} and ro.unchecked == {0, 1} and ro.problems == {}
+    chk = sweep.verify_store(str(tmp_path))
+    assert chk.ok and chk.unchecked == [0, 1] and "without a content checksum" in chk.lines()[0]
+    os.remove(tmp_path / "manifest.json")
+    chk = sweep.verify_store(str(tmp_path))
+    assert not chk.ok and chk.manifest == "missing" and set(chk.damaged) == {0, 1}
+    assert "no content checksum" in chk.damaged[0]
+    capsys.readouterr()
+    st = fill(tmp_path, spec)  # rebuilds the manifest: both recomputed, with checksums
+    out = capsys.readouterr().out
+    assert out.count("no content checksum") == 2 and "not adopted" in out
+    assert st.done() == {0, 1, 2, 3} and st.unchecked == set()
+    same_rows(sweep.SweepStore(str(tmp_path), spec).load(), inputs_outcome(spec, 0, 18))
+
+
+def test_rebuild_and_adoption_messages_say_what_happened(tmp_path, spec, capsys):
+    fill(tmp_path, spec, chunks=[0, 1])
+    capsys.readouterr()
+    os.remove(tmp_path / "manifest.json")
+    fill(tmp_path, spec, chunks=[])
+    out = capsys.readouterr().out
+    assert "manifest.json was missing: rebuilding it from the chunk files whose content checksums verify" in out
+    assert "rebuilt with 2 chunk file(s)" in out and "writer stopped" not in out
+    # A chunk written, then its writer killed before the manifest's rename (the manifest is intact).
+    data = sweep.rows_to_parquet(inputs_outcome(spec, 10, 15), dict(
+        schema=sweep.SCHEMA, spec_hash=spec.spec_hash, chunk=2, start=10, stop=15))
+    (tmp_path / "chunks" / "00002.parquet").write_bytes(data)
+    st = fill(tmp_path, spec, chunks=[])
+    out = capsys.readouterr().out
+    assert "00002.parquet was written but not recorded in the manifest (its writer stopped in between)" in out
+    assert st.done() == {0, 1, 2}
+
+
+def test_damaged_store_named_by_verify_report_render_and_the_summary(tmp_path, spec, capsys):
+    from hyqjax.cli import app
+
+    out = tmp_path / "sw"
+    st = fill(out, spec)
+    sweep.summary.write_json(str(out / "summary.json"), sweep.summarize_sweep(spec, st.load()))
+    assert app.main(["verify", str(out)]) == 0 and "ok: 4 of 4 chunks verified" in capsys.readouterr().out
+    assert app.main(["report", str(out), "--no-cache"]) == 0
+    capsys.readouterr()
+    path = out / "chunks" / "00002.parquet"
+    data = path.read_bytes()
+    path.write_bytes(data[:-9] + bytes([data[-9] ^ 1]) + data[-8:])  # one flipped bit in the footer
+    assert app.main(["verify", str(out)]) == 1
+    text = capsys.readouterr().out
+    assert "DAMAGED: 3 of 4 chunks verified" in text and "chunk 2:" in text and "00002.parquet" in text
+    assert app.main(["report", str(out), "--no-cache"]) == 1  # the old summary is not shown silently
+    io = capsys.readouterr()
+    assert "chunk 2:" in io.err and "summary.json covers 18 instances" in io.err
+    assert "Store damaged" in (out / "report.html").read_text()
+    assert app.main(["render", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sweep store" in err[0] and "DAMAGED: chunks [2]" in err[0]
+    summary = sweep.write_outputs(sweep.open_store(str(out)))
+    assert summary["n_instances"] == 13 and set(summary["damaged_chunks"]) == {"2"}
+    assert any("damaged chunk" in n for n in summary["notes"])
 
 
 # ------------------------------------------------------------------------------------------------

@@ -35,6 +35,8 @@ _PUBLIC = {
     "StoreCheck": "verify", "verify_store": "verify",
     "format_summary": "summary", "logistic_h95": "summary", "summarize_sweep": "summary", "write_outputs": "summary",
 }
+_MODULES = ("axes", "chunkfile", "cluster", "convert", "legacy", "outcomes", "plots", "runner", "scenario", "spec",
+            "store", "summary", "verify")
 __all__ = sorted(_PUBLIC)
 
 
@@ -45,6 +47,10 @@ def __getattr__(name):
         value = getattr(importlib.import_module(f"{__name__}.{_PUBLIC[name]}"), name)
         globals()[name] = value
         return value
+    if name in _MODULES:  # ``sweep.store`` etc. without importing the submodule first
+        import importlib
+
+        return importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

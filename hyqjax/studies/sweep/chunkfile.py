@@ -125,7 +125,11 @@ def read_table(data: bytes):
             raise ValueError("metadata is not a JSON object")
     except Exception as e:  # pyarrow and json raise several types for a damaged file
         raise ChunkDamaged(f"not a readable Parquet chunk ({type(e).__name__})") from None
-    if CHECKSUM in meta and content_sha256(table, meta) != meta[CHECKSUM]:
+    try:
+        matches = CHECKSUM not in meta or content_sha256(table, meta) == meta[CHECKSUM]
+    except Exception as e:  # a damaged file can make Arrow fail on names or values it has read
+        raise ChunkDamaged(f"not a readable Parquet chunk ({type(e).__name__})") from None
+    if not matches:
         raise ChunkDamaged("its contents do not match the content checksum in its metadata (damaged after it "
                            "was written)")
     return table, meta

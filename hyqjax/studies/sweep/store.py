@@ -373,7 +373,9 @@ class SweepStore:
         scan = self._scan_files()
         readable = {c: meta for c, (_, _, _, meta, why) in scan.items() if why is None}
         verified = {c: m for c, m in readable.items() if CHECKSUM in m}
-        foreign = sorted({str(m.get("spec_hash")) for m in readable.values()} - {self.spec.spec_hash})
+        # an earlier hyqjax's chunk (no checksum) counts when it names a sweep; a file without metadata tells nothing
+        named = [m for m in readable.values() if CHECKSUM in m or isinstance(m.get("spec_hash"), str)]
+        foreign = sorted({str(m.get("spec_hash")) for m in named} - {self.spec.spec_hash})
         if foreign:
             raise StoreMismatch(f"{self.dir} has no readable {MANIFEST} and its chunk files hold a different sweep "
                                 f"(spec hash {foreign[0][:12]}); use another --out directory or remove {self.dir}")
@@ -399,16 +401,19 @@ class SweepStore:
         whose contents nothing else vouches for here), is named, set aside and recomputed: never adopted."""
         kept = []
         for c, (path, data, rows, meta, why) in sorted(self._scan_files().items()):
-            if str(c) in self.manifest["chunks"] or not 0 <= c < self.n_chunks:
+            if str(c) in self.manifest["chunks"]:
                 continue
-            if why is None and CHECKSUM not in meta:
+            if not 0 <= c < self.n_chunks:
+                why = f"{path}: chunk {c} is outside the sweep's {self.n_chunks} chunks of {self.chunk_size}"
+            elif why is None and CHECKSUM not in meta:
                 why = (f"{path} has no content checksum (written by an earlier hyqjax) and is not in the manifest, "
                        f"so its contents cannot be verified")
             elif why is None:
                 why = self._check_rows(c, rows, meta) or self._check_columns(rows)
                 why = why and f"{path}: {why}"
             if why:
-                print(f"note: {why}: not adopted, {self._set_aside(path)}the chunk is recomputed")
+                print(f"note: {why}: not adopted, {self._set_aside(path)}"
+                      + ("the chunk is recomputed" if 0 <= c < self.n_chunks else "not part of the store"))
                 continue
             self.manifest["chunks"][str(c)] = self._entry(c, data, wall_s=meta.get("wall_s"), adopted=True)
             self.manifest.setdefault("columns", sorted(rows))
