@@ -449,3 +449,35 @@ def test_stderr_filter_in_a_process():
     err = p.stderr.decode()
     assert "cpu_aot_loader" not in err and "python line\n" in err
     assert err.index("other.cc:1] kept\n") < err.index("after\n")
+
+
+# ------------------------------------------------------------------------------------------------
+# Refusals come before heavy imports (benchmarks/bench_cli_refusal.py times them)
+# ------------------------------------------------------------------------------------------------
+
+LIGHT_REFUSALS = [["sweep", "--sed", "1"], ["sweep", "--chunk-size", "0"], ["tune", "--lr", "0"],
+                  ["tune", "--baselines", "pso"], ["stepdown", "--heights", "0.9"], ["bound", "--speed", "9"],
+                  ["report", "nowhere"], ["render", "nowhere"], ["view", "nowhere"], ["verify", "nowhere"]]
+#: refusals that need a declaration made in JAX (parameter ranges): JAX's parameter classes, never MuJoCo or MJX
+SPEC_REFUSALS = [["sweep", "--grid", "height=0.6"], ["tune", "--groups", "k_base,spring"]]
+
+
+def test_usage_errors_refused_before_heavy_imports():
+    from conftest import run_python
+
+    code = """
+        import sys
+        from hyqjax.cli.app import main
+        for argv in {cases!r}:
+            try:
+                c = main(argv)
+            except SystemExit as e:
+                c = e.code
+            print(c, [m for m in ("jax", "mujoco", "mujoco.mjx", "pyarrow", "matplotlib") if m in sys.modules])
+    """
+    p = run_python(code.format(cases=LIGHT_REFUSALS), timeout=120)
+    assert p.stdout.splitlines() == ["2 []"] * len(LIGHT_REFUSALS), (p.stdout, p.stderr)
+    assert len([ln for ln in p.stderr.splitlines() if ln.strip()]) == len(LIGHT_REFUSALS), p.stderr
+    for case in SPEC_REFUSALS:
+        p = run_python(code.format(cases=[case]), timeout=120)
+        assert p.stdout.strip() == "2 ['jax']", (case, p.stdout, p.stderr)

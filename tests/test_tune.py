@@ -289,3 +289,105 @@ def test_selection_steps_include_start_and_last():
     assert study.selection_steps(study.StudyConfig(select_instances=0)) == ()
     assert study.start_params(study.StudyConfig()).shin_remedy == 1.0
     assert study.start_params(study.StudyConfig(remedy=False)).shin_remedy == 0.0
+
+
+# ------------------------------------------------------------------ run directory: lock, fingerprint, checkpoints
+
+
+def test_fingerprint_holds_every_result_setting_of_both_objectives():
+    base = study.StudyConfig(objective="kinematic", adam=optimize.AdamConfig(steps=4, lr=0.1, checkpoint_every=2))
+    fp = study.fingerprint(base)
+    assert fp["adam"]["lr"] == 0.1 and "checkpoint_every" not in fp["adam"]
+    import dataclasses
+
+    assert fp["kinematic"] == dict(scenarios=study.KINEMATIC_SCENARIOS,
+                                   objective=dataclasses.asdict(kinematic.Objective()))
+
+    for change in (dict(adam=dataclasses.replace(base.adam, lr=0.2)), dict(seed=1), dict(groups=("k_base",)),
+                   dict(adam=dataclasses.replace(base.adam, steps=5)), dict(remedy=False)):
+        assert study.fingerprint(dataclasses.replace(base, **change)) != fp, change
+    assert study.fingerprint(dataclasses.replace(base, adam=dataclasses.replace(base.adam, checkpoint_every=7))) == fp
+    cl = dataclasses.replace(base, objective="closed_loop")
+    assert "kinematic" not in study.fingerprint(cl)
+    assert study.fingerprint(dataclasses.replace(cl, loss=objective.ClosedLoopObjective(ticks=300))) != \
+        study.fingerprint(cl)
+    assert study.settings_of(cl.to_dict()) == study.fingerprint(cl)
+
+
+def test_kinematic_objective_honours_checkpoint_every_and_refuses_another_learning_rate(kin_runs, tmp_path,
+                                                                                      monkeypatch):
+    f, th0, *_ = kin_runs
+    cfg = study.StudyConfig(objective="kinematic", groups=("k_base", "damping", "mobility"),
+                            adam=optimize.AdamConfig(steps=4, lr=0.1, checkpoint_every=3))
+    kcfg, kconf = study.kinematic_adam(cfg)
+    assert (kcfg.steps, kcfg.lr, kcfg.checkpoint_every) == (4, 0.1, 3) and kconf["adam"]["lr"] == 0.1
+    saved = []
+    real = optimize.save_checkpoint
+    monkeypatch.setattr(optimize, "save_checkpoint", lambda path, step, *a: (saved.append(step), real(path, step, *a)))
+    optimize.run_adam(f, th0, kcfg, str(tmp_path), kconf, 0, progress=False)
+    assert saved == [3, 4]
+    import dataclasses
+
+    other = dataclasses.replace(cfg, adam=dataclasses.replace(cfg.adam, lr=0.2))
+    with pytest.raises(RuntimeError, match="another configuration"):
+        kc, kconf2 = study.kinematic_adam(other)
+        optimize.run_adam(f, th0, kc, str(tmp_path), kconf2, 0, progress=False)
+
+
+def test_second_tune_run_refused_in_one_line_before_mjx_is_imported(tmp_path):
+    """A run holds DIR/.lock (here a process holding it as a running `hyqjax tune` does): a second run into DIR
+    stops with one line naming the holder, before MJX is imported (let alone anything compiled; only the tuned
+    groups' declarations, JAX's parameter classes, are loaded by the option checks)."""
+    from conftest import run_python, start_python
+
+    d = str(tmp_path / "t")
+    holder = start_python(f"""
+        import sys, time
+        from hyqjax.io.lock import DirLock
+        DirLock({d!r}, what="tune run").acquire()
+        print("held", flush=True)
+        time.sleep(60)
+    """)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        p = run_python(f"""
+            import sys
+            from hyqjax.cli.app import main
+            code = main(["tune", "--out", {d!r}, "--steps", "1"])
+            print("mjx imported:", "mujoco.mjx" in sys.modules, "code:", code)
+        """, timeout=120)
+    finally:
+        holder.kill()
+        holder.wait()
+    err = [ln for ln in p.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and "is being written by pid" in err[0] and "--wait" in err[0], p.stderr
+    assert "mjx imported: False code: 2" in p.stdout, p.stdout
+
+
+def test_waiting_tune_run_then_refused_for_other_settings_before_any_compile(tmp_path, capsys):
+    """--wait queues behind the holder; once it has the directory, a resume whose settings differ from the
+    recorded fingerprint is refused in one line naming the setting, nothing compiled."""
+    import threading
+    import time
+
+    from hyqjax.cli import app
+    from hyqjax.io.fingerprint import check_or_record
+    from hyqjax.io.lock import DirLock
+
+    d = str(tmp_path / "t")
+    args = ["tune", "--out", d, "--no-progress", "--no-cache"]
+    cfg = app.build_parser().parse_args(args + ["--seed", "0"])
+    cfg.validate_command(cfg)
+    from hyqjax.cli import tune as tune_cmd
+
+    check_or_record(d, study.fingerprint(tune_cmd._config(cfg)), "tuning study")
+    lock = DirLock(d).acquire()
+    threading.Thread(target=lambda: (time.sleep(1.0), lock.release()), daemon=True).start()
+    traced = len(TRACED)
+    t0 = time.time()
+    code = app.main(args + ["--seed", "1", "--wait"])
+    io = capsys.readouterr()
+    assert time.time() - t0 >= 0.9 and "waiting for" in io.out
+    assert code == 2 and len(io.err.strip().splitlines()) == 1, io.err
+    assert "other settings" in io.err and "seed: 0 there, 1 here" in io.err
+    assert len(TRACED) == traced, "traced before refusing"

@@ -25,13 +25,16 @@ sphere-box collision functions compute, without their contact slots.
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from hyqjax.core import robot
+
+if TYPE_CHECKING:  # imported where used (a sweep's option checks load no MuJoCo)
+    import mujoco
 
 #: ``data="found force"`` (bits 0 and 1 of mjtConDataType), ``reduce="maxforce"``, ``num=1``.
 _FOUND_FORCE, _MAXFORCE, _NUM = 3, 2, 1
@@ -46,6 +49,8 @@ def sensor_name(zone: str) -> str:
 
 def add_sensors(spec: mujoco.MjSpec) -> None:
     """Add the contact sensor of every zone in :data:`ZONES` (a geom of that name) to ``spec``."""
+    import mujoco
+
     for zone in ZONES:
         spec.add_sensor(type=mujoco.mjtSensor.mjSENS_CONTACT, name=sensor_name(zone), objtype=mujoco.mjtObj.mjOBJ_GEOM,
                         objname=zone, intprm=[_FOUND_FORCE, _MAXFORCE, _NUM])
@@ -74,6 +79,8 @@ class ContactIds:
 
 def contact_ids(m: mujoco.MjModel) -> ContactIds:
     """Look up the sensors of :func:`add_sensors` and the terrain geoms in a compiled model."""
+    import mujoco
+
     def adr(zone):
         s = m.sensor(sensor_name(zone))
         if int(m.sensor_dim[s.id]) != SENSOR_DIM:

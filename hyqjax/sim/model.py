@@ -23,13 +23,13 @@ from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 
 from hyqjax.core import robot
 from hyqjax.sim import contacts
 
-if TYPE_CHECKING:  # MJX only in annotations: importing this module (e.g. for a sweep's ranges) loads no MJX
+if TYPE_CHECKING:  # MuJoCo and MJX are imported where used: importing this module (e.g. for a sweep's ranges)
+    import mujoco  # loads neither
     from mujoco import mjx
 
 #: Half sizes (m) of the platform box. Its top is at ``h`` and its bottom at ``h - 2 * 0.25``.
@@ -90,6 +90,8 @@ def model_spec(layout: TerrainLayout = TerrainLayout(), platform_height: float =
     """
     if not 0.0 <= platform_height <= MAX_PLATFORM_HEIGHT:
         raise ValueError(f"platform_height must be in [0, {MAX_PLATFORM_HEIGHT}] m, got {platform_height}")
+    import mujoco
+
     spec = mujoco.MjSpec.from_file(asset_path())
     spec.stat.extent = 3.0
     tex = spec.add_texture(name="grid", type=mujoco.mjtTexture.mjTEXTURE_2D,
@@ -147,6 +149,8 @@ def load_model(layout: TerrainLayout = TerrainLayout(), timestep: float = 0.002,
 
 
 def model_ids(m: mujoco.MjModel) -> ModelIds:
+    import mujoco
+
     def gid(n):
         return mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
 
