@@ -171,28 +171,27 @@ def main(argv=None):
         detail = []
         t0 = time.time()
         todo = {w: list(parts[w]) for w in range(args.workers)}
-        procs = {}
-        while todo:
-            for w, rest in list(todo.items()):
-                if w not in procs:
-                    # the bit list goes through a file when long
-                    lst = os.path.join(root, f"bits{w}.json")
-                    with open(lst, "w") as f:
-                        json.dump(rest, f)
+        while todo:  # all workers at once, each writing to its own file; a dead worker restarts after its bit
+            procs = {}
+            for w, rest in todo.items():
+                lst, log = (os.path.join(root, f"{n}{w}.json") for n in ("bits", "out"))
+                with open(lst, "w") as f:
+                    json.dump(rest, f)
+                with open(log, "w") as f:
                     procs[w] = subprocess.Popen([sys.executable, __file__, "--worker", os.path.join(root, f"store{w}"),
-                                                 "@" + lst], stdout=subprocess.PIPE, text=True)
-            for w, proc in list(procs.items()):
-                done = []
-                for line in proc.stdout:
-                    bit, res = line.split(" ", 1)
-                    res = json.loads(res)
-                    done.append(int(bit))
-                    for k, v in res.items():
-                        counts[k][v] = counts[k].get(v, 0) + 1
-                    if any(v != "named" for v in res.values()):
-                        detail.append(dict(bit=int(bit), byte=int(bit) // 8, **res))
+                                                 "@" + lst], stdout=f)
+            for w, proc in procs.items():
                 rc = proc.wait()
-                del procs[w]
+                done = []
+                with open(os.path.join(root, f"out{w}.json")) as f:
+                    for line in f:
+                        bit, res = line.split(" ", 1)
+                        res = json.loads(res)
+                        done.append(int(bit))
+                        for k, v in res.items():
+                            counts[k][v] = counts[k].get(v, 0) + 1
+                        if any(v != "named" for v in res.values()):
+                            detail.append(dict(bit=int(bit), byte=int(bit) // 8, **res))
                 rest = todo[w][len(done):]
                 if rc != 0 and rest:  # the process died on rest[0]
                     for k in PATHS:
