@@ -119,7 +119,7 @@ def read_table(data: bytes):
     import pyarrow.parquet as pq
 
     try:
-        table = pq.read_table(pa.BufferReader(data))
+        table = pq.ParquetFile(pa.BufferReader(data)).read()  # the file alone (no dataset discovery)
         meta = json.loads((table.schema.metadata or {}).get(META_KEY, b"{}"))
         if not isinstance(meta, dict):
             raise ValueError("metadata is not a JSON object")
