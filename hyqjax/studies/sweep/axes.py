@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from hyqjax.crawl import controller as crawl
+from hyqjax.crawl import params as crawl  # CrawlParams, FOOT_SEQUENCES (not the controller)
 from hyqjax.reflex import step as hreflex
 from hyqjax.sim import model as hmodel
 
