@@ -62,6 +62,8 @@ def test_store_schema(swept):
     assert all(v.shape[0] == 8 for v in rows.values())
     assert not [f for f in os.listdir(full) if ".tmp" in f]
     assert not [f for f in os.listdir(os.path.join(full, "chunks")) if ".tmp" in f]
+    check = sweep.verify_store(full)  # the simulated rows (every dtype the runner writes) carry checksums that verify
+    assert check.ok and check.unchecked == [] and len(check.files) == 2, check.lines()
 
 
 @pytest.mark.slow
