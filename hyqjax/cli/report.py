@@ -7,6 +7,10 @@ the bounding tracking table and ablation contributions, or a sweep's success per
 largest safe height; every PNG figure in the directory; and
 the stills and videos that ``hyqjax render --stills N`` wrote to DIR/render/. Images are embedded,
 so the page is a single file. Run ``hyqjax render DIR --stills 4`` first to include frames.
+
+Examples:
+  hyqjax report out/stepdown                   # out/stepdown/report.html
+  hyqjax report out --out out/all.html         # every experiment under out/ on one page
 """
 from __future__ import annotations
 
@@ -19,6 +23,9 @@ ORDER = 70
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("dir", help="experiment output directory (with results.json) or a directory of them")
     p.add_argument("--out", default=None, help="output HTML file (default: DIR/report.html)")
     p.add_argument("--title", default=None, help="page title (default: 'hyqjax results: DIR')")
@@ -66,6 +73,7 @@ def run(args) -> int:
     from hyqjax.io import report
 
     path, dirs = report.build_report(args.dir, args.out, args.title, args.max_embed_mb)
-    print(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB) from {len(dirs)} results.json: "
-          + ", ".join(os.path.relpath(d, args.dir) for d in dirs))
+    files = [os.path.normpath(os.path.join(d, name)) for d in dirs for name in (report.RESULTS_FILE, report.SWEEP_FILE)
+             if os.path.isfile(os.path.join(d, name))]
+    print(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB) from {len(files)} result file(s): " + ", ".join(files))
     return 0

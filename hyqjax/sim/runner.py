@@ -84,7 +84,8 @@ _LISTENERS: list = []
 def compile_listener(listener: Callable[[str, dict], None]):
     """While the context is open, every :class:`BatchRunner` that compiles calls ``listener(event, info)``:
     ``("start", {"batch": size})`` before its first compile of a call and ``("end", {"batch": size, "seconds": s})``
-    once its programs are compiled (a program loaded from the persistent compilation cache counts too)."""
+    once its programs are compiled (a program loaded from the persistent compilation cache counts too), and
+    ``("done", last_timing)`` after every run (:attr:`BatchRunner.last_timing`)."""
     _LISTENERS.append(listener)
     try:
         yield listener
@@ -241,7 +242,9 @@ class BatchRunner:
         plan = self.plan(n, mx_batched)
         self.last_timing = dict(compile_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes, instances=n)
         if plan.passes == 1 and plan.size == n:
-            return self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
+            out = self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
+            _notify("done", **self.last_timing)
+            return out
         if self._init is None:
             self._build(mx_batched, d0, params, push)
         parts = []
@@ -251,8 +254,9 @@ class BatchRunner:
                                  _rows(params, self.params_axes, idx), _rows(push, 0, idx), k, progress, p,
                                  plan.passes)
             parts.append(jax.tree_util.tree_map(np.asarray, res))
-        out = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, 0)[:n], *parts)
-        return jax.device_put(out)
+        out = jax.device_put(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, 0)[:n], *parts))
+        _notify("done", **self.last_timing)
+        return out
 
     def _run_pass(self, mx_batched, d0, params, push, k: int, progress, pass_index: int, passes: int) -> RolloutResult:
         if self._init is None:

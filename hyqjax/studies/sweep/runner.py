@@ -147,7 +147,7 @@ def run_sweep(spec: SweepSpec, out_dir: str, chunk_size: int | None = None, max_
                   + (", resuming" if store.done() else "") + f"; {len(todo)} to run now", flush=True)
         done_rows = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done())
         bar = tqdm(total=spec.n_instances, initial=done_rows, unit="inst", desc="sweep", disable=not progress,
-                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total} inst [{elapsed}<{remaining}{postfix}]",
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total} inst [{elapsed}<{remaining}{postfix}]",
                    dynamic_ncols=True)
         try:
             jobs = [(c, *store.chunk_range(c)) for c in todo]
