@@ -218,6 +218,8 @@ class SimProgress:
             bar.total = total
         bar.n = min(max(float(done_s), 0.0), bar.total)
         bar.refresh()
+        if bar.n >= bar.total:  # closed now, so its elapsed time is the simulation's, not what follows
+            bar.close()
 
     def close(self) -> None:
         self.status.close()

@@ -36,9 +36,9 @@ from hyqjax.sim.rollout import (Controller, Metrics, Push, RolloutResult, SimCon
 
 Progress = Callable[[float, float], None]
 
-#: Instances per pass on one CPU device (the batch buckets, :func:`batch_plan`). On 2 CPU cores MJX's
-#: throughput per instance is within noise from batch 8 to 64 (benchmarks/RESULTS.md), so larger passes
-#: gain little and cost more padding.
+#: Instances per pass on one CPU device (the batch buckets, :func:`batch_plan`). On 2 CPU cores MJX's closed
+#: loop saturates at about 10k env-steps/s from batch 16 on (benchmarks/RESULTS.md, bench_physics); 8 trades a
+#: little of that for less padding of small batches (at most 7 padded rows, a third of the default step-down's 6).
 CPU_PASS = 8
 
 #: Label of the compile phase, as the command line shows it.

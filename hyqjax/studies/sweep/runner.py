@@ -55,7 +55,9 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
     if sensed:
         ctrl = sensed_controller(ctrl, max_delay)
     mesh = sim.batch_mesh(list(devices)) if len(devices) > 1 else None
-    run = sim.make_batch_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh)
+    # buckets=False: a chunk is the sweep's own fixed batch shape (its chunk size, part of the store's layout).
+    run = sim.make_batch_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
+                                buckets=False)
     _RUNNERS[key] = (run, st.m, st.mx, st.ids)
     return _RUNNERS[key]
 
