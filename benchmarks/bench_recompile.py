@@ -8,7 +8,9 @@ count. With the batch buckets of :mod:`hyqjax.sim.runner` (CPU: a power of two u
 For each run the script records, from its own clock: ``to_simulating_s``, the time from starting the process to
 the end of the compile phase (the command's "compiled in" line on stderr, when the simulation starts; the
 process start, imports, model setup and the compile or cache load included), and ``wall_s`` the whole run; from
-the run's results.json: ``compile_s`` (the compile phase), ``simulate_s`` and the batch plan. Writes JSON.
+the run's results.json: ``compile_s`` (the compile phase), ``trace_s`` (its tracing and lowering, which the
+persistent cache does not spare), ``simulate_s`` and the batch plan; and the 1-minute load average at the start
+of each run. Writes JSON. Run it on idle cores (e.g. ``taskset -c 0,1`` on an idle host) for the target timing.
 
     python benchmarks/bench_recompile.py --out out/bench_recompile.json
     python benchmarks/bench_recompile.py --first-instances 1 --second-instances 3 --duration 9 --out out/r.json
@@ -37,6 +39,10 @@ def run_stepdown(instances: int, duration: float, heights: list[float], out_dir:
            "--instances", str(instances), "--duration", f"{duration:g}", "--heights", *[f"{h:g}" for h in heights],
            "--no-figures", "--out", out_dir]
     env = dict(os.environ, HYQJAX_CACHE_DIR=cache_dir, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    try:
+        load = os.getloadavg()[0]
+    except OSError:
+        load = None
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     seen, err, t_sim = b"", b"", None
@@ -61,8 +67,10 @@ def run_stepdown(instances: int, duration: float, heights: list[float], out_dir:
     with open(os.path.join(out_dir, "results.json")) as f:
         res = json.load(f)
     timing = res.get("timing", {})
-    return dict(instances_per_cell=instances, batch=len(heights) * 2 * instances, to_simulating_s=t_sim,
-                wall_s=wall, compile_s=timing.get("compile_s"), simulate_s=timing.get("simulate_s"),
+    batches = timing.get("batches") or [{}]
+    return dict(instances_per_cell=instances, batch=len(heights) * 2 * instances, load_average_1min_at_start=load,
+                to_simulating_s=t_sim, wall_s=wall, compile_s=timing.get("compile_s"),
+                trace_s=batches[0].get("trace_s"), simulate_s=timing.get("simulate_s"),
                 batches=timing.get("batches"), stdout_tail=out.decode(errors="replace")[-600:])
 
 
@@ -95,7 +103,8 @@ def main(argv=None) -> int:
         json.dump(result, f, indent=1)
     for r in runs:
         print(f"--instances {r['instances_per_cell']} ({r['batch']} instances): simulating after "
-              f"{r['to_simulating_s']:.1f} s (compile phase {r['compile_s']:.1f} s), wall {r['wall_s']:.1f} s, "
+              f"{r['to_simulating_s']:.1f} s (compile phase {r['compile_s']:.1f} s, of which tracing "
+              f"{r['trace_s'] or 0:.1f} s), wall {r['wall_s']:.1f} s, load {r['load_average_1min_at_start']}, "
               f"batches {[(b['batch'], b['passes']) for b in r['batches'] or []]}")
     return 0
 

@@ -250,7 +250,7 @@ def format_table(groups: dict, settle: float | None = None, duration: float | No
         if settle is not None and duration is not None:
             when = (f": the per-cycle errors count only the gait cycles that start after the settling time "
                     f"(ramp + 1 s = {settle:g} s) and end by {duration:g} s; run --duration {settle + 0.8:g} s "
-                    f"or longer for two of them")
+                    f"or longer to measure them")
         lines.append(f"- = not measured: no settled gait cycle in the run, or no surviving instance{when}")
     return "\n".join(lines)
 

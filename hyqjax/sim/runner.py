@@ -125,8 +125,10 @@ class BatchRunner:
     ``chunk_seconds`` of simulated time (one compiled program: the chunk length divides the number of ticks),
     calling ``progress(sim_seconds_done, sim_seconds_total)`` after each (over several passes both count every
     pass); every chunk continues the carry of the last, so the result is bitwise identical to one scan over all
-    ticks. :attr:`last_timing` holds the last call's ``compile_s`` (compiling and loading programs),
-    ``simulate_s`` (running them), ``batch`` (the compiled batch size), ``passes`` and ``instances``.
+    ticks. :attr:`last_timing` holds the last call's ``compile_s`` (the compile phase: tracing, lowering, and
+    compiling the programs or loading them from the persistent cache), ``trace_s`` (its tracing and lowering
+    part, paid by every new process: the persistent cache holds compiled programs, not traces), ``simulate_s``
+    (running them), ``batch`` (the compiled batch size), ``passes`` and ``instances``.
     """
 
     def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg: SimConfig, metrics: Metrics = no_metrics(),
@@ -207,7 +209,10 @@ class BatchRunner:
             if self._compile_t0 is None:
                 self._compile_t0 = time.perf_counter()
                 _notify("start", batch=int(args[1].qpos.shape[0]) if name == "init" else None)
-            exe = self._executables[key] = fn.lower(*args, *static).compile()
+            t0 = time.perf_counter()
+            lowered = fn.lower(*args, *static)
+            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
+            exe = self._executables[key] = lowered.compile()
         return exe
 
     def _end_compile_phase(self, batch: int) -> None:
@@ -240,7 +245,8 @@ class BatchRunner:
             chunk_seconds = 1.0
         k = self.chunk_ticks(chunk_seconds)
         plan = self.plan(n, mx_batched)
-        self.last_timing = dict(compile_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes, instances=n)
+        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes,
+                                instances=n)
         if plan.passes == 1 and plan.size == n:
             out = self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
             _notify("done", **self.last_timing)
