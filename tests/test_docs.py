@@ -87,6 +87,9 @@ def all_commands():
 
 
 CASES = all_commands()
+#: ``python ...`` cases import their module (JAX, MuJoCo, experiment code: seconds each): not in the unit lane.
+PARAMS = [pytest.param(p, n, a, id=f"{p}:{n}", marks=() if a[0] == "hyqjax" else pytest.mark.slow)
+          for p, n, a in CASES]
 
 
 class Parsed(Exception):
@@ -144,7 +147,7 @@ def test_the_docs_have_commands():
     assert len(CASES) >= 20
 
 
-@pytest.mark.parametrize("path, line, argv", CASES, ids=[f"{p}:{n}" for p, n, _ in CASES])
+@pytest.mark.parametrize("path, line, argv", PARAMS)
 def test_documented_command_parses(path, line, argv):
     what = f"{path}:{line}: {' '.join(argv)}"
     if argv[0] == "hyqjax":

@@ -244,6 +244,8 @@ class BatchRunner:
         if progress is not None and chunk_seconds is None:
             chunk_seconds = 1.0
         k = self.chunk_ticks(chunk_seconds)
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((mx_batched, d0, params, push))):
+            return self._traced(mx_batched, d0, params, push, k)
         plan = self.plan(n, mx_batched)
         self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes,
                                 instances=n)
@@ -263,6 +265,21 @@ class BatchRunner:
         out = jax.device_put(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, 0)[:n], *parts))
         _notify("done", **self.last_timing)
         return out
+
+    def _traced(self, mx_batched, d0, params, push, k: int) -> RolloutResult:
+        """Under a JAX transformation (the inputs are tracers): the jitted programs inlined into the caller's
+        trace, at the batch's own size, without progress or timing."""
+        if self._init is None:
+            self._build(mx_batched, d0, params, push)
+        carry, traces = self._init(mx_batched, d0, params), []
+        for _ in range(0, self.cfg.n_ticks, k):
+            carry, tr = self._advance(mx_batched, carry, params, push, k)
+            traces.append(tr)
+        trace = None
+        if self.record is not None:
+            trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
+                lambda *xs: jnp.concatenate(xs, axis=1), *traces)
+        return rollout_result(carry, trace)
 
     def _run_pass(self, mx_batched, d0, params, push, k: int, progress, pass_index: int, passes: int) -> RolloutResult:
         if self._init is None:
