@@ -221,3 +221,19 @@ def test_padded_rows_repeat_the_last_instance():
     assert rn._rows(tree, None, idx) is tree
     mixed = rn._rows(tree, dict(a=0, b=None), np.array([1, 2]))
     assert mixed["a"].tolist() == [1, 2] and mixed["b"] is tree["b"]
+
+
+def test_success_figure_says_it_plots_clean_success():
+    """success.png plots the clean level (``success`` = clean), and says so."""
+    import matplotlib.pyplot as plt
+
+    from hyqjax.studies import stepdown_figures
+
+    table = dict(height=np.array([0.16, 0.16]), reflex=np.array([False, True]))
+    rows = stepdown_table.summarize(table, outcome_columns(2, shin_strike=[1]))
+    fig, ax = plt.subplots()
+    stepdown_figures._draw_success(ax, rows)
+    assert ax.get_ylabel() == "clean success rate" and "clean" in ax.get_title()
+    heights = sorted(b.get_height() for b in ax.patches)
+    assert heights == [pytest.approx(0.0), pytest.approx(1.0)]  # reflex on: completed but not clean
+    plt.close(fig)

@@ -65,7 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--random", action="append", default=[], metavar="AXIS=LO,HI",
                    help="random axis, uniform in [LO, HI] (or a list of options for a choice axis)")
     p.add_argument("--fixed", action="append", default=[], metavar="AXIS=V", help="fixed axis value")
-    p.add_argument("--samples", type=int, help="random draws per grid point (default: the spec's, else 1)")
+    p.add_argument("--samples", type=int, help="random draws per grid point (default: the spec's; 2 in the built-in "
+                                                  "default sweep, else 1)")
     p.add_argument("--seed", type=int, help="sweep seed (default: the spec's, else 0)")
     p.add_argument("--duration", type=float, help="simulated seconds per instance (default: the spec's, else 18)")
     p.add_argument("--chunk-size", type=int, help="instances per chunk (default: 32 per CPU device, 4096 per GPU)")

@@ -247,6 +247,7 @@ class BatchRunner:
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((mx_batched, d0, params, push))):
             return self._traced(mx_batched, d0, params, push, k)
         plan = self.plan(n, mx_batched)
+        self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
         self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes,
                                 instances=n)
         if plan.passes == 1 and plan.size == n:
