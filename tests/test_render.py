@@ -152,7 +152,12 @@ def test_render_command_writes_gif_and_stills(recorded_dir, tmp_path, capsys):
         assert im.size == (W, H + max(24, H // 4))
     stills = sorted(p for p in os.listdir(tmp_path) if p.endswith(".png"))
     assert len(stills) == 2
-    assert "instance 1" in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert "instance 1" in text
+    # The message says what its numbers are: the video's length, the simulated time it shows, the render time.
+    video_s = (N_SAMPLES // 2) / (1.0 / (2 * DT))
+    assert re.search(rf"a {video_s:.1f} s video of {video_s:.1f} s of simulated time; rendering took [0-9.]+ s "
+                     r"\(wall time\)", text), text
 
 
 @pytest.mark.slow
@@ -204,7 +209,7 @@ def test_view_without_display_exits_with_message(recorded_dir, monkeypatch, caps
     assert "no display" in err and "hyqjax render" in err
 
 
-def test_report_from_stepdown_dir(recorded_dir, tmp_path):
+def test_report_from_stepdown_dir(recorded_dir, tmp_path, capsys):
     from hyqjax.io import render
 
     d = tmp_path / "exp"
@@ -214,6 +219,8 @@ def test_report_from_stepdown_dir(recorded_dir, tmp_path):
     render.write_png(str(d / "success.png"), np.full((8, 8, 3), 200, np.uint8))
     render.write_png(str(d / "render" / "instance_001_t000.10s.png"), np.zeros((8, 8, 3), np.uint8))
     assert cli.main(["report", str(d)]) == 0
+    # The message names the result files it read (not "from 1 results.json: .").
+    assert f"from 1 result file(s): {os.path.join(str(d), 'results.json')}" in capsys.readouterr().out
     page = (d / "report.html").read_text()
     assert "hyqjax stepdown --heights 0.2 0.3 --reflex on --out X" in page  # the exact command
     assert "3.17.0" in page and "<td class=\"l\">7</td>" in page  # versions and seed

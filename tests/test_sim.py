@@ -21,6 +21,7 @@ from mujoco import mjx
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as runner_mod
 from hyqjax.core import spatial
 from hyqjax.control import stand
 
@@ -446,6 +447,34 @@ def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(hyq, standin
     assert runner.n_compiles == compiled
     assert not np.array_equal(np.asarray(res2.data.qpos)[PUSHED], standing_run["qpos"][PUSHED])
     np.testing.assert_array_equal(np.asarray(res2.data.qpos)[STANDING], standing_run["qpos"][STANDING])
+
+
+@pytest.mark.slow
+def test_padded_batch_rows_equal_the_unpadded_ones(hyq):
+    """Three instances run in the bucket of four (the last one repeated, then dropped) give bitwise the rows of the
+    same instances in an unpadded batch; the compile is announced and timed apart from the simulation. (The
+    2.5 s chunk program of batch 4 is the one of the chunked test above: loaded from the session's cache.)"""
+    m, ids = hyq
+    mxb, d0, push, cfg = scenario(m, ids, duration=2.5)
+    params = stand.StandParams.make()
+    exact = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None,
+                                  buckets=False)
+    full = exact(mxb, d0, params, push, chunk_seconds=2.5)
+    three = jax.tree_util.tree_map(lambda x: x[:3], (d0, push))
+    mx3 = jax.tree_util.tree_map(lambda ax, x: x if ax is None else x[:3], hmodel.model_in_axes(mxb), mxb,
+                                 is_leaf=lambda x: x is None)
+    bucketed = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
+    events = []
+    with runner_mod.compile_listener(lambda e, info: events.append(e)):
+        res = bucketed(mx3, three[0], params, three[1], chunk_seconds=2.5)
+    assert bucketed.last_timing["batch"] == 4 and bucketed.last_timing["instances"] == 3
+    assert events == ["start", "end", "done"] and bucketed.last_timing["compile_s"] > 0
+    got = jax.tree_util.tree_leaves(res)
+    want = jax.tree_util.tree_leaves(jax.tree_util.tree_map(lambda x: np.asarray(x)[:3], full))
+    assert len(got) == len(want)
+    for g, w in zip(got, want):
+        assert g.shape == w.shape
+        np.testing.assert_array_equal(np.asarray(g), w)
 
 
 def test_chunk_length_divides_the_run_and_the_trace_decimation():

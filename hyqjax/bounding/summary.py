@@ -179,7 +179,8 @@ def aggregate(per: list[InstanceResult]) -> dict:
         return np.array([getattr(p, key) for p in per if getattr(p, key) is not None and p.success], np.float64)
 
     out = dict(n=len(per), falls=sum(not p.success for p in per),
-               fail_reasons=sorted({r for p in per for r in p.fail_reasons}))
+               fail_reasons=sorted({r for p in per for r in p.fail_reasons}),
+               failure_reasons={r: n for r in FAIL_REASONS if (n := sum(r in p.fail_reasons for p in per))})
     for key in ("yaw_error_max_deg", "yaw_error_rms_deg", "speed_error_mean_abs", "speed_error_rms",
                 "yaw_rate_error_rms", "periodicity_residual"):
         v = vals(key)
@@ -216,21 +217,41 @@ def _fmt(v, f="{:.2f}"):
     return "-" if v is None else f.format(v)
 
 
-def format_table(groups: dict) -> str:
-    """A plain-text summary table, one row per configuration."""
+def format_table(groups: dict, settle: float | None = None, duration: float | None = None) -> str:
+    """A plain-text summary table, one row per configuration: failures with their reasons (runs per reason, the
+    names of :data:`FAIL_REASONS`) and the tracking errors over the surviving instances. ``settle`` and
+    ``duration`` (s) explain a ``-`` in the footnote."""
     head = (f"{'configuration':26s} {'n':>3s} {'falls':>5s} {'yaw err max [deg]':>18s} {'yaw err rms':>11s} "
-            f"{'speed err rms [m/s]':>19s} {'yaw-rate err rms':>16s} {'side slip':>9s} {'periodicity':>11s}")
+            f"{'speed err rms [m/s]':>19s} {'yaw-rate err rms':>16s} {'side slip':>9s} {'periodicity':>11s}"
+            f"  failure reasons (runs)")
     lines = [head, "-" * len(head)]
+    dash = False
     for name, g in groups.items():
         a = g["aggregate"]
+        cells = (_fmt(a['yaw_error_max_deg_mean']), _fmt(a['speed_error_rms_mean'], '{:.3f}'),
+                 _fmt(a['yaw_rate_error_rms_mean'], '{:.3f}'), _fmt(a.get('side_slip_mean'), '{:.3f}'),
+                 _fmt(a['periodicity_residual_mean']))
+        dash = dash or "-" in cells
+        reasons = a.get("failure_reasons")
+        if reasons is None:  # an aggregate written before the counts: the reasons without them
+            reasons_s = ", ".join(a.get("fail_reasons", [])) or "-"
+        else:
+            reasons_s = ", ".join(f"{k} {v}" for k, v in reasons.items()) or "-"
         lines.append(f"{name:26s} {a['n']:3d} {a['falls']:5d} "
                      f"{_fmt(a['yaw_error_max_deg_mean']) + ' / ' + _fmt(a['yaw_error_max_deg_worst']):>18s} "
                      f"{_fmt(a['yaw_error_rms_deg_mean']):>11s} "
                      f"{_fmt(a['speed_error_rms_mean'], '{:.3f}') + ' / ' + _fmt(a['speed_error_rms_worst'], '{:.3f}'):>19s} "
-                     f"{_fmt(a['yaw_rate_error_rms_mean'], '{:.3f}'):>16s} {_fmt(a.get('side_slip_mean'), '{:.3f}'):>9s} "
-                     f"{_fmt(a['periodicity_residual_mean']):>11s}")
+                     f"{cells[2]:>16s} {cells[3]:>9s} {cells[4]:>11s}  {reasons_s}")
     lines.append("(x / y = mean / worst over surviving instances; side slip = |mean lateral speed| [m/s]; periodicity = "
-                 "median apex-to-apex residual, Eq. C2 units)")
+                 "median apex-to-apex residual, Eq. C2 units; failure reasons: fell_low_trunk (trunk below "
+                 "0.35 m), fell_roll / fell_pitch (|angle| above 0.7 rad), diverged)")
+    if dash:
+        when = ""
+        if settle is not None and duration is not None:
+            when = (f": the per-cycle errors count only the gait cycles that start after the settling time "
+                    f"(ramp + 1 s = {settle:g} s) and end by {duration:g} s; run --duration {settle + 0.8:g} s "
+                    f"or longer to measure them")
+        lines.append(f"- = not measured: no settled gait cycle in the run, or no surviving instance{when}")
     return "\n".join(lines)
 
 

@@ -11,6 +11,11 @@ Base height and velocity are estimated by the controller (leg odometry + IMU); t
 simulator's ground truth. --ablation runs all four on/off combinations of the kinematic adjustment and
 the centrifugal compensation on the same instances (one compiled rollout) and reports each part's
 contribution.
+
+Examples:
+  hyqjax bound --out out/bound                             # forward 0.5 m/s, turning 0.3 rad/s, 8 instances
+  hyqjax bound --speed 0.9 --yaw-rate 0.5 --ablation       # each part's contribution, same instances
+  hyqjax bound --duration 2.4 --instances 2                # a quick run (tracking errors need cycles after 2 s)
 """
 from __future__ import annotations
 
@@ -28,13 +33,16 @@ ABLATION = (("full", True, True), ("no_kinematic_adjustment", False, True), ("no
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import add_impl_argument, use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("--speed", type=float, default=0.5, help="desired forward speed (m/s), in [-1.5, 1.5]")
     p.add_argument("--yaw-rate", type=float, default=0.3, help="desired yaw rate (rad/s, + = left), in [-1.5, 1.5]")
     p.add_argument("--lateral-speed", type=float, default=0.0, help="desired lateral speed (m/s), in [-0.5, 0.5]")
     p.add_argument("--duration", type=float, default=6.0, help="simulated time (s); a multiple of the 0.4 s period")
     p.add_argument("--instances", type=int, default=8, help="instances per configuration")
     p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
-    p.add_argument("--out", default="results/bound", help="output directory")
+    p.add_argument("--out", default="out/bound", help="output directory")
     p.add_argument("--ramp-time", type=float, default=1.0, help="command ramp time (s)")
     p.add_argument("--no-kinematic-adjustment", action="store_true", help="disable the kinematic adjustment (Eqs. 1-2)")
     p.add_argument("--no-centrifugal", action="store_true", help="disable the centrifugal compensation (Eqs. 3-4)")
@@ -48,8 +56,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    from hyqjax.cli.common import add_impl_argument
-
     add_impl_argument(p)
 
 
@@ -129,12 +135,15 @@ def run(args) -> int:
     rand = bx.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
     batch = bx.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
                           push_duration=args.push_duration, n_unique=n)
-    t0 = time.time()
     from hyqjax.cli.common import sim_progress
 
+    print(f"hyqjax bound: {len(plist)} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
+          f"{int(round(args.duration / 0.002))} ticks", flush=True)
+    t0 = time.time()
     with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
         res, trace = bx.run(batch, duration=args.duration, progress=progress, impl=args.impl)
     wall = time.time() - t0
+    status = progress.status
     summary = bs.summarise(res, trace, batch)
     groups = {}
     for g, (name, kin, cf) in enumerate(configs):
@@ -144,8 +153,11 @@ def run(args) -> int:
     opts = user_options(args)
     from hyqjax.sim import backend
 
+    n_ticks = int(round(args.duration / 0.002))
     out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=backend.resolve_impl(args.impl),
-               wall_time_s=wall, env_steps_per_s=len(plist) * args.duration / 0.002 / wall, groups=groups)
+               wall_time_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
+               env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
+               batches=status.timings, groups=groups)
     if args.ablation:
         out["contributions"] = bs.contributions(groups)
     os.makedirs(args.out, exist_ok=True)
@@ -164,8 +176,12 @@ def run(args) -> int:
     recording.save(os.path.join(args.out, "traces.npz"), trace, inputs, np.arange(len(plist)), record_every=10,
                    control_dt=0.002)
     io.write_json(os.path.join(args.out, "results.json"), out)
-    print(bs.format_table(groups))
+    print(bs.format_table(groups, settle=args.ramp_time + 1.0, duration=args.duration))
     if args.ablation:
         print(bs.format_contributions(out["contributions"]))
-    print(f"wrote {os.path.join(args.out, 'results.json')}  ({wall:.1f} s wall)")
+    print(f"{status.throughput_text(len(plist), n_ticks)}; wall {wall:.1f} s in all")
+    figs = ", ".join(os.path.basename(p) for p in (out.get("figures") or {}).values()) if isinstance(
+        out.get("figures"), dict) else ""
+    print(f"wrote to {args.out}/: results.json (per instance and per configuration), traces.npz (every instance: "
+          f"`hyqjax render {args.out}` makes a video)" + (f", {figs}" if figs else ""))
     return 0

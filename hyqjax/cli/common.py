@@ -8,9 +8,11 @@ run never simulates for minutes and then fails to save.
 """
 from __future__ import annotations
 
+import argparse
 import contextlib
 import math
 import os
+import sys
 import threading
 
 from hyqjax.io.cache import cache_dir, enable_compilation_cache  # noqa: F401  (re-exported for the commands)
@@ -76,36 +78,168 @@ def check_out_free(path: str, option: str = "--out") -> None:
         raise UsageError(f"{option} {path}: {probe} is not writable")
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
+    """Help as written: the description keeps its line breaks (examples stay readable), and an option's default
+    is appended once, only where it says something: not where the help text already names its default, not for
+    an on/off flag (default off), an unset (None) default or an empty list (a repeatable option)."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if ("default" in text.lower() or any(action.default is v for v in (None, False, argparse.SUPPRESS))
+                or action.default == []
+                or isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction))):
+            return text
+        return super()._get_help_string(action)
+
+
+def use_help_formatter(p: argparse.ArgumentParser) -> None:
+    """Give a command's parser :class:`HelpFormatter` (called first in each command's ``add_arguments``)."""
+    p.formatter_class = HelpFormatter
+
+
+def _compile_line(prefix: str):
+    from hyqjax.sim.runner import COMPILE_LABEL
+    return f"{prefix}: {COMPILE_LABEL}" if prefix else COMPILE_LABEL
+
+
+class CompileStatus:
+    """Listens to the batch runners (:func:`hyqjax.sim.runner.compile_listener`): while a runner compiles, a line
+    ``PREFIX: compiling (first run of this shape; cached afterwards) 0:42`` counts the elapsed time on stderr;
+    afterwards one line says how long it took. Sums ``compile_s`` and ``simulate_s`` over the runs it saw, so
+    a command prints its throughput without the compile."""
+
+    def __init__(self, prefix: str = "", disable: bool = False, on_end=None):
+        self.prefix, self.disable, self.on_end = prefix, disable, on_end
+        self.compile_s = self.simulate_s = 0.0
+        self.compiles = 0
+        self.timings: list[dict] = []
+        self._bar = None
+        self._stop = threading.Event()
+        self._thread = None
+
+    def __call__(self, event: str, info: dict) -> None:
+        if event == "start":
+            self._open()
+        elif event == "end":
+            self.compile_s += info["seconds"]
+            self.compiles += 1
+            self._close(info["seconds"])
+            if self.on_end is not None:
+                self.on_end()
+        elif event == "done":
+            self.simulate_s += info["simulate_s"]
+            self.timings.append(dict(info))
+
+    def _open(self) -> None:
+        if self.disable:
+            return
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=None, desc=_compile_line(self.prefix), bar_format="{desc} {elapsed}", leave=False,
+                         dynamic_ncols=True)
+        self._stop.clear()
+
+        def tick():
+            while not self._stop.wait(0.5):
+                self._bar.refresh()
+
+        self._thread = threading.Thread(target=tick, daemon=True)
+        self._thread.start()
+
+    def _close(self, seconds: float) -> None:
+        if self._bar is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._bar.close()
+        self._bar = None
+        from tqdm import tqdm
+
+        tqdm.write(f"{self.prefix + ': ' if self.prefix else ''}compiled in {seconds:.1f} s (first run of this "
+                   f"batch shape; cached afterwards)", file=sys.stderr)
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._stop.set()
+            self._thread.join()
+            self._bar.close()
+            self._bar = None
+
+    def throughput_text(self, instances: int, ticks: int) -> str:
+        """``simulated ... env-steps/s (compile ... s besides)``: the rate over simulating time only."""
+        rate = instances * ticks / self.simulate_s if self.simulate_s > 0 else float("nan")
+        pad = ""
+        if self.timings:
+            t = self.timings[-1]
+            extra = t["passes"] * t["batch"] - t["instances"]
+            if extra or t["passes"] > 1:
+                pad = f"; batches of {t['batch']}" + (f" x {t['passes']} passes" if t["passes"] > 1 else "")
+                pad += f", {extra} padded rows not counted" if extra else ""
+        return (f"simulating {self.simulate_s:.1f} s: {rate:,.0f} env-steps/s of {instances} instances; compile "
+                f"{self.compile_s:.1f} s besides{pad}")
+
+
+@contextlib.contextmanager
+def compile_status(prefix: str = "", disable: bool = False):
+    """A :class:`CompileStatus` listening to every batch runner while the context is open."""
+    from hyqjax.sim.runner import compile_listener
+
+    status = CompileStatus(prefix, disable)
+    try:
+        with compile_listener(status):
+            yield status
+    finally:
+        status.close()
+
+
+class SimProgress:
+    """The progress of a batched run on stderr: the compile phase (:class:`CompileStatus`), then a bar over
+    simulated seconds with an ETA, fed by the batch runner's ``progress(done_s, total_s)`` between chunks (the
+    total counts every pass of a bucketed batch). The bar starts when the simulation does, so its rate and ETA
+    exclude the compile; it never passes its total."""
+
+    def __init__(self, desc: str, total_s: float, disable: bool = False):
+        self.desc, self.total, self.disable = desc, float(total_s), disable
+        self.status = CompileStatus(desc, disable)
+        self.bar = None
+
+    def _ensure_bar(self):
+        if self.bar is None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=self.desc, unit="sim s", disable=self.disable, dynamic_ncols=True,
+                            bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total:.1f} sim s "
+                                       "[{elapsed}<{remaining}]")
+        return self.bar
+
+    def __call__(self, done_s: float, total_s: float) -> None:
+        bar = self._ensure_bar()
+        total = float(total_s)
+        if abs(total - bar.total) > 1e-9:
+            bar.total = total
+        bar.n = min(max(float(done_s), 0.0), bar.total)
+        bar.refresh()
+        if bar.n >= bar.total:  # closed now, so its elapsed time is the simulation's, not what follows
+            bar.close()
+
+    def close(self) -> None:
+        self.status.close()
+        if self.bar is not None:
+            self.bar.close()
+
+
 @contextlib.contextmanager
 def sim_progress(desc: str, total_s: float, disable: bool = False):
-    """A tqdm bar over simulated seconds with an ETA, fed by the batch runner's ``progress(done_s, total_s)``
-    callback between chunks of simulated time; yields the callback. The wait before the first update is the
-    compile (shown as elapsed time)."""
-    from tqdm import tqdm
+    """A :class:`SimProgress` for one batched run (listening to the runners' compiles); yields it (the
+    ``progress`` callback of the runner; ``.status`` holds the compile and simulate seconds)."""
+    from hyqjax.sim.runner import compile_listener
 
-    bar = tqdm(total=round(total_s, 3), desc=f"{desc} (compiling, then simulating)", unit="sim s",
-               bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} sim s [{elapsed}<{remaining}]",
-               disable=disable, dynamic_ncols=True)
-    stop = threading.Event()
-
-    def tick():
-        while not stop.wait(0.5):
-            bar.refresh()
-
-    th = threading.Thread(target=tick, daemon=True)
-    th.start()
-
-    def progress(done_s, total):
-        if bar.n == 0:
-            bar.set_description_str(desc)
-        bar.update(round(float(done_s) - bar.n, 3))
-
+    prog = SimProgress(desc, total_s, disable)
     try:
-        yield progress
+        with compile_listener(prog.status):
+            yield prog
     finally:
-        stop.set()
-        th.join()
-        bar.close()
+        prog.close()
 
 
 def add_impl_argument(p) -> None:

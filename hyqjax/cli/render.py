@@ -9,6 +9,10 @@ being active, and a strip under the frame plots the reflex activation and the fo
 the run with a cursor at the current time. One frame per recorded sample (the recording's
 decimation), optionally every --stride-th; playback at --speed times real time. --stills N also
 writes N PNG stills next to the video (``hyqjax report`` embeds them). See docs/rendering.md.
+
+Examples:
+  hyqjax render out/stepdown --where height=0.24 reflex=on   # the first recorded run at 24 cm with the reflex
+  hyqjax render out/stepdown --worst --format gif --stills 4  # the first failed run, as a GIF with 4 stills
 """
 from __future__ import annotations
 
@@ -27,6 +31,9 @@ GIF_MAX_FPS = 25.0
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("source", help="experiment output directory with traces.npz, or a traces .npz file")
     sel = p.add_mutually_exclusive_group()
     sel.add_argument("--instance", type=int, default=None, metavar="K",
@@ -194,7 +201,9 @@ def run(args) -> int:
     except ValueError as err:
         raise UsageError(str(err)) from None
     wall = time.time() - t0
-    print(f"wrote {res['video']}: {res['frames']} frames at {res['fps']:.1f} fps ({wall:.1f} s)")
+    video_s = res["frames"] / res["fps"] if res["fps"] else 0.0
+    print(f"wrote {res['video']}: {res['frames']} frames at {res['fps']:.1f} fps, a {video_s:.1f} s video of "
+          f"{video_s * args.speed:.1f} s of simulated time; rendering took {wall:.1f} s (wall time)")
     for p in res["stills"]:
         print(f"wrote {p}")
     return 0

@@ -9,6 +9,10 @@ the stills and videos that ``hyqjax render --stills N`` wrote to DIR/render/. Im
 so the page is a single file. Run ``hyqjax render DIR --stills 4`` first to include frames.
 Every sweep store is verified (``hyqjax verify``): a damaged one is marked on the page and named on
 stderr, and the command exits with status 1.
+
+Examples:
+  hyqjax report out/stepdown                   # out/stepdown/report.html
+  hyqjax report out --out out/all.html         # every experiment under out/ on one page
 """
 from __future__ import annotations
 
@@ -21,6 +25,9 @@ ORDER = 70
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("dir", help="experiment output directory (with results.json) or a directory of them")
     p.add_argument("--out", default=None, help="output HTML file (default: DIR/report.html)")
     p.add_argument("--title", default=None, help="page title (default: 'hyqjax results: DIR')")
@@ -71,6 +78,7 @@ def run(args) -> int:
     checks = verify.check_dirs(report.find_result_dirs(args.dir))  # every sweep store verified, damage named
     path, dirs = report.build_report(args.dir, args.out, args.title, args.max_embed_mb,
                                      checks={d: (c.ok, c.lines()) for d, c in checks.items()})
-    print(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB) from {len(dirs)} results.json: "
-          + ", ".join(os.path.relpath(d, args.dir) for d in dirs))
+    files = [os.path.normpath(os.path.join(d, name)) for d in dirs for name in (report.RESULTS_FILE, report.SWEEP_FILE)
+             if os.path.isfile(os.path.join(d, name))]
+    print(f"wrote {path} ({os.path.getsize(path) / 1e6:.1f} MB) from {len(files)} result file(s): " + ", ".join(files))
     return verify.tell(checks, "hyqjax report")

@@ -1,13 +1,30 @@
 """Step-down comparison (Focchi et al. 2017, Section IV): HyQ crawls off a platform with the height reflex
 on and off, batched over instances with per-instance height, friction, payload, start position and seed.
-Prints the paper's table and writes DIR/results.json (one row per instance plus a summary per height and
-reflex setting) and the figures success.png, fig9_reflex.png, fig10_end_stop.png, fig11_pitch.png, and the
-traces of the --record-instances every --record-every ticks to DIR/traces.npz (format: hyqjax/io/recording.py;
-`hyqjax render DIR` makes a video of one)."""
+
+Outcome of a run, two levels:
+  completed  the paper's criterion: all four feet on the lower ground past the edge, forward progress, no lost
+             foothold, no joint past its range, no trunk strike, no tilt, no reflex failure, finite
+  clean      completed and no shin contact above the strike force (100 N)
+A run that is not clean has its failure reasons (feet_not_down, no_progress, lost_foothold, joint_past_range,
+tilt, trunk_strike, shin_strike, diverged, reflex_failure, contact_overflow); the table prints, per height and
+reflex setting, both levels with Wilson 95% intervals and the runs per failure reason.
+
+Writes DIR/results.json (one row per instance plus a summary per height and reflex setting), the figures
+success.png, fig9_reflex.png, fig10_end_stop.png, fig11_pitch.png, and the traces of the --record-instances
+every --record-every ticks to DIR/traces.npz (format: hyqjax/io/recording.py; `hyqjax render DIR` makes a video
+of one). A --duration too short for any run to get all four feet down (from the crawl's gait timing) is refused;
+one shorter than a typical run needs gets a warning.
+
+Examples:
+  hyqjax stepdown --instances 3 --out out/stepdown        # the paper's table at CPU size
+  hyqjax stepdown --heights 0.24 --reflex on --remedy      # one height, the shin-strike remedy
+  hyqjax render out/stepdown --where height=0.24 reflex=on # a video of one recorded run
+"""
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 NAME = "stepdown"
@@ -16,6 +33,9 @@ ORDER = 10
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import add_impl_argument, use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("--heights", type=float, nargs="+", default=[0.16, 0.21, 0.24], help="platform heights (m)")
     p.add_argument("--reflex", nargs="+", choices=["on", "off"], default=["off", "on"], help="reflex settings")
     p.add_argument("--instances", type=int, default=1, help="randomised instances per height and reflex setting")
@@ -24,7 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
     p.add_argument("--remedy", action="store_true",
                    help="the shin-strike remedy with the trunk following 80%% of the feet plane's tilt "
-                        "(CrawlParams shin_remedy=True, terrain_adaptation=0.8; docs/stepdown.md); default: the "
+                        "(CrawlParams shin_remedy=True, terrain_adaptation=0.8; docs/stepdown.md); without it: the "
                         "paper's crawl")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
@@ -33,8 +53,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
                         "results.json); the file format is in hyqjax/io/recording.py")
     p.add_argument("--out", default="out/stepdown", help="output directory")
-    from hyqjax.cli.common import add_impl_argument
-
     add_impl_argument(p)
 
 
@@ -58,13 +76,27 @@ def validate(args) -> None:
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
     check_impl(args.impl)
     args.recorded = _recorded_instances(args)
+    args.duration_warning = _check_duration(args)
     prepare_out(args.out)
     args.options_checked = True
 
 
+#: The start distance range of the randomised instances (m), as ``stepdown.make_scenarios`` draws it.
+START_DISTANCE = (0.0, 0.04)
+
+
+def _check_duration(args) -> str | None:
+    """Refuse a --duration no run can complete with; a warning line when it is shorter than a typical run needs
+    (:mod:`hyqjax.studies.stepdown_duration`, from the crawl's gait timing)."""
+    from hyqjax.studies import stepdown_duration as sdd
+
+    timing = sdd.CrawlTiming.from_params(forward_velocity=float(args.speed))
+    return sdd.check_duration(args.duration, args.heights, timing, START_DISTANCE)
+
+
 def run(args) -> int:
     from hyqjax.crawl import controller as crawl
-    from hyqjax.cli.common import user_options
+    from hyqjax.cli.common import sim_progress, user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
     from hyqjax.studies import stepdown
@@ -72,6 +104,8 @@ def run(args) -> int:
 
     if not getattr(args, "options_checked", False):
         validate(args)
+    if getattr(args, "duration_warning", None):
+        print(f"hyqjax stepdown: {args.duration_warning}", file=sys.stderr, flush=True)
     recorded = args.recorded
     crawl_options = dict(shin_remedy=True, terrain_adaptation=0.8) if args.remedy else {}
     params = crawl.CrawlParams.make(forward_velocity=args.speed, **crawl_options)
@@ -80,32 +114,42 @@ def run(args) -> int:
     record_every = 0 if args.no_figures else args.record_every
     cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every, impl=args.impl)
     n = scenario.batch_size
+    n_ticks = cfg.sim_config().n_ticks
     impl = stepdown.setup(cfg).impl
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks, MJX impl {impl}; "
-          f"compiling and running...", flush=True)
+          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, MJX impl {impl}", flush=True)
     t0 = time.time()
-    from hyqjax.cli.common import sim_progress
-
     with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
         out, trace = stepdown.run_batch(scenario, cfg, progress=progress)
     wall = time.time() - t0
+    status = progress.status
     rows = stepdown.summarize(table, out)
     print(stepdown.format_table(rows))
-    print(f"wall time {wall:.1f} s (compile included), {n * cfg.sim_config().n_ticks / wall:,.0f} env-steps/s")
+    print(f"{status.throughput_text(n, n_ticks)}; wall {wall:.1f} s in all")
     os.makedirs(args.out, exist_ok=True)
     figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
     config = user_options(args)
+    config.pop("duration_warning", None)
+    timing = dict(wall_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
+                  env_steps_per_s=n * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
+                  batches=status.timings)
     io.write_json(os.path.join(args.out, "results.json"), dict(
         provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
-        instances=instances, figures=figs, wall_time_s=wall))
+        instances=instances, figures=figs, wall_time_s=wall, timing=timing))
     traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    wrote = ["results.json (summary and one row per instance)"]
     if trace is not None and len(recorded):
         recording.save(traces_path, trace, table, recorded, record_every, cfg.control_dt)
+        wrote.append(f"{recording.TRACES_FILE} ({len(recorded)} recorded instances: `hyqjax render {args.out}` makes "
+                     f"a video, `hyqjax view {args.out}` replays one)")
     elif os.path.exists(traces_path):
         os.remove(traces_path)  # a previous run's traces would not match this results.json
-    print(f"wrote {args.out}/results.json and figures")
+    pngs = sorted(f for f in os.listdir(args.out) if f.endswith(".png")
+                  and os.path.getmtime(os.path.join(args.out, f)) >= t0)
+    if pngs:
+        wrote.append("figures " + ", ".join(pngs))
+    print(f"wrote to {args.out}/: " + "; ".join(wrote) + f"; `hyqjax report {args.out}` makes one HTML page")
     return 0
 
 

@@ -9,6 +9,17 @@ docs/cluster.md). Every finished chunk is stored in DIR/chunks/NNNNN.parquet and
 SHA-256 in DIR/manifest.json, so running the same command again resumes where it stopped; one writer
 at a time holds DIR/.lock (--wait queues behind it). Writes DIR/instances.csv, DIR/summary.json,
 success_maps.png and success_height.png; DIR/chunks opens as one table in pandas, polars or DuckDB.
+The summary gives both outcome levels of every instance (completed: the paper's criterion; clean: completed
+and no shin strike; `hyqjax stepdown --help`) and the failure reasons of the runs that are not clean. A
+duration too short for any run to get all four feet down is refused, one shorter than a typical run needs
+gets a warning (hyqjax/studies/stepdown_duration.py).
+
+Examples:
+
+    hyqjax sweep --dry-run                                  # the default sweep's size, nothing run
+    hyqjax sweep --out out/sweep                            # the default sweep (12 instances)
+    hyqjax sweep --grid height=0.16,0.24 --grid reflex=true,false --random friction=0.4,1.0 --samples 8
+    hyqjax sweep spec.toml --out out/big --max-chunks 2     # two chunks now, resume later
 
 Example spec (TOML):
 
@@ -30,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 NAME = "sweep"
@@ -44,15 +56,19 @@ DEFAULT_SPEC = dict(
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import add_impl_argument, use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("spec", nargs="?", help="sweep spec file (.toml or .json); omit for the default or flags only")
     p.add_argument("--out", default="out/sweep", help="results directory (resumed if it holds the same sweep)")
     p.add_argument("--grid", action="append", default=[], metavar="AXIS=V1,V2,...", help="grid axis (repeatable)")
     p.add_argument("--random", action="append", default=[], metavar="AXIS=LO,HI",
                    help="random axis, uniform in [LO, HI] (or a list of options for a choice axis)")
     p.add_argument("--fixed", action="append", default=[], metavar="AXIS=V", help="fixed axis value")
-    p.add_argument("--samples", type=int, help="random draws per grid point")
-    p.add_argument("--seed", type=int, help="sweep seed")
-    p.add_argument("--duration", type=float, help="simulated seconds per instance")
+    p.add_argument("--samples", type=int, help="random draws per grid point (default: the spec's; 2 in the built-in "
+                                                  "default sweep, else 1)")
+    p.add_argument("--seed", type=int, help="sweep seed (default: the spec's, else 0)")
+    p.add_argument("--duration", type=float, help="simulated seconds per instance (default: the spec's, else 18)")
     p.add_argument("--chunk-size", type=int, help="instances per chunk (default: 32 per CPU device, 4096 per GPU)")
     p.add_argument("--max-chunks", type=int, help="stop after this many new chunks (resume later), >= 0")
     p.add_argument("--wait", action="store_true", help="if another process is writing DIR, wait for it instead of "
@@ -67,8 +83,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dry-run", action="store_true", help="validate and print the sweep's size, run nothing")
     p.add_argument("--list-axes", action="store_true", help="print the axes with ranges and defaults, then exit")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    from hyqjax.cli.common import add_impl_argument
-
     add_impl_argument(p)
 
 
@@ -143,6 +157,7 @@ def validate(args) -> None:
     elif args.gpus_per_task is not None:
         check_range("--gpus-per-task", args.gpus_per_task, 0, 8)
     args.spec_obj = sweep.SweepSpec.from_dict(build_spec_dict(args))
+    args.duration_warning = check_spec_duration(args.spec_obj)
     check_out_free(args.out)
     if args.dry_run:
         return
@@ -160,6 +175,45 @@ def validate(args) -> None:
             raise ValueError("--executor ray needs Ray: pip install 'hyqjax[cluster]'") from None
     prepare_out(args.out)
     args.options_checked = True
+
+
+def _done_chunks(out: str, spec) -> set:
+    """Chunks already stored in ``out`` for ``spec`` (read-only; none for a new, foreign or damaged store)."""
+    from hyqjax.studies import sweep
+
+    if not os.path.exists(os.path.join(out, "manifest.json")):
+        return set()
+    try:
+        return set(sweep.SweepStore(out, spec).done())
+    except Exception:  # the run itself refuses or repairs such a store, with its reason
+        return set()
+
+
+def check_spec_duration(spec) -> str | None:
+    """Refuse a sweep whose duration no instance can complete with; a warning line when it is shorter than a
+    typical run of its slowest instances needs (:mod:`hyqjax.studies.stepdown_duration`, over the speed,
+    foot sequence, start distance and height values the spec can take)."""
+    from hyqjax.crawl.params import FOOT_SEQUENCES
+    from hyqjax.studies import stepdown_duration as sdd
+
+    speeds = [float(v) for v in spec.axis_values("speed")]
+    seqs = [FOOT_SEQUENCES[str(v)] for v in spec.axis_values("foot_sequence")]
+    starts = [float(v) for v in spec.axis_values("start_distance")]
+    heights = [float(v) for v in spec.axis_values("height")]
+    fast = [sdd.CrawlTiming.from_params(forward_velocity=max(speeds), foot_sequence=q) for q in seqs]
+    if max(speeds) > 0:
+        shortest = min(sdd.shortest_duration(t, min(starts)) for t in fast)
+        if spec.duration < shortest:
+            raise ValueError(f"duration must be at least {shortest:.1f} s for any step-down of this sweep to be "
+                             f"possible (the crawl's gait timing at {max(speeds):g} m/s), got {spec.duration:g} "
+                             f"(--duration or the spec's duration)")
+    slow = [v for v in speeds if v > 0]
+    if len(slow) < len(speeds):
+        return "warning: speed values <= 0 make no forward steps: those instances fail with feet_not_down"
+    notes = [sdd.check_duration(spec.duration, heights, sdd.CrawlTiming.from_params(forward_velocity=min(slow),
+                                                                                   foot_sequence=q),
+                                (min(starts), max(starts)), option="duration") for q in seqs]
+    return next((n for n in notes if n), None)
 
 
 def run(args) -> int:
@@ -180,6 +234,8 @@ def run(args) -> int:
     if args.dry_run:
         print(size)
         return 0
+    if getattr(args, "duration_warning", None):
+        print(f"hyqjax sweep: {args.duration_warning}", file=sys.stderr, flush=True)
     if args.executor == "ray":
         from hyqjax.studies.sweep import cluster
 
@@ -193,16 +249,26 @@ def run(args) -> int:
         devs = jax.local_devices()
         where = f"{len(devs)} x {devs[0].platform} device(s), MJX impl {executor.impl}"
     print(f"{size}, {where}", flush=True)
+    from hyqjax.cli.common import compile_status
+
+    before = _done_chunks(args.out, spec)
     t0 = time.time()
-    store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
-                            wait=args.wait, executor=executor)
+    with compile_status("sweep", disable=args.no_progress) as status:
+        store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
+                                wait=args.wait, executor=executor)
     wall = time.time() - t0
     summary = sweep.write_outputs(store)
     summary["provenance"] = io.provenance(seed=spec.seed)
     summary["wall_time_s_this_run"] = wall
+    if status.timings:  # chunks simulated in this process (the local executor)
+        summary["timing_this_run"] = dict(compile_s=status.compile_s, simulate_s=status.simulate_s,
+                                          batches=status.timings)
     summary["executor"] = args.executor
     io.write_json(os.path.join(args.out, "summary.json"), summary)
     print(sweep.format_summary(summary))
+    if status.timings:  # instances of the chunks finished now (the chunks' padding rows not counted)
+        n_run = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done() - before)
+        print(f"this run: {status.throughput_text(n_run, int(round(spec.duration / spec.control_dt)))}")
     left = store.n_chunks - len(store.done())
     print(f"wrote {args.out}/summary.json, instances.csv" + (", figures" if summary.get("figures") else "")
           + (f"; {left} chunk(s) left: run the same command again to resume" if left else ""))

@@ -5,6 +5,9 @@ recorded trajectory is replayed kinematically at --speed times real time, loopin
 is closed, with the platform at the instance's height and the foot ground reaction forces drawn as
 red bars. Without a display (neither DISPLAY nor WAYLAND_DISPLAY set on Linux) the command stops
 with a message and exit status 3: use ``hyqjax render`` to write a video instead.
+
+Example:
+  hyqjax view out/stepdown --where height=0.24 reflex=on
 """
 from __future__ import annotations
 
@@ -21,6 +24,9 @@ NO_DISPLAY_EXIT = 3
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    from hyqjax.cli.common import use_help_formatter
+
+    use_help_formatter(p)
     p.add_argument("source", help="experiment output directory with traces.npz, or a traces .npz file")
     sel = p.add_mutually_exclusive_group()
     sel.add_argument("--instance", type=int, default=None, metavar="K", help="row K of results.json's instances")

@@ -34,7 +34,8 @@ SWEEP_FILE = "summary.json"
 RENDER_DIR = "render"
 #: Captions of the figures hyqjax writes (others are shown with their file name).
 CAPTIONS = {
-    "success.png": "Step-down success rate per platform height, reflex off / on, with 95% Wilson intervals.",
+    "success.png": ("Step-down clean success rate (completed and no shin strike) per platform height, reflex off / "
+                    "on, with 95% Wilson intervals."),
     "fig9_reflex.png": "Height reflex stepping down (cf. Fig. 9): activation, damping vs. swing mobility, feet.",
     "fig10_end_stop.png": "Joint trajectories at the end stop (cf. Fig. 10).",
     "fig11_pitch.png": "Trunk pitch while stepping down, per height and reflex setting (cf. Fig. 11).",
@@ -144,6 +145,13 @@ def _reasons(row: dict) -> str:
     return ", ".join(failure_labels(row)) or str(row.get("failure_reason", ""))
 
 
+def _reason_counts(reasons) -> str:
+    """``feet_not_down 2, shin_strike 1`` of a ``{reason: runs}`` mapping (``-`` for none, ``n/a`` if absent)."""
+    if reasons is None:
+        return "n/a"
+    return ", ".join(f"{k} {v}" for k, v in reasons.items()) or "-"
+
+
 def stepdown_html(res: dict) -> str:
     """The step-down table (one row per height and reflex setting: completed and clean runs with Wilson 95%
     intervals) and the list of failed instances."""
@@ -161,19 +169,24 @@ def stepdown_html(res: dict) -> str:
                      fmt(r.get("lost_foothold_share"), "{:.0%}"), fmt(r.get("joint_past_range"), "{:.0%}"),
                      fmt(r.get("shin_strike"), "{:.0%}"),
                      fmt(r.get("min_swing_mobility")), fmt(r.get("mean_mobility")), fmt(r.get("peak_pitch")),
-                     fmt(r.get("time_all_down"), "{:.1f}"), fmt(r.get("diverged"))])
+                     fmt(r.get("time_all_down"), "{:.1f}"), fmt(r.get("diverged")),
+                     esc(_reason_counts(r.get("failure_reasons")))])
     out = "<h3>Step-down results</h3>"
     out += table(["height [m]", "reflex", "completed", "95% CI", "clean", "95% CI", "runs losing a foothold",
                   "runs with a joint past its range", "runs with a shin strike",
-                  "min m_sw", "mean m", "peak pitch [rad]", "t all down [s]", "diverged"], rows)
+                  "min m_sw", "mean m", "peak pitch [rad]", "t all down [s]", "diverged",
+                  "failure reasons (runs)"], rows)
     out += ("<p>completed: all four feet on the lower ground, forward progress, no lost foothold, no joint past its "
-            "range, no trunk strike, |roll| and |pitch| bounded, finite; clean: completed and no shin or trunk "
-            "contact above 100 N. m_sw: velocity transformation ratio of the swing leg while it moves down "
-            "(Eq. 12); mean m: overall mobility per swing-down tick.</p>")
+            "range, no trunk strike, |roll| and |pitch| bounded, no reflex failure, finite; clean: completed and no "
+            "shin contact above 100 N. m_sw: velocity transformation ratio of the swing leg while it moves down "
+            "(Eq. 12); mean m: overall mobility per swing-down tick; failure reasons: runs per reason among the "
+            "runs that are not clean (a run can have several).</p>")
     inst = res.get("instances") or []
     failed = [(i, r) for i, r in enumerate(inst) if r.get("success") is False]
     if inst:
-        out += f"<p>{len(inst) - len(failed)} of {len(inst)} instances succeeded.</p>"
+        done = sum(1 for r in inst if r.get("completed") is True)
+        out += (f"<p>{len(inst) - len(failed)} of {len(inst)} instances clean"
+                + (f", {done} completed" if any("completed" in r for r in inst) else "") + ".</p>")
     if failed:
         shown = failed[:100]
         out += "<h3>Failed instances</h3>" + table(
@@ -193,17 +206,20 @@ def bounding_html(res: dict) -> str:
     for name, g in groups.items():
         a = g.get("aggregate") or {}
         rows.append([esc(name), fmt(g.get("kinematic_adjustment")), fmt(g.get("centrifugal")), fmt(a.get("n")),
-                     fmt(a.get("falls")), esc(", ".join(a.get("fail_reasons") or [])) or "-",
+                     fmt(a.get("falls")), esc(_reason_counts(a.get("failure_reasons"))
+                                              if a.get("failure_reasons") is not None
+                                              else ", ".join(a.get("fail_reasons") or []) or "-"),
                      f"{fmt(a.get('yaw_error_max_deg_mean'), '{:.2f}')} / "
                      f"{fmt(a.get('yaw_error_max_deg_worst'), '{:.2f}')}",
                      fmt(a.get("yaw_error_rms_deg_mean"), "{:.2f}"),
                      f"{fmt(a.get('speed_error_rms_mean'))} / {fmt(a.get('speed_error_rms_worst'))}",
                      fmt(a.get("yaw_rate_error_rms_mean")), fmt(a.get("periodicity_residual_mean"), "{:.2f}")])
     out = "<h3>Bounding results</h3>" + table(
-        ["configuration", "kinematic adj.", "centrifugal", "n", "falls", "fail reasons",
+        ["configuration", "kinematic adj.", "centrifugal", "n", "falls", "failure reasons (runs)",
          "yaw err max [deg] mean / worst", "yaw err rms [deg]", "speed err rms [m/s] mean / worst",
          "yaw-rate err rms [rad/s]", "periodicity"], rows, left=1)
-    out += "<p>Means and worst values over surviving instances; periodicity: median apex-to-apex residual (Eq. C2).</p>"
+    out += ("<p>Means and worst values over surviving instances; periodicity: median apex-to-apex residual (Eq. C2); "
+            "-: not measured (no gait cycle after the settling time of ramp + 1 s, or no surviving instance).</p>")
     contrib = res.get("contributions") or {}
     if contrib:
         crow = []

@@ -2,10 +2,25 @@
 setup, sharded over a 1-D device mesh (axis ``"batch"``), run in chunks of simulated time with a progress
 callback. The one jit + sharding runner of hyqjax: the step-down, the sweeps, bounding and the benchmarks
 all run batches through :func:`make_batch_runner` (also reachable as ``hyqjax.sim.rollout.make_batch_runner``).
+
+Compile phase. The runner compiles ahead of time (``jit(...).lower(...).compile()``), once per batch shape,
+so compiling and simulating are timed apart (:attr:`BatchRunner.last_timing`) and announced to the
+listeners of :func:`compile_listener` (the command line shows a "compiling" line with its elapsed time).
+
+Batch buckets. On CPU devices a batch of ``n`` instances runs as passes of a few fixed sizes
+(:func:`batch_plan`): ``n <= CPU_PASS`` rounds up to a power of two, a larger ``n`` runs as
+``ceil(n / CPU_PASS)`` passes of ``CPU_PASS`` instances. The padding repeats the last instance; padded rows are
+dropped from the result, so they are never seen or counted. One compiled program then serves every batch of
+5 to any number of instances, and changing the instance count does not compile again. Every instance is
+independent under ``vmap``, so its result does not depend on the bucket (a test checks it row for row). On
+accelerators (and under MuJoCo Warp, whose contact buffers are sized for the whole batch) a batch runs at its
+own size in one pass.
 """
 from __future__ import annotations
 
-from typing import Any, Callable
+import contextlib
+import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -13,6 +28,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco import mjx
 
+from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.sim.rollout import (Controller, Metrics, Push, RolloutResult, SimConfig, no_metrics, rollout_advance,
                                 rollout_init, rollout_result)
@@ -20,25 +36,111 @@ from hyqjax.sim.rollout import (Controller, Metrics, Push, RolloutResult, SimCon
 
 Progress = Callable[[float, float], None]
 
+#: Instances per pass on one CPU device (the batch buckets, :func:`batch_plan`). On 2 CPU cores MJX's closed
+#: loop saturates at about 10k env-steps/s from batch 16 on (benchmarks/RESULTS.md, bench_physics); 8 trades a
+#: little of that for less padding of small batches (at most 7 padded rows, a third of the default step-down's 6).
+CPU_PASS = 8
+
+#: Label of the compile phase, as the command line shows it.
+COMPILE_LABEL = "compiling (first run of this shape; cached afterwards)"
+
+
+class BatchPlan(NamedTuple):
+    """How a batch of ``n`` instances runs: ``passes`` passes of ``size`` instances (the compiled batch shape);
+    the ``passes * size - n`` padded rows repeat the last instance and are dropped from the result."""
+
+    n: int
+    size: int
+    passes: int
+
+    @property
+    def padded(self) -> int:
+        return self.passes * self.size - self.n
+
+
+def batch_plan(n: int, platform: str = "cpu", n_devices: int = 1, pass_size: int | None = None) -> BatchPlan:
+    """The bucket of a batch of ``n`` instances on ``n_devices`` devices of ``platform``.
+
+    CPU: with ``P = pass_size`` (default ``CPU_PASS * n_devices``), ``n <= P`` runs once at the smallest power of
+    two ``>= n`` (a multiple of ``n_devices``), a larger ``n`` as ``ceil(n / P)`` passes of ``P``. Other platforms:
+    one pass of ``n`` rounded up to a multiple of ``n_devices``.
+    """
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ValueError(f"a batch needs at least one instance, got {n}")
+    n, nd = int(n), max(int(n_devices), 1)
+    if platform != "cpu":
+        return BatchPlan(n, pad_batch(n, nd), 1)
+    big = pad_batch(pass_size or CPU_PASS * nd, nd)
+    if n > big:
+        return BatchPlan(n, big, -(-n // big))
+    size = 1 << max(n - 1, 0).bit_length()
+    return BatchPlan(n, min(pad_batch(size, nd), big), 1)
+
+
+_LISTENERS: list = []
+
+
+@contextlib.contextmanager
+def compile_listener(listener: Callable[[str, dict], None]):
+    """While the context is open, every :class:`BatchRunner` that compiles calls ``listener(event, info)``:
+    ``("start", {"batch": size})`` before its first compile of a call and ``("end", {"batch": size, "seconds": s})``
+    once its programs are compiled (a program loaded from the persistent compilation cache counts too), and
+    ``("done", last_timing)`` after every run (:attr:`BatchRunner.last_timing`)."""
+    _LISTENERS.append(listener)
+    try:
+        yield listener
+    finally:
+        _LISTENERS.remove(listener)
+
+
+def _notify(event: str, **info) -> None:
+    for fn in list(_LISTENERS):
+        fn(event, info)
+
+
+def _rows(tree, axes, idx: np.ndarray):
+    """Rows ``idx`` (host NumPy) of the leaves of ``tree`` whose ``vmap`` axis (``axes``: 0, None, or a pytree
+    of them) is 0; other leaves unchanged."""
+    if axes is None:
+        return tree
+    if isinstance(axes, int):
+        return jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], tree)
+    return jax.tree_util.tree_map(lambda ax, x: x if ax is None else np.asarray(x)[idx], axes, tree,
+                                  is_leaf=lambda x: x is None)
+
+
+def _signature(args) -> tuple:
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    return treedef, tuple(jax.typeof(x) for x in leaves)
+
 
 class BatchRunner:
     """``vmap`` of :func:`hyqjax.sim.rollout.rollout` over instances, jitted once and optionally sharded over a device mesh.
 
     Built by :func:`make_batch_runner`; call ``runner(mx_batched, d0, params, push)``. The static parts
     (ids, controller, config, metrics, record, parameter axes, mesh) are fixed at construction, so a runner
-    compiles once per batch shape and is reused across calls with new values. The scan runs in chunks of
+    compiles once per batch shape (ahead of time, announced to :func:`compile_listener`) and is reused across
+    calls with new values. With ``buckets`` (the default) a batch runs as the passes of :func:`batch_plan`, so
+    the batch shape is one of a few buckets whatever the instance count. The scan runs in chunks of
     ``chunk_seconds`` of simulated time (one compiled program: the chunk length divides the number of ticks),
-    calling ``progress(sim_seconds_done, sim_seconds_total)`` after each; every chunk continues the carry of
-    the last, so the result is bitwise identical to one scan over all ticks.
+    calling ``progress(sim_seconds_done, sim_seconds_total)`` after each (over several passes both count every
+    pass); every chunk continues the carry of the last, so the result is bitwise identical to one scan over all
+    ticks. :attr:`last_timing` holds the last call's ``compile_s`` (the compile phase: tracing, lowering, and
+    compiling the programs or loading them from the persistent cache), ``trace_s`` (its tracing and lowering
+    part, paid by every new process: the persistent cache holds compiled programs, not traces), ``simulate_s``
+    (running them), ``batch`` (the compiled batch size), ``passes`` and ``instances``.
     """
 
     def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg: SimConfig, metrics: Metrics = no_metrics(),
-                 record=None, params_axes: Any = 0, mesh: Mesh | None = None):
+                 record=None, params_axes: Any = 0, mesh: Mesh | None = None, buckets: bool = True):
         self.ids, self.controller, self.cfg, self.metrics = ids, controller, cfg, metrics
         self.record = record if cfg.record_every else None
-        self.params_axes, self.mesh = params_axes, mesh
+        self.params_axes, self.mesh, self.buckets = params_axes, mesh, buckets
         self._init = self._advance = None
+        self._executables: dict = {}
+        self._compile_t0: float | None = None
         self.n_compiles = 0  # programs traced (for retrace guards)
+        self.last_timing: dict = {}
 
     def chunk_ticks(self, chunk_seconds: float | None) -> int:
         """Ticks per chunk: the largest divisor of ``cfg.n_ticks`` that is at most ``chunk_seconds`` of simulated
@@ -51,6 +153,13 @@ class BatchRunner:
         want = max(int(chunk_seconds / self.cfg.control_dt), 1)
         fits = [k for k in range(rec, n + 1, rec) if n % k == 0 and k <= want]
         return max(fits) if fits else rec if n % rec == 0 else n
+
+    def plan(self, n: int, mx_batched: mjx.Model | None = None) -> BatchPlan:
+        """The :class:`BatchPlan` of a batch of ``n`` (one pass of ``n`` without buckets or under MuJoCo Warp)."""
+        devices = list(self.mesh.devices.flat) if self.mesh is not None else jax.devices()[:1]
+        if not self.buckets or (mx_batched is not None and backend.is_warp_model(mx_batched)):
+            return BatchPlan(int(n), int(n), 1)
+        return batch_plan(n, devices[0].platform, len(devices))
 
     def _build(self, mb: mjx.Model, d0: mjx.Data, params, push: Push):
         ids, ctrl, cfg, met, rec, pax = self.ids, self.controller, self.cfg, self.metrics, self.record, self.params_axes
@@ -73,6 +182,7 @@ class BatchRunner:
                              in_axes=(m_axes, 0, pax, 0))(mm, c, pp, pu)
             return rollout_result(c, tr)
 
+        self._m_axes = m_axes
         if self.mesh is None:
             self._init, self._advance, self._put = jax.jit(init), jax.jit(advance, static_argnums=4), None
             self._whole = jax.jit(whole)
@@ -90,9 +200,32 @@ class BatchRunner:
                                 out_shardings=shard)
         self._whole = jax.jit(whole, in_shardings=self._put, out_shardings=shard)
 
+    def _executable(self, name: str, fn, args: tuple, static: tuple = ()):
+        """The compiled ``fn`` for the shapes of ``args`` (compiled ahead of time on first use; opens the compile
+        phase, see :meth:`_end_compile_phase`)."""
+        key = (name, static, _signature(args))
+        exe = self._executables.get(key)
+        if exe is None:
+            if self._compile_t0 is None:
+                self._compile_t0 = time.perf_counter()
+                _notify("start", batch=int(args[1].qpos.shape[0]) if name == "init" else None)
+            t0 = time.perf_counter()
+            lowered = fn.lower(*args, *static)
+            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
+            exe = self._executables[key] = lowered.compile()
+        return exe
+
+    def _end_compile_phase(self, batch: int) -> None:
+        if self._compile_t0 is not None:
+            dt = time.perf_counter() - self._compile_t0
+            self._compile_t0 = None
+            self.last_timing["compile_s"] += dt
+            _notify("end", batch=batch, seconds=dt)
+
     def program(self, mx_batched: mjx.Model, d0: mjx.Data, params: Any, push: Push | None = None):
         """``(fn, args)``: the whole run (all ticks) as ONE jitted program and its placed arguments, for
-        ahead-of-time compilation and timing (``fn.lower(*args).compile()``); ``fn(*args)`` equals ``self(...)``."""
+        ahead-of-time compilation and timing (``fn.lower(*args).compile()``); ``fn(*args)`` equals ``self(...)``
+        (the batch at its own size: no buckets)."""
         if push is None:
             push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (d0.qpos.shape[0],) + x.shape), Push.none())
         if self._init is None:
@@ -105,23 +238,70 @@ class BatchRunner:
     def __call__(self, mx_batched: mjx.Model, d0: mjx.Data, params: Any, push: Push | None = None, *,
                  progress: Progress | None = None, chunk_seconds: float | None = None) -> RolloutResult:
         """Run the batch. ``progress`` without ``chunk_seconds`` reports every simulated second."""
+        n = int(d0.qpos.shape[0])
         if push is None:
-            push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (d0.qpos.shape[0],) + x.shape), Push.none())
+            push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n,) + x.shape), Push.none())
         if progress is not None and chunk_seconds is None:
             chunk_seconds = 1.0
         k = self.chunk_ticks(chunk_seconds)
+        if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((mx_batched, d0, params, push))):
+            return self._traced(mx_batched, d0, params, push, k)
+        plan = self.plan(n, mx_batched)
+        self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
+        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes,
+                                instances=n)
+        if plan.passes == 1 and plan.size == n:
+            out = self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
+            _notify("done", **self.last_timing)
+            return out
+        if self._init is None:
+            self._build(mx_batched, d0, params, push)
+        parts = []
+        for p in range(plan.passes):  # rows of this pass, the last instance repeated past the end
+            idx = np.minimum(np.arange(p * plan.size, (p + 1) * plan.size), n - 1)
+            res = self._run_pass(_rows(mx_batched, self._m_axes, idx), _rows(d0, 0, idx),
+                                 _rows(params, self.params_axes, idx), _rows(push, 0, idx), k, progress, p,
+                                 plan.passes)
+            parts.append(jax.tree_util.tree_map(np.asarray, res))
+        out = jax.device_put(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, 0)[:n], *parts))
+        _notify("done", **self.last_timing)
+        return out
+
+    def _traced(self, mx_batched, d0, params, push, k: int) -> RolloutResult:
+        """Under a JAX transformation (the inputs are tracers): the jitted programs inlined into the caller's
+        trace, at the batch's own size, without progress or timing."""
+        if self._init is None:
+            self._build(mx_batched, d0, params, push)
+        carry, traces = self._init(mx_batched, d0, params), []
+        for _ in range(0, self.cfg.n_ticks, k):
+            carry, tr = self._advance(mx_batched, carry, params, push, k)
+            traces.append(tr)
+        trace = None
+        if self.record is not None:
+            trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
+                lambda *xs: jnp.concatenate(xs, axis=1), *traces)
+        return rollout_result(carry, trace)
+
+    def _run_pass(self, mx_batched, d0, params, push, k: int, progress, pass_index: int, passes: int) -> RolloutResult:
         if self._init is None:
             self._build(mx_batched, d0, params, push)
         if self._put is not None:  # committed (single-device) inputs move onto the mesh
             mx_batched, d0, params, push = jax.device_put((mx_batched, d0, params, push), self._put)
-        carry = self._init(mx_batched, d0, params)
+        batch = int(d0.qpos.shape[0])
+        init = self._executable("init", self._init, (mx_batched, d0, params))
+        carry = init(mx_batched, d0, params)
+        advance = self._executable("advance", self._advance, (mx_batched, carry, params, push), (k,))
+        self._end_compile_phase(batch)
+        t0 = time.perf_counter()
         n, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
         for done in range(0, n, k):
-            carry, tr = self._advance(mx_batched, carry, params, push, k)
+            carry, tr = advance(mx_batched, carry, params, push)
             traces.append(tr)
             if progress is not None:  # dispatch is asynchronous: report a chunk once it has been computed
                 jax.block_until_ready(carry.tick)
-                progress((done + k) * dt, n * dt)
+                progress((pass_index * n + done + k) * dt, passes * n * dt)
+        jax.block_until_ready(carry.tick)
+        self.last_timing["simulate_s"] += time.perf_counter() - t0
         trace = None
         if self.record is not None:
             trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
@@ -130,7 +310,7 @@ class BatchRunner:
 
 
 def make_batch_runner(ids: hmodel.ModelIds, controller: Controller, cfg: SimConfig, metrics: Metrics = no_metrics(),
-                      record=None, params_axes: Any = 0, mesh: Mesh | None = None) -> BatchRunner:
+                      record=None, params_axes: Any = 0, mesh: Mesh | None = None, buckets: bool = True) -> BatchRunner:
     """The one jit + sharding runner of hyqjax (see :class:`BatchRunner`). Keep it: each new runner compiles anew.
 
     Args:
@@ -138,8 +318,10 @@ def make_batch_runner(ids: hmodel.ModelIds, controller: Controller, cfg: SimConf
       params_axes: ``vmap`` axes of the controller parameters (0: per instance, None: shared).
       mesh: a 1-D ``jax.sharding.Mesh`` with axis ``"batch"`` (:func:`batch_mesh`); the batch must be
         divisible by its size (:func:`pad_batch`). ``None`` runs on the default device.
+      buckets: run a batch as the passes of :func:`batch_plan` (CPU: a few fixed shapes, so a new instance count
+        does not compile again); False: at its own size.
     """
-    return BatchRunner(ids, controller, cfg, metrics, record, params_axes, mesh)
+    return BatchRunner(ids, controller, cfg, metrics, record, params_axes, mesh, buckets)
 
 
 def batch_rollout(mx_batched: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller,

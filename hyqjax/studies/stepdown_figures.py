@@ -127,7 +127,8 @@ def _draw_pitch(ax, traces, title=""):
 
 
 def success_bars(rows, path):
-    """Success rate with 95% intervals per height, reflex on vs off."""
+    """Clean success rate (``clean``: completed and no shin strike) with 95% intervals per height, reflex on vs
+    off."""
     fig, ax = plt.subplots(figsize=(6, 3.5))
     _draw_success(ax, rows)
     fig.tight_layout()
@@ -162,9 +163,9 @@ def _draw_success(ax, rows):
         ax.bar(xs, ys, w, yerr=[lo, hi], capsize=3, color=color, label=f"reflex {'on' if reflex else 'off'}")
     ax.set_xticks(range(len(heights)), [f"{h * 100:.0f} cm" for h in heights])
     ax.set_ylim(0, 1.05)
-    ax.set_ylabel("success rate")
+    ax.set_ylabel("clean success rate")
     ax.legend()
-    ax.set_title("Step-down success (95% Wilson intervals)")
+    ax.set_title("Step-down clean success: completed, no shin strike (95% Wilson)", fontsize=10)
 
 
 def all_figures(out_dir, table, out, rows, trace):

@@ -55,7 +55,9 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
     if sensed:
         ctrl = sensed_controller(ctrl, max_delay)
     mesh = sim.batch_mesh(list(devices)) if len(devices) > 1 else None
-    run = sim.make_batch_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh)
+    # buckets=False: a chunk is the sweep's own fixed batch shape (its chunk size, part of the store's layout).
+    run = sim.make_batch_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
+                                buckets=False)
     _RUNNERS[key] = (run, st.m, st.mx, st.ids)
     return _RUNNERS[key]
 
@@ -147,7 +149,7 @@ def run_sweep(spec: SweepSpec, out_dir: str, chunk_size: int | None = None, max_
                   + (", resuming" if store.done() else "") + f"; {len(todo)} to run now", flush=True)
         done_rows = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done())
         bar = tqdm(total=spec.n_instances, initial=done_rows, unit="inst", desc="sweep", disable=not progress,
-                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total} inst [{elapsed}<{remaining}{postfix}]",
+                   bar_format="{desc}: {percentage:3.0f}%|{bar}| {n:.1f}/{total} inst [{elapsed}<{remaining}{postfix}]",
                    dynamic_ncols=True)
         try:
             jobs = [(c, *store.chunk_range(c)) for c in todo]
