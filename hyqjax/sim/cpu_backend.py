@@ -1,0 +1,364 @@
+"""The C MuJoCo backend (``impl="c"``): many ``MjData`` stepped in C on all CPU cores, the controller in JAX.
+
+MJX compiled for a CPU spends most of its time in XLA's generic code for the physics (minutes of compile, a
+few thousand env-steps per second for HyQ); C MuJoCo steps HyQ in about 20 us per instance and step with no
+compile. This backend runs the closed loop as ONE jitted ``lax.scan`` over control ticks, in which
+
+1. the controller (``jax.vmap`` over instances of ``controller.step``) computes the joint torques of the whole
+   batch from the :class:`hyqjax.core.types.Observation` of every instance (:func:`hyqjax.sim.observe.observation`,
+   the same definition as under MJX);
+2. a host callback (``jax.experimental.io_callback``, ordered) hands the torques to :class:`CPhysics`, which
+   holds one ``mujoco.MjData`` per instance in float64 and steps them with ``mujoco.mj_step`` on a thread pool
+   (MuJoCo releases the GIL while it steps), and returns the data the metrics read as a
+   :class:`hyqjax.sim.observe.DataView` (float32 unless ``jax_enable_x64``);
+3. divergence, metrics and traces follow the rules of :func:`hyqjax.sim.rollout.rollout_advance`: an instance
+   whose state is non-finite or faster than ``SimConfig.max_speed`` is frozen at its last finite tick (its
+   ``MjData`` is no longer stepped), its controller state and metrics stop, and ``diverged_tick`` records when.
+
+The controller and metrics are compiled once per batch shape and chunk length (seconds, not the minutes of an
+MJX compile); the physics is never compiled. Per-instance terrain, friction and payload live in one
+``mujoco.MjModel`` per instance (:func:`batch_models`), written by the same function that writes them into a
+batched ``mjx.Model`` (:func:`hyqjax.sim.model.instance_model`), evaluated in float64. The midphase (bounding
+volume hierarchy of the static terrain, computed when the model is compiled) is switched off so that a
+platform moved per instance collides where it is; the broad and narrow phases are unchanged. MuJoCo's
+automatic reset of an unstable instance is switched off as well: its non-finite state is counted as a
+divergence instead of restarting the run silently. Warnings MuJoCo prints for such an instance go to the
+``hyqjax.sim.cpu_backend`` logger (debug level) while a batch runs, not to ``MUJOCO_LOG.TXT``.
+
+Forward only: a derivative through this backend is a ``ValueError`` naming ``impl`` (gradients need
+``impl="jax"``), and there is no one-instance rollout outside a batch.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import copy
+import logging
+import os
+import types
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from jax.experimental import io_callback
+
+from hyqjax.core import robot
+from hyqjax.core.types import Controller, Metrics, Push
+from hyqjax.sim import model as hmodel
+from hyqjax.sim import observe as hobs
+
+log = logging.getLogger(__name__)
+
+_MODEL_FIELDS = ("geom_pos", "geom_friction", "body_mass", "body_ipos", "body_inertia")
+
+
+def default_threads() -> int:
+    """Threads that step the batch: the CPU cores this process may run on."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def prepare_model(m: mujoco.MjModel) -> mujoco.MjModel:
+    """A copy of ``m`` for per-instance edits: midphase and automatic reset off (module docstring)."""
+    mc = copy.copy(m)
+    mc.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_MIDPHASE) | int(mujoco.mjtDisableBit.mjDSBL_AUTORESET)
+    return mc
+
+
+def batch_models(m: mujoco.MjModel, ids: hmodel.ModelIds, terrain: hmodel.InstanceTerrain) -> list[mujoco.MjModel]:
+    """One ``MjModel`` per instance of ``terrain``: ``m`` with the fields :func:`hyqjax.sim.model.instance_model`
+    writes (platform and block heights, terrain friction, payload mass, centre and inertia), in float64."""
+    base = prepare_model(m)
+    with jax.enable_x64(True):
+        mx = types.SimpleNamespace(**{f: jnp.asarray(getattr(base, f), jnp.float64) for f in _MODEL_FIELDS})
+        t = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x), jnp.float64 if np.issubdtype(
+            np.asarray(x).dtype, np.floating) else None), terrain)
+        fields = jax.vmap(lambda ti: hmodel._instance_fields(mx, ids, ti))(t)
+        fields = {k: np.asarray(v, np.float64) for k, v in fields.items()}
+    models = []
+    for i in range(terrain.batch_size):
+        mi = copy.copy(base)
+        for f in _MODEL_FIELDS:
+            getattr(mi, f)[...] = fields[f][i]
+        models.append(mi)
+    return models
+
+
+class CPhysics:
+    """``len(models)`` instances of C MuJoCo in float64, one ``MjData`` each, stepped on ``threads`` threads.
+
+    ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
+    :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
+    ``frozen``, and returns the :class:`hyqjax.sim.observe.DataView` of the batch as NumPy arrays of ``dtype``.
+    """
+
+    def __init__(self, models: list[mujoco.MjModel], qpos0: np.ndarray, trunk_body: int, substeps: int = 1,
+                 push: Push | None = None, threads: int | None = None, dtype=np.float32):
+        self.models = list(models)
+        b = len(self.models)
+        m0 = self.models[0]
+        qpos0 = np.broadcast_to(np.asarray(qpos0, np.float64), (b, m0.nq))
+        self.datas = [mujoco.MjData(mi) for mi in self.models]
+        for d, q in zip(self.datas, qpos0):
+            d.qpos[:] = q
+        self.b, self.substeps, self.trunk = b, int(substeps), int(trunk_body)
+        self.dtype = np.dtype(dtype)
+        self.threads = max(1, min(threads or default_threads(), b))
+        self._pool = concurrent.futures.ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
+        bounds = np.linspace(0, b, self.threads + 1).round().astype(int)
+        self._slices = [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+        nv, ng, ns = m0.nv, m0.ngeom, m0.nsite
+        self._out = dict(time=np.zeros(b), qpos=qpos0.copy(), qvel=np.zeros((b, nv)),
+                         sensordata=np.zeros((b, m0.nsensordata)), site_xpos=np.zeros((b, ns, 3)),
+                         geom_xpos=np.zeros((b, ng, 3)), geom_xmat=np.zeros((b, ng, 9)), qfrc_gen=np.zeros((b, nv)),
+                         qfrc_bias=np.zeros((b, nv)))
+        self._views = [(d.qpos, d.qvel, d.sensordata, d.site_xpos, d.geom_xpos, d.geom_xmat, d.qfrc_bias, d.qacc,
+                        d.ctrl, d.xfrc_applied) for d in self.datas]
+        if push is None:
+            self._push = None
+        else:
+            f = np.asarray(push.force, np.float64).reshape(b, 3)
+            t0 = np.asarray(push.t_start, np.float64).reshape(b)
+            dur = np.asarray(push.duration, np.float64).reshape(b)
+            has = (dur > 0) & np.any(f != 0, -1)
+            self._push = (f, t0, dur) if np.any(has) else None
+            self._has_push = has
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def _run(self, lo: int, hi: int, tau: np.ndarray, frozen: np.ndarray) -> None:
+        out, views, push = self._out, self._views, self._push
+        o_time, o_qpos, o_qvel, o_sens = out["time"], out["qpos"], out["qvel"], out["sensordata"]
+        o_site, o_gpos, o_gmat, o_gen, o_bias = (out["site_xpos"], out["geom_xpos"], out["geom_xmat"], out["qfrc_gen"],
+                                                 out["qfrc_bias"])
+        step, mul_m = mujoco.mj_step, mujoco.mj_mulM
+        for i in range(lo, hi):
+            if frozen[i]:
+                continue
+            m, d = self.models[i], self.datas[i]
+            qpos, qvel, sens, site, gpos, gmat, bias, qacc, ctrl, xfrc = views[i]
+            ctrl[:] = tau[i]
+            if push is not None and self._has_push[i]:
+                f, t0, dur = push
+                on = t0[i] <= d.time < t0[i] + dur[i]
+                xfrc[self.trunk, :3] = f[i] if on else 0.0
+            for _ in range(self.substeps):
+                step(m, d)
+            o_time[i] = d.time
+            o_qpos[i] = qpos
+            o_qvel[i] = qvel
+            o_sens[i] = sens
+            o_site[i] = site
+            o_gpos[i] = gpos
+            o_gmat[i] = gmat
+            o_bias[i] = bias
+            mul_m(m, d, o_gen[i], qacc)
+
+    def step(self, tau, frozen) -> hobs.DataView:
+        tau = np.asarray(tau, np.float64)
+        frozen = np.asarray(frozen, bool)
+        if self._pool is None or len(self._slices) == 1:
+            self._run(0, self.b, tau, frozen)
+        else:
+            futs = [self._pool.submit(self._run, lo, hi, tau, frozen) for lo, hi in self._slices[1:]]
+            self._run(*self._slices[0], tau, frozen)
+            for f in futs:
+                f.result()
+        return self.view()
+
+    def view(self) -> hobs.DataView:
+        """The batch's current :class:`hyqjax.sim.observe.DataView` (NumPy, ``dtype``)."""
+        o, dt = self._out, self.dtype
+        b = self.b
+        return hobs.DataView(time=o["time"].astype(dt), qpos=o["qpos"].astype(dt), qvel=o["qvel"].astype(dt),
+                             sensordata=o["sensordata"].astype(dt), site_xpos=o["site_xpos"].astype(dt),
+                             geom_xpos=o["geom_xpos"].astype(dt),
+                             geom_xmat=o["geom_xmat"].reshape(b, -1, 3, 3).astype(dt),
+                             qfrc_gen=(o["qfrc_gen"] + o["qfrc_bias"]).astype(dt))
+
+    def view_shapes(self) -> hobs.DataView:
+        return jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), self.view())
+
+
+@contextlib.contextmanager
+def _warnings_to_log():
+    """MuJoCo's warnings (an unstable instance) go to this module's logger while a batch runs."""
+    prev = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(lambda msg: log.debug("MuJoCo: %s", msg))
+    try:
+        yield
+    finally:
+        mujoco.set_mju_user_warning(prev)
+
+
+class CInitialData:
+    """Initial state of a C MuJoCo batch: ``qpos`` ``(B, nq)`` in float64, zero velocity, time 0 (what
+    :func:`hyqjax.sim.rollout.initial_data` makes for MJX)."""
+
+    def __init__(self, qpos: np.ndarray):
+        self.qpos = np.asarray(qpos, np.float64)
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.qpos.shape[0])
+
+
+class CBatchRunner:
+    """The closed loop of a batch on C MuJoCo (module docstring); the counterpart of
+    :class:`hyqjax.sim.runner.BatchRunner` with the same call and result.
+
+    ``runner(models, d0, params, push, progress=..., chunk_seconds=...)`` with ``models`` from
+    :func:`batch_models` and ``d0`` a :class:`CInitialData`; returns a :class:`hyqjax.sim.rollout.RolloutResult`
+    whose ``data`` is the final :class:`hyqjax.sim.observe.DataView`. The controller and metrics are jitted once
+    per batch shape and chunk length and reused by later calls.
+    """
+
+    def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg, metrics: Metrics | None = None,
+                 record=None, params_axes: Any = 0, threads: int | None = None):
+        from hyqjax.sim import rollout as sim
+
+        self.ids, self.controller, self.cfg = ids, controller, cfg
+        self.metrics = metrics if metrics is not None else sim.no_metrics()
+        self.record = record if cfg.record_every else None
+        self.params_axes, self.threads = params_axes, threads
+        self.n_compiles = 0
+        self._phys: CPhysics | None = None
+        self._init = jax.jit(self._init_fn)
+        self._advance = jax.jit(self._advance_fn, static_argnums=2)
+
+    def chunk_ticks(self, chunk_seconds: float | None) -> int:
+        """Ticks per chunk (:meth:`hyqjax.sim.runner.BatchRunner.chunk_ticks`)."""
+        from hyqjax.sim import runner
+
+        return runner.BatchRunner.chunk_ticks(self, chunk_seconds)
+
+    # ------------------------------------------------------------------ the jitted programs
+    def _init_fn(self, view0: hobs.DataView, params):
+        from hyqjax.sim import rollout as sim
+
+        self.n_compiles += 1
+        b = view0.qpos.shape[0]
+        tau0 = jnp.zeros((b, robot.N_JOINTS), view0.qpos.dtype)
+        obs0 = jax.vmap(lambda v, t: hobs.observe_view(self.ids, v, t))(view0, tau0)
+        cs = jax.vmap(self.controller.init, in_axes=(self.params_axes, 0))(params, obs0)
+        ms = jax.vmap(self.metrics.init)(view0)
+        carry = sim.RolloutCarry(view0, cs, ms, tau0, jnp.zeros(b, bool), jnp.full(b, -1, jnp.int32),
+                                 jnp.zeros(b, jnp.int32))
+        return jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
+
+    def _physics_callback(self, tau, frozen):
+        return self._phys.step(tau, frozen)
+
+    def _advance_fn(self, carry, params, n_ticks: int):
+        from hyqjax.sim import rollout as sim
+
+        self.n_compiles += 1
+        ids, ctrl, cfg, met, rec = self.ids, self.controller, self.cfg, self.metrics, self.record
+        shapes = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), carry.data)
+
+        def control(v, cs, tau_prev, p):
+            obs = hobs.observe_view(ids, v, tau_prev)
+            cs_new, tau, info = ctrl.step(p, cs, obs)
+            return obs, cs_new, jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT), info
+
+        def settle(v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k):
+            # The divergence rule of hyqjax.sim.rollout.rollout_advance, per instance.
+            ok = sim._finite_tree((v_new.qpos, v_new.qvel, tau)) & (jnp.max(jnp.abs(v_new.qvel)) < cfg.max_speed)
+            newly = (~div) & (~ok)
+            div = div | ~ok
+            keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
+            v_new = keep(v_new, v)
+            cs_new = keep(cs_new, cs)
+            tau = jnp.where(div, tau_prev, tau)
+            ms_new = keep(met.update(ms, v_new, obs, info), ms)
+            div_tick = jnp.where(newly, k, div_tick)
+            out = rec(v_new, obs, info) if rec is not None else None
+            return v_new, cs_new, ms_new, tau, div, div_tick, out
+
+        def tick(c, _):
+            v, cs, ms, tau_prev, div, div_tick, k = c
+            obs, cs_new, tau, info = jax.vmap(control, in_axes=(0, 0, 0, self.params_axes))(v, cs, tau_prev, params)
+            v_new = io_callback(self._physics_callback, shapes, tau, div, ordered=True)
+            v_new, cs_new, ms_new, tau, div, div_tick, out = jax.vmap(settle)(
+                v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k)
+            return sim.RolloutCarry(v_new, cs_new, ms_new, tau, div, div_tick, k + 1), out
+
+        if rec is not None:
+            def block(c, _):
+                c, outs = jax.lax.scan(tick, c, None, length=cfg.record_every)
+                return c, jax.tree_util.tree_map(lambda x: x[-1], outs)
+
+            carry, trace = jax.lax.scan(block, carry, None, length=n_ticks // cfg.record_every)
+            return carry, jax.tree_util.tree_map(lambda x: jnp.swapaxes(x, 0, 1), trace)  # (B, samples, ...)
+        carry, _ = jax.lax.scan(lambda c, x: (tick(c, x)[0], None), carry, None, length=n_ticks)
+        return carry, None
+
+    # ------------------------------------------------------------------ running a batch
+    def __call__(self, models: list[mujoco.MjModel], d0: CInitialData, params: Any, push: Push | None = None, *,
+                 progress=None, chunk_seconds: float | None = None):
+        from hyqjax.sim import rollout as sim
+
+        if progress is not None and chunk_seconds is None:
+            chunk_seconds = 1.0
+        k = self.chunk_ticks(chunk_seconds)
+        dtype = np.dtype(jnp.result_type(float))
+        phys = CPhysics(models, d0.qpos, self.ids.trunk_body, self.cfg.substeps, push, self.threads, dtype)
+        self._phys = phys
+        n, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
+        try:
+            with _warnings_to_log():
+                view0 = jax.tree_util.tree_map(jnp.asarray, phys.view())
+                carry = self._init(view0, params)
+                for done in range(0, n, k):
+                    carry, tr = self._advance(carry, params, k)
+                    traces.append(tr)
+                    if progress is not None:
+                        jax.block_until_ready(carry.tick)
+                        progress((done + k) * dt, n * dt)
+                jax.block_until_ready(carry)
+        finally:
+            phys.close()
+            self._phys = None
+        trace = None
+        if self.record is not None:
+            trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
+                lambda *xs: jnp.concatenate(xs, axis=1), *traces)
+        return sim.rollout_result(carry, trace)
+
+
+class CBackend:
+    """C MuJoCo (``impl="c"``) behind the interface of :func:`hyqjax.sim.backend.get`
+    (:class:`hyqjax.sim.mjx_backend.MJXBackend` documents it). Its "model" is the ``mujoco.MjModel`` itself, its
+    batch a list of per-instance models, its initial data a :class:`CInitialData`, its runner a
+    :class:`CBatchRunner` (which ignores a device mesh: the physics runs on the host's cores)."""
+
+    name = "c"
+    supports_gradients = False
+    one_instance_error = "C MuJoCo steps whole batches outside JAX"
+
+    def __repr__(self) -> str:
+        return "CBackend()"
+
+    def put_model(self, m: mujoco.MjModel) -> mujoco.MjModel:
+        return m
+
+    def batch_model(self, model: mujoco.MjModel, ids: hmodel.ModelIds, terrain: hmodel.InstanceTerrain):
+        return batch_models(model, ids, terrain)
+
+    def initial_data(self, model, batched_model, qpos, m) -> CInitialData:
+        return CInitialData(np.asarray(qpos, np.float64))
+
+    def make_runner(self, ids, controller, cfg, metrics=None, record=None, params_axes: Any = 0, mesh=None):
+        return CBatchRunner(ids, controller, cfg, metrics, record, params_axes)
+
+    def forbid_derivatives(self, tree):
+        from hyqjax.sim import backend
+
+        return backend.forbid_derivatives(tree, self.name)
