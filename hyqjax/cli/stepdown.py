@@ -84,7 +84,7 @@ def run(args) -> int:
     n = scenario.batch_size
     impl = stepdown.setup(cfg).impl
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks, MJX impl {impl}; "
+          f"{args.instances}), {args.duration:g} s each, {cfg.sim_config().n_ticks} ticks, simulator {impl}; "
           f"compiling and running...", flush=True)
     t0 = time.time()
     from hyqjax.cli.common import sim_progress

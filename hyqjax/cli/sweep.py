@@ -191,7 +191,7 @@ def run(args) -> int:
 
         executor = sweep.LocalExecutor(impl=args.impl)
         devs = jax.local_devices()
-        where = f"{len(devs)} x {devs[0].platform} device(s), MJX impl {executor.impl}"
+        where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
     print(f"{size}, {where}", flush=True)
     t0 = time.time()
     store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
