@@ -12,7 +12,8 @@ implementation that the rest of hyqjax talks to (:func:`get`).
   step-down several times faster than MJX-JAX. Tasks that run on it list it in their supported implementations
   (the step-down and its sweeps; bounding runs on ``jax`` and ``warp``).
 * ``auto``: ``warp`` when a CUDA device and warp-lang are both available; else ``c`` on a machine without an
-  accelerator when the task supports it; else ``jax``. Gradients always ask for ``jax`` explicitly.
+  accelerator when the task supports it; else ``jax``. For a pure JAX function of one instance (gradients, a
+  jitted single rollout) ``auto`` is ``jax`` (``resolve_impl(..., differentiable=True)``).
 
 :func:`get` returns the backend object of a resolved ``impl``: ``put_model``, ``batch_model``, ``initial_data``,
 ``make_runner``, ``forbid_derivatives``, ``supports_gradients`` and ``one_instance_error`` (why a one-instance
@@ -21,7 +22,8 @@ names. Asking for a derivative through a forward-only backend raises a ``ValueEr
 (:func:`forbid_derivatives`), instead of silently falling back.
 
 This module imports no JAX or MuJoCo at import time (``import hyqjax`` stays light), and warp is imported
-only when ``warp`` is chosen. :func:`install_quiet_warp_import` removes the two lines MJX prints on stdout
+only when ``warp`` is chosen. :func:`install_lazy_mjx_import` defers MJX itself (and the MuJoCo Warp it
+imports) to its first use, so a run on the C MuJoCo backend never loads it. :func:`install_quiet_warp_import` removes the two lines MJX prints on stdout
 when warp-lang is absent ("Failed to import warp: No module named 'warp'", the same for mujoco_warp); any
 other output of that import, and every other warning, passes through.
 """
@@ -87,9 +89,13 @@ def accelerator_available() -> bool:
         return False
 
 
-def resolve_impl(impl: str, supported: tuple[str, ...] = MJX_IMPLS) -> str:
-    """The implementation that runs a request for ``impl`` by a task supporting ``supported`` (module docstring)."""
+def resolve_impl(impl: str, supported: tuple[str, ...] = MJX_IMPLS, differentiable: bool = False) -> str:
+    """The implementation that runs a request for ``impl`` by a task supporting ``supported`` (module docstring);
+    ``differentiable``: the run is a pure JAX function of one instance (derivatives, ``jax.jit`` of a single
+    rollout), for which ``auto`` means ``jax``."""
     validate_impl(impl, supported)
+    if impl == "auto" and differentiable:
+        return "jax"
     if impl == "auto":
         if "warp" in supported and warp_installed() and cuda_available():
             return "warp"
@@ -219,6 +225,35 @@ def install_quiet_warp_import() -> None:
     if "mujoco.mjx.warp" in sys.modules or any(isinstance(f, _QuietFinder) for f in sys.meta_path):
         return
     sys.meta_path.insert(0, _QuietFinder())
+
+
+class _LazyMJXFinder(importlib.abc.MetaPathFinder):
+    """Finds ``mujoco.mjx`` with the spec of the other finders, its loader wrapped in ``importlib.util.LazyLoader``."""
+
+    NAME = "mujoco.mjx"
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.NAME:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None:
+                if spec.loader is not None and hasattr(spec.loader, "exec_module"):
+                    spec.loader = importlib.util.LazyLoader(spec.loader)
+                return spec
+        return None
+
+
+def install_lazy_mjx_import() -> None:
+    """Make ``mujoco.mjx`` load on first use instead of at ``from mujoco import mjx``
+    (``importlib.util.LazyLoader``): importing MJX imports MuJoCo Warp and warp-lang when they are installed,
+    about 3 s of CPU, which a run on the C MuJoCo backend never needs. Modules that use MJX import it at their
+    top as before; it loads when one of its attributes is first read. Idempotent; a no-op once MJX is imported."""
+    if "mujoco.mjx" in sys.modules or any(isinstance(f, _LazyMJXFinder) for f in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _LazyMJXFinder())
 
 
 def is_warp_model(mx) -> bool:

@@ -6,9 +6,10 @@ forward; the experiment runs the same batch with the height reflex on and off.
 Entry points:
 
 * :func:`make_stepdown_rollout` ``(cfg) -> StepdownRollout``, compiled once per static config (cached):
-  ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX (``jax.jit``,
+  ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX on MJX-JAX (``jax.jit``,
   ``jax.vmap``, ``jax.jacfwd`` reach every parameter), and ``rollout.run(scenario)`` for a batch through the
-  one jitted, sharded, chunked runner (:func:`hyqjax.sim.rollout.make_batch_runner`).
+  simulator's batch runner (``cfg.impl``, :mod:`hyqjax.sim.backend`: MJX's jitted, sharded, chunked runner
+  :func:`hyqjax.sim.rollout.make_batch_runner`, or C MuJoCo's :class:`hyqjax.sim.cpu_backend.CBatchRunner`).
 * :func:`run_batch`: the same batch as NumPy columns (a thin layer on ``rollout.run``), and
   :func:`hyqjax.studies.stepdown_table.summarize` for the paper's table.
 
@@ -129,11 +130,12 @@ class StepdownSetup:
         return backend.get(self.impl)
 
 
-def setup(cfg: StepdownConfig) -> StepdownSetup:
-    """Model, MJX model and ids for ``cfg`` (cached per layout, control period, resolved ``impl`` and JAX's
-    float width: under ``jax.enable_x64`` the MJX model is float64)."""
-    return _setup_cached(cfg.layout, cfg.control_dt, backend.resolve_impl(cfg.impl, SUPPORTED_IMPLS),
-                         bool(jax.config.jax_enable_x64))
+def setup(cfg: StepdownConfig, differentiable: bool = False) -> StepdownSetup:
+    """Model, simulator model and ids for ``cfg`` (cached per layout, control period, resolved ``impl`` and JAX's
+    float width: under ``jax.enable_x64`` the MJX model is float64). ``differentiable``: for the pure JAX
+    one-instance rollout (``impl="auto"`` resolves to ``jax`` there, :func:`hyqjax.sim.backend.resolve_impl`)."""
+    impl = backend.resolve_impl(cfg.impl, SUPPORTED_IMPLS, differentiable=differentiable)
+    return _setup_cached(cfg.layout, cfg.control_dt, impl, bool(jax.config.jax_enable_x64))
 
 
 @functools.lru_cache(maxsize=8)
@@ -195,9 +197,10 @@ class StepdownRollout:
     """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`).
 
     ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)``: ONE instance (``scenario`` without batch
-    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``; under
-    ``impl="warp"`` or ``"c"`` a derivative, and the one-instance call itself, are a ``ValueError``: Warp runs
-    batches, whose contacts share one buffer, and C MuJoCo steps batches outside JAX). ``rollout.run(scenario)``:
+    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``, and
+    ``"auto"``, which is MJX-JAX for this function; under ``impl="warp"`` or ``"c"`` a derivative, and the
+    one-instance call itself, are a ``ValueError``: Warp runs batches, whose contacts share one buffer, and C
+    MuJoCo steps batches outside JAX). ``rollout.run(scenario)``:
     a batch through the simulator's batch runner (jitted, chunked; sharded under MJX), compiled once per batch
     shape and mesh.
     """
@@ -218,7 +221,7 @@ class StepdownRollout:
         return so.outcome(res._replace(trace=None), self.setup.ids, self.cfg.max_tilt, self.cfg.min_progress)
 
     def __call__(self, params: crawl.CrawlParams, scenario: Scenario) -> tuple[StepdownOutcome, mjx.Data]:
-        st = self.setup
+        st = setup(self.cfg, differentiable=True)
         params, scenario = st.backend.forbid_derivatives((params, scenario))
         if st.backend.one_instance_error is not None:
             raise ValueError(f"the one-instance rollout needs impl='jax' ({st.backend.one_instance_error}); run "
