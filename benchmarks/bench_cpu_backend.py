@@ -17,7 +17,7 @@ so their ratios are comparable. Writes JSON (``--out``, rewritten after each mea
 
 Usage::
 
-    PYTHONPATH=. python benchmarks/bench_cpu_backend.py --batch 64 --duration 24 --first-command --out out/cpu_backend.json
+    PYTHONPATH=. python benchmarks/bench_cpu_backend.py --batch 64 --duration 24 --first-command --out out/cpu.json
     PYTHONPATH=. python benchmarks/bench_cpu_backend.py --batch 6 --duration 0.2 --out out/cpu_backend_tiny.json
 """
 from __future__ import annotations

@@ -196,7 +196,8 @@ class BoundingSetup:
 def setup(control_dt: float, impl: str) -> BoundingSetup:
     """The :class:`BoundingSetup` for timestep ``control_dt`` and ``impl`` (cached per resolved ``impl`` and JAX's
     float width: under ``jax.enable_x64`` the JAX model is float64)."""
-    return _setup_cached(float(control_dt), backend.resolve_impl(impl, SUPPORTED_IMPLS), bool(jax.config.jax_enable_x64))
+    return _setup_cached(float(control_dt), backend.resolve_impl(impl, SUPPORTED_IMPLS),
+                         bool(jax.config.jax_enable_x64))
 
 
 @functools.lru_cache(maxsize=8)

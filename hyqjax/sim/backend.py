@@ -23,9 +23,9 @@ names. Asking for a derivative through a forward-only backend raises a ``ValueEr
 
 This module imports no JAX or MuJoCo at import time (``import hyqjax`` stays light), and warp is imported
 only when ``warp`` is chosen. :func:`install_lazy_mjx_import` defers MJX itself (and the MuJoCo Warp it
-imports) to its first use, so a run on the C MuJoCo backend never loads it. :func:`install_quiet_warp_import` removes the two lines MJX prints on stdout
-when warp-lang is absent ("Failed to import warp: No module named 'warp'", the same for mujoco_warp); any
-other output of that import, and every other warning, passes through.
+imports) to its first use, so a run on the C MuJoCo backend never loads it. :func:`install_quiet_warp_import`
+removes the two lines MJX prints on stdout when warp-lang is absent ("Failed to import warp: No module named
+'warp'", the same for mujoco_warp); any other output of that import, and every other warning, passes through.
 """
 from __future__ import annotations
 
@@ -254,6 +254,11 @@ def install_lazy_mjx_import() -> None:
     if "mujoco.mjx" in sys.modules or any(isinstance(f, _LazyMJXFinder) for f in sys.meta_path):
         return
     sys.meta_path.insert(0, _LazyMJXFinder())
+
+
+def model_impl(mx) -> str:
+    """The MJX implementation (``"jax"`` or ``"warp"``) of an ``mjx.Model``."""
+    return "warp" if is_warp_model(mx) else "jax"
 
 
 def is_warp_model(mx) -> bool:

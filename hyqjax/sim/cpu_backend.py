@@ -130,7 +130,8 @@ class CPhysics:
         self._buf = np.zeros((b, self.width))
         self._bias = np.zeros((b, m0.nv))
         lay = self.layout
-        self._state_spec = int(mujoco.mjtState.mjSTATE_TIME | mujoco.mjtState.mjSTATE_QPOS | mujoco.mjtState.mjSTATE_QVEL)
+        st = mujoco.mjtState
+        self._state_spec = int(st.mjSTATE_TIME | st.mjSTATE_QPOS | st.mjSTATE_QVEL)
         for i, d in enumerate(self.datas):
             mujoco.mj_getState(self.models[i], d, self._buf[i, slice(*lay["state"][:2])], self._state_spec)
         self._cols = {k: (lo, hi) for k, (lo, hi, _) in lay.items()}
