@@ -117,7 +117,8 @@ def test_observation_reads_the_weight_on_the_feet(hyq):
     phys.close()
     from hyqjax.sim import observe
 
-    obs = observe.observe_view(ids, jax.tree_util.tree_map(lambda x: x[0], v), np.asarray(last, np.float32))
+    obs = jax.jit(lambda vv, t: observe.observe_view(ids, vv, t))(jax.tree_util.tree_map(lambda x: x[0], v),
+                                                                  np.asarray(last, np.float32))
     # foot_force is in the trunk frame; the trunk stands level, so its z is the vertical.
     assert float(np.sum(obs.foot_force[:, 2])) == pytest.approx(float(mm.body_subtreemass[1] * 9.81), rel=0.05)
 
