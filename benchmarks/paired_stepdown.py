@@ -1,10 +1,11 @@
-"""Paired step-down runs under MJX's two implementations: the same instances under ``impl="jax"`` and ``"warp"``.
+"""Paired step-down runs under two simulators: the same instances under ``impl="jax"`` and ``"warp"`` (default), or
+any two of ``jax``, ``warp``, ``c`` (``--impls``; e.g. ``--impls c jax`` compares C MuJoCo with MJX-JAX on a CPU).
 
 Measures, on one batch of ``heights x reflex off/on x --instances`` randomised step-down instances
 (``stepdown.make_scenarios``, one seed for both implementations):
 
   outcomes     per-instance agreement of ``completed``, ``clean`` and every boolean failure reason;
-               per (height, reflex) cell the success (``clean``) counts and 95% Wilson intervals under each
+               per (height, reflex) cell the ``completed`` and ``clean`` counts and 95% Wilson intervals under each
                implementation, and whether each rate lies inside the other's interval; the disagreeing
                instances with their reasons under each implementation and their start distance from the edge.
   trajectory   a second run of ``--traj-duration`` s with traces every ``--record-every`` ticks: per-instance
@@ -15,6 +16,8 @@ Measures, on one batch of ``heights x reflex off/on x --instances`` randomised s
 Usage (GPU; >= 2,000 instances: 3 heights x 2 x 340)::
 
     python benchmarks/paired_stepdown.py --instances 340 --out $OUT/paired.json
+    # C MuJoCo against MJX-JAX on a CPU (64 instances per cell; the MJX side takes most of the time)
+    PYTHONPATH=. python benchmarks/paired_stepdown.py --impls c jax --instances 64 --out out/paired_c_jax.json
     PYTHONPATH=. python benchmarks/paired_stepdown.py --instances 2 --duration 2 --traj-duration 0.2 --out out/p.json
 """
 from __future__ import annotations
@@ -45,8 +48,8 @@ def run(scen, cfg) -> tuple[dict, object, float]:
     return cols, trace, time.perf_counter() - t
 
 
-def compare_outcomes(table: dict, cols: dict[str, dict]) -> dict:
-    a, b = cols[IMPLS[0]], cols[IMPLS[1]]
+def compare_outcomes(table: dict, cols: dict[str, dict], impls=IMPLS) -> dict:
+    a, b = cols[impls[0]], cols[impls[1]]
     keys = ["completed", "clean", *stepdown.FAILURE_REASONS]
     agree = {k: float(np.mean(np.asarray(a[k]) == np.asarray(b[k]))) for k in keys if k in a and k in b}
     cells = []
@@ -55,12 +58,20 @@ def compare_outcomes(table: dict, cols: dict[str, dict]) -> dict:
             sel = (np.asarray(table["height"]) == h) & (np.asarray(table["reflex"]) == r)
             n = int(sel.sum())
             row = dict(height=h, reflex=r, n=n)
-            for impl in IMPLS:
+            for impl in impls:  # clean (the success of older results) and completed
                 k = int(np.sum(np.asarray(cols[impl]["clean"])[sel]))
                 row[impl] = dict(k=k, rate=k / n if n else float("nan"), ci=statistics.wilson_interval(k, n))
-            ja, wa = row[IMPLS[0]], row[IMPLS[1]]
-            row["warp_rate_in_jax_ci"] = bool(ja["ci"][0] <= wa["rate"] <= ja["ci"][1])
-            row["jax_rate_in_warp_ci"] = bool(wa["ci"][0] <= ja["rate"] <= wa["ci"][1])
+                kc = int(np.sum(np.asarray(cols[impl]["completed"])[sel]))
+                row[impl]["completed"] = dict(k=kc, rate=kc / n if n else float("nan"),
+                                              ci=statistics.wilson_interval(kc, n))
+            ja, wa = row[impls[0]], row[impls[1]]
+            row[f"{impls[1]}_rate_in_{impls[0]}_ci"] = bool(ja["ci"][0] <= wa["rate"] <= ja["ci"][1])
+            row[f"{impls[0]}_rate_in_{impls[1]}_ci"] = bool(wa["ci"][0] <= ja["rate"] <= wa["ci"][1])
+            jc, wc = ja["completed"], wa["completed"]
+            row["completed_in_each_others_ci"] = bool(jc["ci"][0] <= wc["rate"] <= jc["ci"][1]
+                                                      and wc["ci"][0] <= jc["rate"] <= wc["ci"][1])
+            row["clean_in_each_others_ci"] = (row[f"{impls[1]}_rate_in_{impls[0]}_ci"]
+                                              and row[f"{impls[0]}_rate_in_{impls[1]}_ci"])
             row["clean_agreement"] = float(np.mean(np.asarray(a["clean"])[sel] == np.asarray(b["clean"])[sel]))
             cells.append(row)
     dis = np.nonzero(np.asarray(a["clean"]) != np.asarray(b["clean"]))[0]
@@ -80,8 +91,8 @@ def compare_outcomes(table: dict, cols: dict[str, dict]) -> dict:
                 disagreements=disagreements[:200])
 
 
-def compare_traces(traces: dict) -> dict:
-    a, b = traces[IMPLS[0]], traces[IMPLS[1]]
+def compare_traces(traces: dict, impls=IMPLS) -> dict:
+    a, b = traces[impls[0]], traces[impls[1]]
     pa, pb = np.asarray(a["base_pos"]), np.asarray(b["base_pos"])
     qa, qb = np.asarray(a["q"]), np.asarray(b["q"])
     t = np.asarray(a["time"])  # (B, T)
@@ -109,8 +120,13 @@ def main(argv=None) -> int:
     ap.add_argument("--traj-duration", type=float, default=1.0)
     ap.add_argument("--record-every", type=int, default=5)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--impls", nargs=2, choices=["jax", "warp", "c"], default=list(IMPLS),
+                    help="the two simulators compared (default: jax warp)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
+    impls = tuple(args.impls)
+    if impls[0] == impls[1]:
+        raise SystemExit("--impls must name two different simulators")
     if args.instances < 1:
         raise SystemExit("--instances must be >= 1")
     info = host_info()
@@ -118,28 +134,31 @@ def main(argv=None) -> int:
     res = dict(info=info, args=vars(args), provenance=hio.provenance(argv if argv is not None else sys.argv[1:]))
     print(json.dumps({k: info[k] for k in ("date", "device", "jax", "mujoco", "mujoco_mjx")}), flush=True)
     cols, traces, wall = {}, {}, {}
-    for impl in IMPLS:
+    for impl in impls:
         cfg = stepdown.StepdownConfig(duration=args.duration, impl=impl)
         cols[impl], _, wall[impl] = run(scen, cfg)
         print(f"{impl}: {len(cols[impl]['clean'])} instances x {args.duration} s in {wall[impl]:.1f} s "
               f"(compile included), clean {np.mean(cols[impl]['clean']):.3f}", flush=True)
     res["wall_s"] = wall
-    res["outcomes"] = compare_outcomes(table, cols)
+    res["outcomes"] = compare_outcomes(table, cols, impls)
     if args.out:
         hio.write_json(args.out, res)
-    for impl in IMPLS:
+    for impl in impls:
         cfg = stepdown.StepdownConfig(duration=args.traj_duration, record_every=args.record_every, impl=impl)
         _, traces[impl], _ = run(scen, cfg)
-    res["trajectory"] = compare_traces(traces)
+    res["trajectory"] = compare_traces(traces, impls)
     if args.out:
         hio.write_json(args.out, res)
     o, tr = res["outcomes"], res["trajectory"]
     print(f"agreement: {json.dumps({k: round(v, 4) for k, v in o['agreement'].items()})}")
     print(f"clean disagreements: {o['n_disagree']} of {o['n']} ({o['disagreement_reasons']})")
+    a, b = impls
     for c in o["cells"]:
-        print(f"  h={c['height']:.2f} reflex={'on ' if c['reflex'] else 'off'} n={c['n']}: jax {c['jax']['k']} "
-              f"{np.round(c['jax']['ci'], 3)} warp {c['warp']['k']} {np.round(c['warp']['ci'], 3)} "
-              f"in each other's CI: {c['warp_rate_in_jax_ci'] and c['jax_rate_in_warp_ci']}")
+        print(f"  h={c['height']:.2f} reflex={'on ' if c['reflex'] else 'off'} n={c['n']}: completed {a} "
+              f"{c[a]['completed']['k']} {np.round(c[a]['completed']['ci'], 3)} {b} {c[b]['completed']['k']} "
+              f"{np.round(c[b]['completed']['ci'], 3)} (in each other's CI: {c['completed_in_each_others_ci']}); "
+              f"clean {a} {c[a]['k']} {np.round(c[a]['ci'], 3)} {b} {c[b]['k']} {np.round(c[b]['ci'], 3)} "
+              f"(in each other's CI: {c['clean_in_each_others_ci']})")
     print(f"trajectory over {tr['horizon_s']:.2f} s: max trunk position diff {tr['max_trunk_pos_diff_m']}, "
           f"within 1e-3 m: {tr['share_within_1mm']:.3f}")
     return 0

@@ -39,6 +39,7 @@ if "jax" not in _sys.modules:
 from hyqjax.sim import backend as _backend  # noqa: E402  (stdlib only: no JAX at import)
 
 _backend.install_quiet_warp_import()
+_backend.install_lazy_mjx_import()
 
 _PUBLIC = {
     "StepdownConfig": "hyqjax.studies.stepdown", "Scenario": "hyqjax.studies.stepdown",

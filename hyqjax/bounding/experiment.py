@@ -262,10 +262,9 @@ def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
 
     d = jax.vmap(one)(batch.params, jnp.asarray(batch.apex0, jnp.float32), jnp.asarray(batch.roll0, jnp.float32),
                       jnp.asarray(batch.yaw_rate0, jnp.float32))
-    if mx_batched is None or not backend.is_warp_model(mx_batched):
+    if mx_batched is None:
         return d
-    dw = sim.initial_data(mx_batched, d.qpos, d.qpos.shape[0], m=m)
-    return dw.replace(qvel=d.qvel.astype(dw.qvel.dtype))
+    return backend.get(backend.model_impl(mx_batched)).from_jax_data(mx_batched, d, m)
 
 
 @functools.lru_cache(maxsize=8)

@@ -43,6 +43,8 @@ from hyqjax.sim import rollout as sim
 #: Largest controller period (s) and trace decimation (ticks) of a :class:`BoundingRolloutConfig`.
 MAX_CONTROL_DT = 0.02
 MAX_RECORD_EVERY = 10_000
+#: The simulators bounding runs on (:mod:`hyqjax.sim.backend`): MJX (its initial apex state is MJX-JAX data).
+SUPPORTED_IMPLS = backend.MJX_IMPLS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,7 +83,7 @@ class BoundingRolloutConfig:
         need(self.record_every == 0 or n_ticks % self.record_every == 0, "record_every",
              f"0 or a divisor of the {n_ticks} control ticks of duration")
         try:
-            backend.validate_impl(self.impl)
+            backend.validate_impl(self.impl, SUPPORTED_IMPLS)
         except ValueError as e:
             raise bx.SettingError("impl", str(e)) from None
 
@@ -194,7 +196,8 @@ class BoundingSetup:
 def setup(control_dt: float, impl: str) -> BoundingSetup:
     """The :class:`BoundingSetup` for timestep ``control_dt`` and ``impl`` (cached per resolved ``impl`` and JAX's
     float width: under ``jax.enable_x64`` the JAX model is float64)."""
-    return _setup_cached(float(control_dt), backend.resolve_impl(impl), bool(jax.config.jax_enable_x64))
+    return _setup_cached(float(control_dt), backend.resolve_impl(impl, SUPPORTED_IMPLS),
+                         bool(jax.config.jax_enable_x64))
 
 
 @functools.lru_cache(maxsize=8)
@@ -204,7 +207,8 @@ def _setup_cached(control_dt: float, impl: str, x64: bool) -> BoundingSetup:
     with jax.ensure_compile_time_eval():
         if mx.qpos0.dtype != jnp.dtype(jnp.float64 if x64 else jnp.float32):  # bc.model is cached across widths
             mx = backend.put_model(m, "jax")
-        return BoundingSetup(m, mx, mx if impl == "jax" else backend.put_model(m, impl), ids, impl)
+        sim_backend = backend.get(impl)
+        return BoundingSetup(m, mx, mx if sim_backend.supports_gradients else sim_backend.put_model(m), ids, impl)
 
 
 def instance_args(batch: bx.Batch) -> tuple:
@@ -236,10 +240,7 @@ class BoundingRollout:
         JAX model; under Warp put into Warp data of ``mx1`` as :func:`hyqjax.bounding.experiment.initial_data`)."""
         st = self.setup
         d = bc.apex_data(st.mx_jax, st.m, params, apex0, roll=roll, yaw_rate=yaw_rate)
-        if st.impl != "warp":
-            return d
-        dw = sim.initial_data(mx1, d.qpos, m=st.m)
-        return dw.replace(qvel=d.qvel.astype(dw.qvel.dtype))
+        return backend.get(st.impl).from_jax_data(mx1, d, st.m)
 
     def __call__(self, params: BoundingParams, terrain: hmodel.InstanceTerrain, apex0, push: sim.Push | None = None,
                  roll=0.0, yaw_rate=0.0) -> tuple[BoundingOutcome, mjx.Data]:

@@ -56,7 +56,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    add_impl_argument(p)
+    from hyqjax.cli.common import add_impl_argument
+    from hyqjax.sim.backend import MJX_IMPLS
+
+    add_impl_argument(p, MJX_IMPLS)  # bounding runs on MJX
 
 
 def validate(args) -> None:
@@ -72,8 +75,9 @@ def check_options(args) -> None:
     """Every option checked, here and by ``bounding.experiment.validate_run``, before anything is compiled;
     raises ValueError naming the option and its allowed range."""
     from hyqjax.cli.common import check_impl, check_out_free, check_range
+    from hyqjax.sim.backend import MJX_IMPLS
 
-    check_impl(args.impl)
+    check_impl(args.impl, supported=MJX_IMPLS)
 
     for opt, v, lo, hi, unit in (("--speed", args.speed, -1.5, 1.5, "m/s"), ("--yaw-rate", args.yaw_rate, -1.5, 1.5,
                                                                               "rad/s"),

@@ -242,23 +242,34 @@ def sim_progress(desc: str, total_s: float, disable: bool = False):
         prog.close()
 
 
-def add_impl_argument(p) -> None:
-    """``--impl auto|jax|warp``: the MJX implementation of a forward-only simulation (:mod:`hyqjax.sim.backend`)."""
-    p.add_argument("--impl", choices=["auto", "jax", "warp"], default="auto",
-                   help="MJX implementation: 'warp' (MuJoCo Warp, several times faster on a CUDA GPU, forward "
-                        "only; pip install 'hyqjax[warp]'), 'jax' (pure JAX, differentiable), 'auto' (warp when "
-                        "a CUDA GPU and warp-lang are present, else jax)")
-
-
-def check_impl(impl: str, option: str = "--impl") -> None:
-    """Refuse ``--impl warp`` without warp-lang, before anything is imported from JAX."""
+def add_impl_argument(p, supported: tuple[str, ...] | None = None) -> None:
+    """``--impl auto|jax|warp|c``: the simulator of a forward-only run (:mod:`hyqjax.sim.backend`); ``supported``
+    restricts the choices to a task's simulators (default: all)."""
     from hyqjax.sim import backend
 
-    if impl not in backend.IMPLS:
-        raise UsageError(f"{option} must be one of {', '.join(backend.IMPLS)}, got {impl!r}")
-    if impl == "warp" and not backend.warp_installed():
-        raise UsageError(f"{option} warp needs warp-lang, which is not installed: pip install 'hyqjax[warp]' "
-                         f"(or use {option} jax)")
+    supported = backend.ALL_IMPLS if supported is None else supported
+    helps = dict(warp="'warp' (MuJoCo Warp, several times faster on a CUDA GPU, forward only; pip install "
+                      "'hyqjax[warp]')", jax="'jax' (MJX in pure JAX, differentiable)",
+                 c="'c' (C MuJoCo on all CPU cores, the controller in JAX; forward only)")
+    auto = ("'auto' (warp when a CUDA GPU and warp-lang are present, else c without an accelerator, else jax)"
+            if "c" in supported else "'auto' (warp when a CUDA GPU and warp-lang are present, else jax)")
+    p.add_argument("--impl", choices=["auto", *supported], default="auto",
+                   help="simulator: " + ", ".join(helps[k] for k in supported) + ", " + auto)
+
+
+def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | None = None) -> None:
+    """Refuse an unknown ``impl`` or one whose package is missing (``warp`` without warp-lang), before anything is
+    imported from JAX."""
+    from hyqjax.sim import backend
+
+    supported = backend.ALL_IMPLS if supported is None else supported
+    try:
+        backend.validate_impl(impl, supported)
+        if impl != "auto":
+            backend.check_available(impl)
+    except ValueError as e:
+        msg = str(e).replace("impl must be", f"{option} must be").replace("impl='warp' needs", f"{option} warp needs")
+        raise UsageError(msg.replace("(or choose impl='jax')", f"(or use {option} jax)")) from None
 
 
 #: Attributes the command line sets on its parsed options for itself (not options a user gave).

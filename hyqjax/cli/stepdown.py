@@ -117,7 +117,7 @@ def run(args) -> int:
     n_ticks = cfg.sim_config().n_ticks
     impl = stepdown.setup(cfg).impl
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, MJX impl {impl}", flush=True)
+          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
     t0 = time.time()
     with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
         out, trace = stepdown.run_batch(scenario, cfg, progress=progress)

@@ -247,7 +247,7 @@ def run(args) -> int:
 
         executor = sweep.LocalExecutor(impl=args.impl)
         devs = jax.local_devices()
-        where = f"{len(devs)} x {devs[0].platform} device(s), MJX impl {executor.impl}"
+        where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
     print(f"{size}, {where}", flush=True)
     from hyqjax.cli.common import compile_status
 

@@ -1,4 +1,5 @@
-"""Which MJX implementation simulates: ``impl`` = ``"auto" | "jax" | "warp"``.
+"""Which simulator steps the physics: ``impl`` = ``"auto" | "jax" | "warp" | "c"``, and the one object per
+implementation that the rest of hyqjax talks to (:func:`get`).
 
 * ``jax``: MJX's pure-JAX physics. Differentiable (forward mode, see README), runs everywhere.
 * ``warp``: MuJoCo Warp kernels called from JAX (``mjx.put_model(m, impl="warp")``), several times faster
@@ -6,15 +7,25 @@
   buffer of ``naconmax`` contacts shared by all worlds of a batch and at most ``njmax`` constraint rows per
   world; :func:`warp_capacity` sizes both from the batch and the model, and a full buffer is reported per
   run (:func:`hyqjax.sim.contacts.overflow`), never silent.
-* ``auto``: ``warp`` when a CUDA device and warp-lang are both available, ``jax`` otherwise.
+* ``c``: C MuJoCo in float64, one ``MjData`` per instance stepped on all CPU cores, the controller in JAX
+  (:mod:`hyqjax.sim.cpu_backend`). Forward only, batches only, no compile of the physics: on a CPU it runs the
+  step-down several times faster than MJX-JAX. Tasks that run on it list it in their supported implementations
+  (the step-down and its sweeps; bounding runs on ``jax`` and ``warp``).
+* ``auto``: ``warp`` when a CUDA device and warp-lang are both available; else ``c`` on a machine without an
+  accelerator when the task supports it; else ``jax``. For a pure JAX function of one instance (gradients, a
+  jitted single rollout) ``auto`` is ``jax`` (``resolve_impl(..., differentiable=True)``).
 
-Asking for a derivative through a ``warp`` simulation raises a ``ValueError`` naming ``impl``
+:func:`get` returns the backend object of a resolved ``impl``: ``put_model``, ``batch_model``, ``initial_data``,
+``make_runner``, ``forbid_derivatives``, ``supports_gradients`` and ``one_instance_error`` (why a one-instance
+rollout outside a batch is refused, or ``None``). Code above ``hyqjax.sim`` asks these, never compares ``impl``
+names. Asking for a derivative through a forward-only backend raises a ``ValueError`` naming ``impl``
 (:func:`forbid_derivatives`), instead of silently falling back.
 
 This module imports no JAX or MuJoCo at import time (``import hyqjax`` stays light), and warp is imported
-only when ``warp`` is chosen. :func:`install_quiet_warp_import` removes the two lines MJX prints on stdout
-when warp-lang is absent ("Failed to import warp: No module named 'warp'", the same for mujoco_warp); any
-other output of that import, and every other warning, passes through.
+only when ``warp`` is chosen. :func:`install_lazy_mjx_import` defers MJX itself (and the MuJoCo Warp it
+imports) to its first use, so a run on the C MuJoCo backend never loads it. :func:`install_quiet_warp_import`
+removes the two lines MJX prints on stdout when warp-lang is absent ("Failed to import warp: No module named
+'warp'", the same for mujoco_warp); any other output of that import, and every other warning, passes through.
 """
 from __future__ import annotations
 
@@ -24,7 +35,13 @@ import importlib.util
 import io
 import sys
 
-IMPLS = ("auto", "jax", "warp")
+IMPLS = ("auto", "jax", "warp", "c")
+#: The MJX implementations (every task runs on both).
+MJX_IMPLS = ("jax", "warp")
+#: Every simulator (what the step-down supports).
+ALL_IMPLS = ("jax", "warp", "c")
+#: Why a forward-only implementation refuses a derivative.
+_NOT_DIFFERENTIABLE = {"warp": "MuJoCo Warp is forward only", "c": "C MuJoCo runs outside JAX"}
 #: Contacts per instance that the Warp contact buffer holds: each foot on two terrain geoms at once
 #: (a platform edge and the ground: 8), up to about 18 with shins and trunk down (benchmarks/probe_warp.py),
 #: with margin. A run needing more is flagged (contact_overflow), never silent.
@@ -39,9 +56,12 @@ _QUIET_OVERFLOW = 0xFFF & ~((1 << 9) | (1 << 10))
 ROWS_PER_CONTACT = 4
 
 
-def validate_impl(impl: str) -> str:
-    if impl not in IMPLS:
-        raise ValueError(f"impl must be one of {', '.join(IMPLS)}, got {impl!r}")
+def validate_impl(impl: str, supported: tuple[str, ...] = ALL_IMPLS) -> str:
+    """``impl`` itself if it is ``auto`` or one of ``supported``; else a ``ValueError`` naming the choices."""
+    if impl != "auto" and impl not in supported:
+        choices = ", ".join(("auto",) + tuple(supported))
+        extra = "" if impl not in IMPLS else " for this task"
+        raise ValueError(f"impl must be one of {choices}{extra}, got {impl!r}")
     return impl
 
 
@@ -59,15 +79,59 @@ def cuda_available() -> bool:
         return False
 
 
-def resolve_impl(impl: str) -> str:
-    """``"jax"`` or ``"warp"`` for a requested ``impl`` (see the module docstring for ``auto``)."""
-    validate_impl(impl)
+def accelerator_available() -> bool:
+    """JAX sees a device other than the CPU."""
+    import jax
+
+    try:
+        return any(d.platform != "cpu" for d in jax.devices())
+    except RuntimeError:
+        return False
+
+
+def resolve_impl(impl: str, supported: tuple[str, ...] = MJX_IMPLS, differentiable: bool = False) -> str:
+    """The implementation that runs a request for ``impl`` by a task supporting ``supported`` (module docstring);
+    ``differentiable``: the run is a pure JAX function of one instance (derivatives, ``jax.jit`` of a single
+    rollout), for which ``auto`` means ``jax``."""
+    validate_impl(impl, supported)
+    if impl == "auto" and differentiable:
+        return "jax"
     if impl == "auto":
-        return "warp" if warp_installed() and cuda_available() else "jax"
+        if "warp" in supported and warp_installed() and cuda_available():
+            return "warp"
+        if "c" in supported and not accelerator_available():
+            return "c"
+        return "jax"
+    check_available(impl)
+    return impl
+
+
+def check_available(impl: str) -> None:
+    """A ``ValueError`` when ``impl`` needs a package that is not installed (warp-lang for ``warp``)."""
+    validate_impl(impl)
     if impl == "warp" and not warp_installed():
         raise ValueError("impl='warp' needs warp-lang, which is not installed: pip install \"hyqjax[warp]\" "
                          "(or choose impl='jax')")
-    return impl
+
+
+_BACKENDS: dict = {}
+
+
+def get(impl: str):
+    """The backend object of a resolved ``impl`` (``jax``, ``warp`` or ``c``; :func:`resolve_impl`), one per
+    implementation: :class:`hyqjax.sim.mjx_backend.MJXBackend` or :class:`hyqjax.sim.cpu_backend.CBackend`."""
+    if impl not in ALL_IMPLS:
+        raise ValueError(f"get needs a resolved impl ({', '.join(ALL_IMPLS)}), got {impl!r}; see resolve_impl")
+    if impl not in _BACKENDS:
+        if impl == "c":
+            from hyqjax.sim.cpu_backend import CBackend
+
+            _BACKENDS[impl] = CBackend()
+        else:
+            from hyqjax.sim.mjx_backend import MJXBackend
+
+            _BACKENDS[impl] = MJXBackend(impl)
+    return _BACKENDS[impl]
 
 
 def warp_capacity(njnt_limited: int, batch: int, contacts_per_instance: int = CONTACTS_PER_INSTANCE) -> tuple[int, int]:
@@ -93,12 +157,18 @@ def put_model(m, impl: str):
     return mx
 
 
+def supports_gradients(impl: str) -> bool:
+    return impl not in _NOT_DIFFERENTIABLE
+
+
 def forbid_derivatives(tree, impl: str):
-    """Identity on ``tree``; under ``impl="warp"`` a derivative (``jax.jvp``, ``jacfwd``, ``grad``) through it
-    raises ``ValueError`` naming ``impl``."""
-    if impl != "warp":
+    """Identity on ``tree``; under a forward-only ``impl`` (``warp``, ``c``) a derivative (``jax.jvp``,
+    ``jacfwd``, ``grad``) through it raises ``ValueError`` naming ``impl``."""
+    if supports_gradients(impl):
         return tree
     import jax
+
+    why = _NOT_DIFFERENTIABLE[impl]
 
     @jax.custom_jvp
     def guard(x):
@@ -106,8 +176,7 @@ def forbid_derivatives(tree, impl: str):
 
     @guard.defjvp
     def _jvp(primals, tangents):
-        raise ValueError("impl='warp' is not differentiable (MuJoCo Warp is forward only); use impl='jax' for "
-                         "gradients")
+        raise ValueError(f"impl='{impl}' is not differentiable ({why}); use impl='jax' for gradients")
 
     return guard(tree)
 
@@ -156,6 +225,40 @@ def install_quiet_warp_import() -> None:
     if "mujoco.mjx.warp" in sys.modules or any(isinstance(f, _QuietFinder) for f in sys.meta_path):
         return
     sys.meta_path.insert(0, _QuietFinder())
+
+
+class _LazyMJXFinder(importlib.abc.MetaPathFinder):
+    """Finds ``mujoco.mjx`` with the spec of the other finders, its loader wrapped in ``importlib.util.LazyLoader``."""
+
+    NAME = "mujoco.mjx"
+
+    def find_spec(self, fullname, path, target=None):
+        if fullname != self.NAME:
+            return None
+        for finder in sys.meta_path:
+            if finder is self or not hasattr(finder, "find_spec"):
+                continue
+            spec = finder.find_spec(fullname, path, target)
+            if spec is not None:
+                if spec.loader is not None and hasattr(spec.loader, "exec_module"):
+                    spec.loader = importlib.util.LazyLoader(spec.loader)
+                return spec
+        return None
+
+
+def install_lazy_mjx_import() -> None:
+    """Make ``mujoco.mjx`` load on first use instead of at ``from mujoco import mjx``
+    (``importlib.util.LazyLoader``): importing MJX imports MuJoCo Warp and warp-lang when they are installed,
+    about 3 s of CPU, which a run on the C MuJoCo backend never needs. Modules that use MJX import it at their
+    top as before; it loads when one of its attributes is first read. Idempotent; a no-op once MJX is imported."""
+    if "mujoco.mjx" in sys.modules or any(isinstance(f, _LazyMJXFinder) for f in sys.meta_path):
+        return
+    sys.meta_path.insert(0, _LazyMJXFinder())
+
+
+def model_impl(mx) -> str:
+    """The MJX implementation (``"jax"`` or ``"warp"``) of an ``mjx.Model``."""
+    return "warp" if is_warp_model(mx) else "jax"
 
 
 def is_warp_model(mx) -> bool:

@@ -36,10 +36,10 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from hyqjax.core import kinematics, smallmat
 from hyqjax.core.types import Observation, Controller, Metrics, Push  # noqa: F401
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
+from hyqjax.sim import observe as hobs
 from hyqjax.core import robot
 
 
@@ -87,22 +87,13 @@ def no_metrics() -> Metrics:
 
 
 def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | None = None) -> Observation:
-    """Build an :class:`Observation` from MJX data (the sensors HyQ has).
+    """Build an :class:`Observation` from MJX data (the sensors HyQ has): :func:`hyqjax.sim.observe.observation`
+    with the generalized force ``g = qfrc_bias + M qacc`` of MJX's last step.
 
-    Foot forces come from the joint-space dynamics of each leg, ``tau = M_l qdd + h_l - J_f^T f``:
-    ``f = J_f^{-T} (M_l qdd + h_l - tau)`` with ``h_l`` the leg rows of the bias forces (gravity,
-    Coriolis) and, when ``mx`` is given, ``M_l qdd`` the leg rows of the mass matrix times the
-    accelerations of the last physics step (what a robot gets by differentiating its encoder
-    velocities, one tick late; under MuJoCo Warp the same product from the equation of motion,
-    ``M qdd = qfrc_smooth + qfrc_constraint``). Without the inertial term a fast swing leg reads tens of newtons of
-    phantom contact force, enough to trigger a haptic touchdown in mid-air.
+    When ``mx`` is given, ``M qacc`` is the mass matrix times the accelerations of the last physics step (what a
+    robot gets by differentiating its encoder velocities, one tick late; under MuJoCo Warp the same product from
+    the equation of motion, ``M qdd = qfrc_smooth + qfrc_constraint``); without ``mx``, ``g = qfrc_bias``.
     """
-    qadr = np.asarray(ids.qpos_joints)
-    vadr = np.asarray(ids.dof_joints)
-    q = d.qpos[qadr]
-    qd = d.qvel[vadr]
-    quat = d.qpos[robot.QPOS_BASE_QUAT]
-    gyro = d.qvel[robot.QVEL_BASE_ANG]  # MuJoCo's free-joint angular velocity is in the body frame.
     gen = d.qfrc_bias
     if mx is not None and backend.is_warp_model(mx):
         # M qacc = qfrc_smooth + qfrc_constraint (the equation of motion of the last step; mujoco_warp's
@@ -110,13 +101,7 @@ def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | N
         gen = gen + d.qfrc_smooth + d.qfrc_constraint
     elif mx is not None:
         gen = gen + mjx.mul_m(mx, d, d.qacc)
-    bias = gen[vadr].reshape(4, 3)
-    jac = kinematics.foot_jacobians(q)
-    rhs = (bias - tau.reshape(4, 3))[..., None]
-    reg = 1e-6 * jnp.eye(3, dtype=q.dtype)
-    jt = jnp.swapaxes(jac, -1, -2)
-    force = smallmat.solve3(jt + reg, rhs[..., 0])
-    return Observation(q=q, qd=qd, tau=tau, quat=quat, gyro=gyro, foot_force=force, time=d.time)
+    return hobs.observation(ids.qpos_joints, ids.dof_joints, d.qpos, d.qvel, gen, tau, d.time)
 
 
 def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, substeps: int,

@@ -6,9 +6,10 @@ forward; the experiment runs the same batch with the height reflex on and off.
 Entry points:
 
 * :func:`make_stepdown_rollout` ``(cfg) -> StepdownRollout``, compiled once per static config (cached):
-  ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX (``jax.jit``,
+  ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX on MJX-JAX (``jax.jit``,
   ``jax.vmap``, ``jax.jacfwd`` reach every parameter), and ``rollout.run(scenario)`` for a batch through the
-  one jitted, sharded, chunked runner (:func:`hyqjax.sim.rollout.make_batch_runner`).
+  simulator's batch runner (``cfg.impl``, :mod:`hyqjax.sim.backend`: MJX's jitted, sharded, chunked runner
+  :func:`hyqjax.sim.rollout.make_batch_runner`, or C MuJoCo's :class:`hyqjax.sim.cpu_backend.CBatchRunner`).
 * :func:`run_batch`: the same batch as NumPy columns (a thin layer on ``rollout.run``), and
   :func:`hyqjax.studies.stepdown_table.summarize` for the paper's table.
 
@@ -37,6 +38,10 @@ from hyqjax.studies.stepdown_outcome import FAILURE_REASONS, StepdownOutcome, fa
 from hyqjax.studies.stepdown_table import format_table, summarize, wilson_interval  # noqa: F401
 
 
+#: The simulators the step-down runs on (:mod:`hyqjax.sim.backend`).
+SUPPORTED_IMPLS = backend.ALL_IMPLS
+
+
 @dataclasses.dataclass(frozen=True)
 class StepdownConfig:
     """Static settings of a step-down batch (changing them recompiles).
@@ -49,7 +54,8 @@ class StepdownConfig:
       min_progress: a completed run advances the trunk at least this far (m).
       strike_force: a shin or trunk contact pressing on the terrain harder than this (N) is a strike.
       layout: terrain structure (rough blocks).
-      impl: MJX implementation, ``auto | jax | warp`` (:mod:`hyqjax.sim.backend`).
+      impl: simulator, ``auto | jax | warp | c`` (:mod:`hyqjax.sim.backend`; ``auto`` is C MuJoCo on a machine
+        without an accelerator, MuJoCo Warp on a CUDA GPU with warp-lang, MJX-JAX otherwise).
     """
 
     duration: float = 24.0
@@ -62,7 +68,7 @@ class StepdownConfig:
     impl: str = "auto"
 
     def __post_init__(self):
-        backend.validate_impl(self.impl)
+        backend.validate_impl(self.impl, SUPPORTED_IMPLS)
         self.sim_config()  # validates duration, control_dt, record_every
         for name, lo, hi in (("max_tilt", 0.0, np.pi), ("min_progress", 0.0, 100.0), ("strike_force", 0.0, 1e5)):
             v = getattr(self, name)
@@ -110,24 +116,32 @@ class Scenario:
 
 @dataclasses.dataclass(frozen=True)
 class StepdownSetup:
-    """The compiled model of a static config: ``m`` (C MuJoCo), ``mx`` (MJX, implementation ``impl``), ``ids``."""
+    """The compiled model of a static config: ``m`` (C MuJoCo), ``mx`` (the model of the simulator ``impl``:
+    an ``mjx.Model`` under MJX, ``m`` under C MuJoCo), ``ids``, and ``backend``, the simulator's object
+    (:func:`hyqjax.sim.backend.get`)."""
 
     m: mujoco.MjModel
-    mx: mjx.Model
+    mx: Any
     ids: hmodel.ModelIds
     impl: str
 
+    @property
+    def backend(self):
+        return backend.get(self.impl)
 
-def setup(cfg: StepdownConfig) -> StepdownSetup:
-    """Model, MJX model and ids for ``cfg`` (cached per layout, control period, resolved ``impl`` and JAX's
-    float width: under ``jax.enable_x64`` the MJX model is float64)."""
-    return _setup_cached(cfg.layout, cfg.control_dt, backend.resolve_impl(cfg.impl), bool(jax.config.jax_enable_x64))
+
+def setup(cfg: StepdownConfig, differentiable: bool = False) -> StepdownSetup:
+    """Model, simulator model and ids for ``cfg`` (cached per layout, control period, resolved ``impl`` and JAX's
+    float width: under ``jax.enable_x64`` the MJX model is float64). ``differentiable``: for the pure JAX
+    one-instance rollout (``impl="auto"`` resolves to ``jax`` there, :func:`hyqjax.sim.backend.resolve_impl`)."""
+    impl = backend.resolve_impl(cfg.impl, SUPPORTED_IMPLS, differentiable=differentiable)
+    return _setup_cached(cfg.layout, cfg.control_dt, impl, bool(jax.config.jax_enable_x64))
 
 
 @functools.lru_cache(maxsize=8)
 def _setup_cached(layout: hmodel.TerrainLayout, control_dt: float, impl: str, x64: bool) -> StepdownSetup:
     m = hmodel.load_model(layout, timestep=control_dt)
-    return StepdownSetup(m, backend.put_model(m, impl), hmodel.model_ids(m), impl)
+    return StepdownSetup(m, backend.get(impl).put_model(m), hmodel.model_ids(m), impl)
 
 
 def start_qpos(stand_qpos, start_distance, lateral_offset, yaw, platform_height, xp=np):
@@ -150,11 +164,16 @@ def initial_qpos(m: mujoco.MjModel, scenario: Scenario) -> np.ndarray:
                       np.asarray(scenario.yaw), np.asarray(scenario.terrain.platform_height))
 
 
-def initial_batch_data(st: StepdownSetup, mx_batched: mjx.Model, scenario: Scenario) -> mjx.Data:
-    """Batched initial data of ``scenario`` on ``mx_batched`` (``hmodel.batch_model`` of ``st.mx``) under either
-    implementation: under Warp the per-instance terrain poses go into the data (:func:`sim.initial_data`)."""
-    qpos = initial_qpos(st.m, scenario)
-    return sim.initial_data(mx_batched if st.impl == "warp" else st.mx, qpos, scenario.batch_size, m=st.m)
+def initial_batch_data(st: StepdownSetup, mx_batched, scenario: Scenario):
+    """Batched initial data of ``scenario`` on ``mx_batched`` (``st.backend.batch_model`` of ``st.mx``) under any
+    simulator (under Warp the per-instance terrain poses go into the data: :func:`sim.initial_data`)."""
+    return st.backend.initial_data(st.mx, mx_batched, initial_qpos(st.m, scenario), st.m)
+
+
+def batch_inputs(st: StepdownSetup, scenario: Scenario) -> tuple[Any, Any]:
+    """``(batched model, initial data)`` of ``scenario`` for ``st``'s simulator: what its batch runner takes."""
+    mb = st.backend.batch_model(st.mx, st.ids, scenario.terrain)
+    return mb, initial_batch_data(st, mb, scenario)
 
 
 def record_trace(d, obs: sim.Observation, info: crawl.CrawlInfo, sites=None):
@@ -178,10 +197,12 @@ class StepdownRollout:
     """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`).
 
     ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)``: ONE instance (``scenario`` without batch
-    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``; under
-    ``impl="warp"`` a derivative, and the one-instance call itself, are a ``ValueError``: Warp runs batches, whose
-    contacts share one buffer). ``rollout.run(scenario)``: a batch through the
-    jitted, sharded, chunked runner, compiled once per batch shape and mesh.
+    axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``, and
+    ``"auto"``, which is MJX-JAX for this function; under ``impl="warp"`` or ``"c"`` a derivative, and the
+    one-instance call itself, are a ``ValueError``: Warp runs batches, whose contacts share one buffer, and C
+    MuJoCo steps batches outside JAX). ``rollout.run(scenario)``:
+    a batch through the simulator's batch runner (jitted, chunked; sharded under MJX), compiled once per batch
+    shape and mesh.
     """
 
     def __init__(self, cfg: StepdownConfig):
@@ -200,11 +221,11 @@ class StepdownRollout:
         return so.outcome(res._replace(trace=None), self.setup.ids, self.cfg.max_tilt, self.cfg.min_progress)
 
     def __call__(self, params: crawl.CrawlParams, scenario: Scenario) -> tuple[StepdownOutcome, mjx.Data]:
-        st = self.setup
-        params, scenario = backend.forbid_derivatives((params, scenario), st.impl)
-        if st.impl == "warp":  # Warp shares one contact buffer over a batch: no per-instance mjx.Data
-            raise ValueError("the one-instance rollout needs impl='jax' (MuJoCo Warp keeps one contact buffer for a "
-                             "whole batch); run warp batches with rollout.run(scenario)")
+        st = setup(self.cfg, differentiable=True)
+        params, scenario = st.backend.forbid_derivatives((params, scenario))
+        if st.backend.one_instance_error is not None:
+            raise ValueError(f"the one-instance rollout needs impl='jax' ({st.backend.one_instance_error}); run "
+                             f"{st.impl} batches with rollout.run(scenario)")
         mx1 = hmodel.instance_model(st.mx, st.ids, scenario.terrain)
         q0 = start_qpos(jnp.asarray(hmodel.standing_qpos(st.m), st.mx.qpos0.dtype), scenario.start_distance,
                         scenario.lateral_offset, scenario.yaw, scenario.terrain.platform_height, xp=jnp)
@@ -213,20 +234,18 @@ class StepdownRollout:
         res = sim.rollout(mx1, st.ids, d0, self.controller, params, cfg, self.metrics, None, scenario.push)
         return self.outcome(res), res.data
 
-    def runner(self, mesh=None) -> sim.BatchRunner:
-        """The batch runner (one per mesh), built once and kept."""
+    def runner(self, mesh=None):
+        """The simulator's batch runner (one per mesh), built once and kept."""
         key = None if mesh is None else (tuple(mesh.devices.flat), mesh.axis_names)
         if key not in self._runners:
-            self._runners[key] = sim.make_batch_runner(self.setup.ids, self.controller, self.sim_config, self.metrics,
-                                                       self.record, params_axes=0, mesh=mesh)
+            self._runners[key] = self.setup.backend.make_runner(self.setup.ids, self.controller, self.sim_config,
+                                                                self.metrics, self.record, params_axes=0, mesh=mesh)
         return self._runners[key]
 
     def run(self, scenario: Scenario, mesh=None, progress: Callable[[float, float], None] | None = None,
             chunk_seconds: float | None = None) -> tuple[StepdownOutcome, sim.RolloutResult]:
         """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, metrics, trace)."""
-        st = self.setup
-        mb = hmodel.batch_model(st.mx, st.ids, scenario.terrain)
-        d0 = initial_batch_data(st, mb, scenario)
+        mb, d0 = batch_inputs(self.setup, scenario)
         res = self.runner(mesh)(mb, d0, scenario.params, scenario.push, progress=progress, chunk_seconds=chunk_seconds)
         return self._outcomes(res._replace(trace=None)), res
 

@@ -17,7 +17,6 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
-from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
 from hyqjax.studies import stepdown
 from hyqjax.studies.sweep.outcomes import count_outcomes
@@ -35,18 +34,18 @@ def default_chunk_size(devices=None) -> int:
 
 def device_layout(devices=None, impl: str = "jax") -> dict:
     """What an instance's numerics depend on besides its inputs: platform, device kind, devices per program and
-    the MJX implementation (``impl`` resolved: ``jax`` or ``warp``)."""
+    the simulator (``impl`` resolved: ``jax``, ``warp`` or ``c``)."""
     devices = list(jax.local_devices() if devices is None else devices)
     return dict(platform=devices[0].platform, device_kind=devices[0].device_kind, devices=len(devices),
-                impl=backend.resolve_impl(impl))
+                impl=backend.resolve_impl(impl, stepdown.SUPPORTED_IMPLS))
 
 
 _RUNNERS: dict = {}
 
 
 def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices: tuple):
-    """A :class:`hyqjax.sim.rollout.BatchRunner` of the step-down closed loop (cached: chunks reuse the executable),
-    sharded over ``devices``; with sensor noise / latency the crawl is wrapped by :func:`sensed_controller`."""
+    """The simulator's batch runner of the step-down closed loop (cached: chunks reuse the executable), sharded over
+    ``devices`` under MJX; with sensor noise / latency the crawl is wrapped by :func:`sensed_controller`."""
     key = (cfg, sensed, max_delay, devices)
     if key in _RUNNERS:
         return _RUNNERS[key]
@@ -56,8 +55,8 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
         ctrl = sensed_controller(ctrl, max_delay)
     mesh = sim.batch_mesh(list(devices)) if len(devices) > 1 else None
     # buckets=False: a chunk is the sweep's own fixed batch shape (its chunk size, part of the store's layout).
-    run = sim.make_batch_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
-                                buckets=False)
+    run = st.backend.make_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
+                                 buckets=False)
     _RUNNERS[key] = (run, st.m, st.mx, st.ids)
     return _RUNNERS[key]
 
@@ -75,9 +74,8 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
     padded = {k: np.concatenate([v, np.repeat(v[-1:], pad_to - n, 0)], 0) for k, v in rows.items()}
     scenario, sensor = build_scenario(padded, spec)
     cfg = dataclasses.replace(spec.stepdown_config(), impl=impl)
-    run, _, mx, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
-    mb = hmodel.batch_model(mx, ids, scenario.terrain)
-    d0 = stepdown.initial_batch_data(stepdown.setup(cfg), mb, scenario)
+    run, _, _, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
+    mb, d0 = stepdown.batch_inputs(stepdown.setup(cfg), scenario)
     params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)
     res = run(mb, d0, params, scenario.push, progress=progress or _no_progress, chunk_seconds=1.0)
     if sensor is not None:
@@ -106,7 +104,7 @@ class LocalExecutor:
 
     def __init__(self, devices=None, impl: str = "auto"):
         self.devices = tuple(jax.local_devices() if devices is None else devices)
-        self.impl = backend.resolve_impl(impl)
+        self.impl = backend.resolve_impl(impl, stepdown.SUPPORTED_IMPLS)
 
     def layout(self) -> dict:
         return device_layout(self.devices, self.impl)

@@ -1,0 +1,187 @@
+"""The C MuJoCo backend (``impl="c"``, hyqjax.sim.cpu_backend): its per-instance models, its physics batch, the
+choice of backend, and its agreement with MJX-JAX on the step-down (trajectories over the first 0.6 s, outcomes of
+24 s runs).
+
+The unit tests build no MJX model; the two agreement tests run MJX-JAX on the CPU (marked slow). The first reuses
+the program of tests/test_stepdown.py's Warp test (same scenario and config), the second runs the scenario of
+tests/test_stepdown.py's 24 s fixture, which itself now runs on C MuJoCo (``impl="auto"`` on a CPU).
+"""
+from __future__ import annotations
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from hyqjax.sim import backend
+from hyqjax.sim import cpu_backend as cb
+from hyqjax.sim import model as hmodel
+
+
+def _stand(m, d, q0, ticks):
+    """``ticks`` steps of a joint PD holding the standing keyframe ``q0``."""
+    for _ in range(ticks):
+        d.ctrl[:] = 300.0 * (q0[7:] - d.qpos[7:]) - 10.0 * d.qvel[6:]
+        mujoco.mj_step(m, d)
+
+
+def test_per_instance_models_hold_the_terrain_and_payload(hyq):
+    m, ids = hyq
+    terrain = hmodel.InstanceTerrain.make([0.0, 0.21], friction=[0.4, 1.1], payload_mass=[0.0, 8.0],
+                                          payload_com=[(0, 0, 0), (0.05, -0.02, 0.0)])
+    m0, m1 = cb.batch_models(m, ids, terrain)
+    assert m1.geom_pos[ids.platform_geom, 2] == pytest.approx(0.21 - hmodel.PLATFORM_HALF_SIZE[2], abs=1e-7)
+    for g in (ids.floor_geom, ids.platform_geom):
+        assert m0.geom_friction[g, 0] == pytest.approx(0.4, abs=1e-7)
+        assert m1.geom_friction[g, 0] == pytest.approx(1.1, abs=1e-6)
+    assert m1.body_mass[ids.payload_body] == pytest.approx(8.0) and m0.body_mass[ids.payload_body] == 0.0
+    np.testing.assert_allclose(m1.body_ipos[ids.payload_body], (0.05, -0.02, -0.1), atol=1e-7)
+    # The source model is not modified, and every instance has its own arrays.
+    assert m.geom_pos[ids.platform_geom, 2] == pytest.approx(-hmodel.PLATFORM_HALF_SIZE[2])
+    assert m0.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_MIDPHASE)
+
+
+def test_a_moved_platform_collides_like_a_compiled_one(hyq):
+    """The platform raised per instance (geom_pos, midphase off) carries HyQ exactly as a model compiled with
+    the platform at that height: same contacts, same state after 0.2 s of standing on it."""
+    m, ids = hyq
+    h = 0.24
+    compiled = hmodel.model_spec(platform_height=h).compile()
+    compiled.opt.timestep, compiled.opt.iterations, compiled.opt.ls_iterations = (m.opt.timestep, m.opt.iterations,
+                                                                                  m.opt.ls_iterations)
+    (moved,) = cb.batch_models(m, ids, hmodel.InstanceTerrain.make([h]))
+    q0 = hmodel.standing_qpos(m, base_xy=(-0.5, 0.0), ground_height=h)
+    states = []
+    for mm in (compiled, moved):
+        d = mujoco.MjData(mm)
+        d.qpos[:] = q0
+        _stand(mm, d, q0, 100)
+        states.append((d.qpos.copy(), d.ncon, d.sensordata.copy()))
+    assert states[0][1] == states[1][1] >= 4  # the four feet on the platform
+    np.testing.assert_allclose(states[1][0], states[0][0], atol=1e-9)
+    np.testing.assert_allclose(states[1][2], states[0][2], atol=1e-6)
+
+
+def test_physics_batch_steps_and_packs_the_view(hyq):
+    """CPhysics on 2 threads equals a plain mj_step loop; the packed row unpacks into the view's fields, with
+    ``qfrc_gen = qfrc_bias + M qacc``; a frozen instance is not stepped."""
+    m, ids = hyq
+    terrain = hmodel.InstanceTerrain.make([0.0, 0.0, 0.0], friction=[0.8, 0.9, 1.0])
+    models = cb.batch_models(m, ids, terrain)
+    q0 = hmodel.standing_qpos(m)
+    phys = cb.CPhysics(models, np.broadcast_to(q0, (3, m.nq)), ids.trunk_body, threads=2, dtype=np.float64)
+    ref = [mujoco.MjData(mm) for mm in models]
+    for d in ref:
+        d.qpos[:] = q0
+    try:
+        for _ in range(20):
+            tau = np.stack([300.0 * (q0[7:] - d.qpos[7:]) - 10.0 * d.qvel[6:] for d in ref])
+            for d, t, mm in zip(ref, tau, models):
+                d.ctrl[:] = t
+                mujoco.mj_step(mm, d)
+            v = phys.unpack(phys.step(tau, np.zeros(3, bool)))
+        for i, (d, mm) in enumerate(zip(ref, models)):
+            np.testing.assert_array_equal(v.qpos[i], d.qpos)
+            np.testing.assert_array_equal(v.qvel[i], d.qvel)
+            assert v.time[i] == pytest.approx(d.time)
+            np.testing.assert_array_equal(v.sensordata[i], d.sensordata)
+            np.testing.assert_array_equal(v.site_xpos[i], d.site_xpos)
+            np.testing.assert_array_equal(v.geom_xmat[i], d.geom_xmat.reshape(-1, 3, 3))
+            mq = np.zeros(m.nv)
+            mujoco.mj_mulM(mm, d, mq, d.qacc)
+            np.testing.assert_allclose(v.qfrc_gen[i], d.qfrc_bias + mq, atol=1e-9)
+        before = v.qpos[1].copy()
+        v = phys.unpack(phys.step(np.zeros((3, 12)), np.array([False, True, False])))
+        np.testing.assert_array_equal(v.qpos[1], before)
+        assert not np.array_equal(v.qpos[0], ref[0].qpos)
+    finally:
+        phys.close()
+
+
+def test_observation_reads_the_weight_on_the_feet(hyq):
+    """The foot forces the controller sees (sim/observe.py, from C MuJoCo's qfrc_bias + M qacc) carry HyQ's weight
+    when it stands still: their vertical components sum to m g within 5% (measured: 3.6% high; the estimate
+    takes the contact at the foot's centre, the legs' Jacobians from hyqjax.core.kinematics)."""
+    m, ids = hyq
+    (mm,) = cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0]))
+    q0 = hmodel.standing_qpos(m)
+    phys = cb.CPhysics([mm], q0[None], ids.trunk_body, threads=1)
+    d = mujoco.MjData(mm)
+    d.qpos[:] = q0
+    for _ in range(300):  # settle under the PD, then read one tick
+        tau = 300.0 * (q0[7:] - d.qpos[7:]) - 10.0 * d.qvel[6:]
+        d.ctrl[:] = tau
+        mujoco.mj_step(mm, d)
+        v = phys.unpack(phys.step(tau[None], np.zeros(1, bool)))
+        last = tau
+    phys.close()
+    from hyqjax.sim import observe
+
+    obs = jax.jit(lambda vv, t: observe.observe_view(ids, vv, t))(jax.tree_util.tree_map(lambda x: x[0], v),
+                                                                  np.asarray(last, np.float32))
+    # foot_force is in the trunk frame; the trunk stands level, so its z is the vertical.
+    assert float(np.sum(obs.foot_force[:, 2])) == pytest.approx(float(mm.body_subtreemass[1] * 9.81), rel=0.05)
+
+
+def test_auto_picks_c_without_an_accelerator_for_forward_runs(monkeypatch):
+    monkeypatch.setattr(backend, "accelerator_available", lambda: False)
+    monkeypatch.setattr(backend, "warp_installed", lambda: False)
+    assert backend.resolve_impl("auto", backend.ALL_IMPLS) == "c"
+    assert backend.resolve_impl("auto", backend.ALL_IMPLS, differentiable=True) == "jax"
+    assert backend.resolve_impl("auto") == "jax"  # a task on MJX only (bounding)
+    with pytest.raises(ValueError, match="impl must be one of auto, jax, warp for this task, got 'c'"):
+        backend.resolve_impl("c")
+    monkeypatch.setattr(backend, "accelerator_available", lambda: True)
+    assert backend.resolve_impl("auto", backend.ALL_IMPLS) == "jax"
+    c = backend.get("c")
+    assert not c.supports_gradients and c.one_instance_error and backend.get("c") is c
+
+
+def test_a_derivative_through_c_is_an_error_naming_impl():
+    import jax.numpy as jnp
+
+    f = lambda x: jnp.sum(backend.get("c").forbid_derivatives(x) ** 2)  # noqa: E731
+    assert float(f(jnp.arange(3.0))) == pytest.approx(5.0)
+    with pytest.raises(ValueError, match=r"impl='c' is not differentiable.*impl='jax'"):
+        jax.grad(f)(jnp.arange(3.0))
+
+
+# ---------------------------------------------------------------- agreement with MJX-JAX (MJX compiles: slow)
+
+
+@pytest.mark.slow
+def test_c_follows_mjx_over_the_first_300_ticks():
+    """Two step-down instances (16 and 24 cm, reflex on) for 0.6 s on C MuJoCo (float64) and MJX-JAX (float32):
+    the final states agree to a tenth of a millimetre and a milliradian (measured: about 1e-6), the crawl's
+    progress to 0.1 mm, and the strike and contact flags are equal."""
+    from hyqjax.studies import stepdown
+
+    sc, _ = stepdown.make_scenarios([0.16, 0.24], [True], 2, seed=0)
+    runs = {}
+    for impl in ("c", "jax"):  # the jax program is the one of test_stepdown's Warp test
+        out, res = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=0.6, impl=impl)).run(sc)
+        runs[impl] = (jax.tree_util.tree_map(np.asarray, out), np.asarray(res.data.qpos), np.asarray(res.data.qvel))
+    (oc, qc, vc), (oj, qj, vj) = runs["c"], runs["jax"]
+    np.testing.assert_allclose(qc[:, :3], qj[:, :3], atol=1e-4)
+    np.testing.assert_allclose(qc[:, 3:], qj[:, 3:], atol=1e-3)
+    np.testing.assert_allclose(vc, vj, atol=2e-2)
+    np.testing.assert_allclose(oc.progress, oj.progress, atol=1e-4)
+    for k in ("shin_contact", "trunk_strike", "diverged", "lost_footholds", "n_steps"):
+        np.testing.assert_array_equal(getattr(oc, k), getattr(oj, k), err_msg=k)
+
+
+@pytest.mark.slow
+def test_c_and_mjx_step_down_outcomes_agree():
+    """The 24 s step-down of tests/test_stepdown.py (16 and 24 cm, reflex off and on) on both simulators: every
+    instance has the same outcome (completed, clean, each failure reason)."""
+    from hyqjax.crawl import controller as crawl
+    from hyqjax.studies import stepdown
+    from hyqjax.studies.stepdown_outcome import FAILURE_REASONS
+
+    scenario, _ = stepdown.make_scenarios((0.16, 0.24), [False, True], 1, seed=0,
+                                          params=crawl.CrawlParams.make(forward_velocity=0.1))
+    cols = {impl: stepdown.run_batch(scenario, stepdown.StepdownConfig(duration=24.0, impl=impl))[0]
+            for impl in ("c", "jax")}
+    for k in ("completed", "clean", *FAILURE_REASONS):
+        np.testing.assert_array_equal(cols["c"][k], cols["jax"][k], err_msg=k)
+    assert cols["c"]["completed"].any() and not cols["c"]["completed"].all()  # both kinds of outcome occur
