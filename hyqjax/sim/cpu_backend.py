@@ -36,6 +36,7 @@ import copy
 import functools
 import logging
 import os
+import time
 import types
 from typing import Any
 
@@ -269,6 +270,36 @@ class CBatchRunner:
         self._phys: CPhysics | None = None
         self._init = jax.jit(self._init_fn, compiler_options=COMPILER_OPTIONS)
         self._advance = jax.jit(self._advance_fn, static_argnums=2, compiler_options=COMPILER_OPTIONS)
+        self._executables: dict = {}
+        self._compile_t0: float | None = None
+        self.last_timing: dict = {}
+
+    def _executable(self, name: str, fn, args: tuple, static: tuple = ()):
+        """The compiled ``fn`` for the shapes of ``args``, compiled ahead of time on first use; the compile phase is
+        announced to :func:`hyqjax.sim.runner.compile_listener` and timed apart from the simulation, as
+        :class:`hyqjax.sim.runner.BatchRunner` does."""
+        from hyqjax.sim import runner
+
+        key = (name, static, runner._signature(args))
+        exe = self._executables.get(key)
+        if exe is None:
+            if self._compile_t0 is None:
+                self._compile_t0 = time.perf_counter()
+                runner._notify("start", batch=None)
+            t0 = time.perf_counter()
+            lowered = fn.lower(*args, *static)
+            self.last_timing["trace_s"] += time.perf_counter() - t0
+            exe = self._executables[key] = lowered.compile()
+        return exe
+
+    def _end_compile_phase(self, batch: int) -> None:
+        from hyqjax.sim import runner
+
+        if self._compile_t0 is not None:
+            dt = time.perf_counter() - self._compile_t0
+            self._compile_t0 = None
+            self.last_timing["compile_s"] += dt
+            runner._notify("end", batch=batch, seconds=dt)
 
     def chunk_ticks(self, chunk_seconds: float | None) -> int:
         """Ticks per chunk (:meth:`hyqjax.sim.runner.BatchRunner.chunk_ticks`)."""
@@ -352,20 +383,32 @@ class CBatchRunner:
         phys = CPhysics(models, d0.qpos, self.ids.trunk_body, self.cfg.substeps, push, self.threads, dtype)
         self._phys = phys
         n, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
+        n_inst = len(models)
+        self._compile_t0 = None
+        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=n_inst, passes=1, instances=n_inst)
         try:
             with _warnings_to_log():
                 view0 = phys.unpack(jnp.asarray(phys.packed()))
-                carry = self._init(view0, params)
+                init = self._executable("init", self._init, (view0, params))
+                carry = init(view0, params)
+                advance = self._executable("advance", self._advance, (carry, params), (k,))
+                self._end_compile_phase(n_inst)
+                t_sim = time.perf_counter()
                 for done in range(0, n, k):
-                    carry, tr = self._advance(carry, params, k)
+                    carry, tr = advance(carry, params)
                     traces.append(tr)
                     if progress is not None:
                         jax.block_until_ready(carry.tick)
                         progress((done + k) * dt, n * dt)
                 jax.block_until_ready(carry)
+                self.last_timing["simulate_s"] = time.perf_counter() - t_sim
         finally:
+            self._compile_t0 = None
             phys.close()
             self._phys = None
+        from hyqjax.sim import runner
+
+        runner._notify("done", **self.last_timing)
         trace = None
         if self.record is not None:
             trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
