@@ -289,3 +289,190 @@ def test_selection_steps_include_start_and_last():
     assert study.selection_steps(study.StudyConfig(select_instances=0)) == ()
     assert study.start_params(study.StudyConfig()).shin_remedy == 1.0
     assert study.start_params(study.StudyConfig(remedy=False)).shin_remedy == 0.0
+
+
+# ------------------------------------------------------------------ parameterisations, search methods, wall-clock study
+
+
+def test_parameterisations_sizes_and_start_point_rows():
+    from hyqjax.studies.tune import schedule
+
+    base = crawl.CrawlParams.make(shin_remedy=True)
+    sizes = {n: schedule.make(n).size for n in schedule.NAMES}
+    assert sizes == dict(shared=14, per_leg=56, per_leg_cond=68, per_leg_cond_all=98)
+    for n in schedule.NAMES:
+        p = schedule.make(n)
+        assert len(p.names) == p.size == len(set(p.names))
+        th = p.theta_of(base)
+        table, cond = p.split(jnp.asarray(th))
+        np.testing.assert_allclose(np.asarray(table), np.tile(p.space.theta_of(base), (4, 1)), rtol=1e-6)
+        assert not np.any(np.asarray(cond))
+        # the start point runs the start parameters on every leg, whatever the features
+        sp = p.scheduled(jnp.asarray(th, jnp.float32), base)
+        for leg in range(4):
+            q = p.params_at(sp, leg, jnp.asarray([0.7, 0.4, 0.5], jnp.float32))
+            for c in p.space.coords:
+                own = q.reflex if c.owner == "reflex" else q
+                ref = base.reflex if c.owner == "reflex" else base
+                assert float(getattr(own, c.name)) == pytest.approx(float(getattr(ref, c.name)), rel=1e-4), c.name
+
+
+def test_per_leg_and_conditioned_coordinates_act_where_declared():
+    from hyqjax.studies.tune import schedule
+
+    base = crawl.CrawlParams.make(shin_remedy=True)
+    p = schedule.make("per_leg_cond")
+    th = p.theta_of(base)
+    i_rf = p.names.index("k_base[RF]")
+    i_cond = p.names.index("k_base~search_depth")
+    th2 = th.copy()
+    th2[i_rf] += 1.0
+    th2[i_cond] = 2.0
+    sp = p.scheduled(jnp.asarray(th2, jnp.float32), base)
+    k = lambda leg, phi: float(p.params_at(sp, leg, jnp.asarray(phi, jnp.float32)).reflex.k_base)  # noqa: E731
+    assert k(0, [0, 0, 0]) == pytest.approx(1500.0, rel=1e-4)  # LF untouched
+    assert k(1, [0, 0, 0]) > 1600.0  # RF's own row
+    assert k(0, [0, 0.5, 0]) > k(0, [0, 0, 0])  # conditioned on the search depth
+    assert k(0, [1.0, 0, 0]) == pytest.approx(k(0, [0, 0, 0]), rel=1e-6)  # not on the payload
+    # every theta gives valid parameters on every leg (bounded maps)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        d = p.describe(th + 3.0 * rng.standard_normal(p.size))
+        assert all(np.isfinite(v) for v in d.values())
+        assert all(0.0 < d[f"m_min[{leg}]"] < d[f"m_max[{leg}]"] < spmod.M_NOMINAL for leg in schedule.LEGS)
+
+
+def test_features_are_the_controllers_own_measurements():
+    from hyqjax.core import robot
+    from hyqjax.core.types import Observation
+    from hyqjax.studies.tune import schedule
+
+    st = crawl.crawl_init(crawl.CrawlParams.make(), _standing_obs())
+    obs = _standing_obs(extra_kg=7.5)
+    import dataclasses
+
+    st = dataclasses.replace(st, search_depth=jnp.asarray(0.06, jnp.float32), deep=jnp.asarray([True, False, False, False]))
+    phi = np.asarray(schedule.features(st, obs))
+    assert phi[0] == pytest.approx(7.5 / schedule.PAYLOAD_SCALE, rel=1e-4)
+    assert phi[1] == pytest.approx(0.06 / schedule.DEPTH_SCALE, rel=1e-5)
+    assert phi[2] == pytest.approx(0.25)
+    del robot, Observation
+
+
+def _standing_obs(extra_kg: float = 0.0):
+    from hyqjax.core import robot
+    from hyqjax.core.types import Observation
+
+    w = (robot.TOTAL_MASS + extra_kg) * robot.GRAVITY / 4.0
+    q = jnp.asarray(robot.Q_STANDING, jnp.float32)
+    return Observation(q=q, qd=jnp.zeros(12, jnp.float32), quat=jnp.asarray([1.0, 0, 0, 0], jnp.float32),
+                       gyro=jnp.zeros(3, jnp.float32), foot_force=jnp.tile(jnp.asarray([0, 0, w], jnp.float32), (4, 1)),
+                       tau=jnp.zeros(12, jnp.float32), time=jnp.asarray(0.0, jnp.float32))
+
+
+class _FakeClock:
+    """A clock that advances by a fixed cost per evaluation (tests of the checkpoint semantics)."""
+
+    def __init__(self):
+        self.now, self.charged, self.physics_steps = 0.0, 0.0, 0
+
+    def elapsed(self):
+        return self.now + self.charged
+
+    def charge(self, s):
+        self.charged += s
+
+
+def test_checkpoints_get_the_iterate_finished_before_them():
+    from hyqjax.studies.tune import search
+
+    clk = _FakeClock()
+    tr = search.Trace((1.0, 2.5), np.zeros(2))
+    clk.now, clk.physics_steps = 0.8, 10
+    tr.advance(clk, np.ones(2), {})
+    clk.now, clk.physics_steps = 1.6, 20  # passes 1 s: the iterate finished at 0.8 s is what it had then
+    tr.advance(clk, 2 * np.ones(2), {})
+    assert tr.points == [dict(seconds=1.0, theta=[1.0, 1.0], physics_steps=10)]
+    assert tr.finish(clk)[1] == dict(seconds=2.5, theta=[2.0, 2.0], physics_steps=20)
+    clk2 = _FakeClock()
+    clk2.charge(5.0)  # compile longer than the budget: the start point at every checkpoint
+    tr2 = search.Trace((1.0, 2.0), np.full(2, 3.0))
+    assert tr2.done(clk2)
+    assert [p["theta"] for p in tr2.finish(clk2)] == [[3.0, 3.0], [3.0, 3.0]]
+
+
+@pytest.mark.parametrize("method", ["cma_es", "snes", "open_es", "random_search"])
+def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers(method):
+    """A synthetic 'success' (Bernoulli with probability decreasing with the distance to a target, M draws per
+    generation shared by all members): every method improves the returned iterate's true rate and counts its
+    physics steps; members of one generation see the same draws."""
+    from hyqjax.studies.tune import search
+
+    target = np.array([1.0, -1.0, 0.5, 0.0])
+    rate = lambda th: np.exp(-0.5 * np.sum((np.asarray(th) - target) ** 2, -1))  # noqa: E731
+    seen = []
+
+    clk = _FakeClock()  # 50 ms per generation: 24 generations, whatever the machine's load
+
+    def f_gen(thetas, g):
+        clk.now += 0.05
+        u = np.random.default_rng([7, g]).random(64)  # common random numbers of generation g
+        seen.append(u)
+        clean = u[None, :] < rate(thetas)[:, None]
+        return dict(fitness=clean.mean(1), clean=clean, completed=clean, physics_steps=thetas.shape[0] * 64 * 10)
+
+    tr = search.Trace((0.6, 1.2), np.zeros(4))
+    out = search.run_search(method, f_gen, np.zeros(4), 12, 0.3, clk, tr, seed=1)
+    assert rate(out) > rate(np.zeros(4)) + 0.1
+    assert len(tr.log) == 24 and clk.physics_steps == 24 * 13 * 64 * 10
+    assert [r["generation"] for r in tr.log] == list(range(24))
+    assert len(tr.finish(clk)) == 2
+
+
+def test_charges_keep_compile_not_run_time():
+    import time as _t
+
+    from hyqjax.studies.tune import search
+
+    ch = search.Charges()
+    calls = []
+
+    def first():
+        calls.append(1)
+        _t.sleep(0.2 if len(calls) == 1 else 0.05)
+
+    ch.measure("p", first, first)
+    assert 0.1 < ch.seconds["p"] < 0.2
+    ch.measure("p", first, first)
+    assert len(calls) == 2  # measured once per program
+
+
+@pytest.mark.parametrize("kw, match", [(dict(methods=("pso",)), "methods must be"),
+                                       (dict(dims=("huge",)), "dims must be"),
+                                       (dict(wall_minutes=(3.0, 1.0)), "wall_minutes must be"),
+                                       (dict(wall_minutes=()), "wall_minutes must be"),
+                                       (dict(train_instances=6), "multiple of 4"),
+                                       (dict(heldout_seed=0), "heldout_seed must differ"),
+                                       (dict(hybrid_split=1.0), "hybrid_split"),
+                                       (dict(start_from=(("cma_es/shared", (0.0,)),)), "start_from"),
+                                       (dict(start_from=(("pso/shared", (0.0,) * 14),)), "start_from")])
+def test_wallclock_config_validation(kw, match):
+    from hyqjax.studies.tune import wallclock
+
+    with pytest.raises(ValueError, match=match):
+        wallclock.WallClockConfig(**kw)
+
+
+@pytest.mark.parametrize("argv, match", [(["--study", "--methods", "cma_es,pso"], "--methods must be"),
+                                         (["--dims", "per_leg,shared"], "take one name each"),
+                                         (["--study", "--wall-minutes", "0"], "--wall-minutes must be"),
+                                         (["--study", "--gradient-study"], "two different studies"),
+                                         (["--start-from", "/nonexistent.json"], "--start-from")])
+def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
+    from hyqjax.cli.app import main
+
+    out = tmp_path / "o"
+    assert main(["tune", "--out", str(out), *argv]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0] and "Traceback" not in lines[0], lines
+    assert not out.exists() or not any(out.iterdir())
