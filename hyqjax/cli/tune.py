@@ -36,7 +36,7 @@ def _names(s):
 
 
 #: Settings of ``--quick`` (a CPU-sized default run; every value can still be given explicitly).
-QUICK = dict(wall_minutes=(0.75, 1.5), popsize=3, train_instances=4, heldout=16, heldout_chunk=1, window_ticks=100,
+QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=8, heldout_chunk=2, window_ticks=100,
              grad_train_per_height=1)
 
 
@@ -66,6 +66,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="fitness = clean + this x completed (completion breaks ties)")
     g.add_argument("--hybrid-split", type=float, default=0.5, help="share of the budget the hybrid searches first")
     g.add_argument("--heldout-chunk", type=int, default=8, help="parameter sets per held-out batch")
+    g.add_argument("--no-compile-charge", action="store_true",
+                   help="do not charge each method the compile of its programs (default: charged, as a stand-alone "
+                        "run pays it)")
     g.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier default run or study; its last iterate of the "
                         "same method and parameterisation is the start")
@@ -246,6 +249,7 @@ def _validate_wallclock(args) -> None:
             windows_per_scenario=args.windows_per_scenario, window_lead=args.lead, window_ticks=args.window_ticks,
             lr=args.lr, hybrid_split=args.hybrid_split, heldout=args.heldout, heldout_seed=args.heldout_seed,
             heldout_duration=args.heldout_duration, heldout_chunk=args.heldout_chunk, impl=args.impl,
+            charge_compile=not args.no_compile_charge,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)

@@ -106,6 +106,8 @@ class WallClockConfig:
     impl: str = "auto"
     #: warm starts: ``(("method/dim", theta), ...)``, the start of that method on that parameterisation
     start_from: tuple = ()
+    #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
+    charge_compile: bool = True
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -125,6 +127,10 @@ class WallClockConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if "open_es" in self.methods and self.popsize % 2:
+            raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
+        if not isinstance(self.charge_compile, bool):
+            raise ValueError(f"charge_compile must be True or False, got {self.charge_compile!r}")
         if self.train_instances % len(forward.TRAIN_HEIGHTS):
             raise ValueError(f"train_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
                              f"training height), got {self.train_instances}")
@@ -260,8 +266,9 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
 
 
 def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log):
+    charge = clock.charge if cfg.charge_compile else (lambda s: None)
     if method in search.SEARCH_METHODS or method == "hybrid":
-        clock.charge(charges.seconds["forward"])
+        charge(charges.seconds["forward"])
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           progress=progress)
@@ -276,7 +283,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
             step_fn, evaluate, cost = grad.programs(param)
         for name in grad.charge_names(param):
-            clock.charge(charges.seconds[name])
+            charge(charges.seconds[name])
         search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
                             progress=progress)
 
