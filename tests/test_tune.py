@@ -476,3 +476,52 @@ def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, 
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and match in lines[0] and "Traceback" not in lines[0], lines
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.slow
+def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_path, monkeypatch):
+    """A tiny study on the CPU (random search and CMA-ES on the shared 14 coordinates, 0.5 s runs, one compiled
+    forward program for training and held-out): members with equal parameters get equal outcomes on the common
+    scenarios; every checkpoint's iterate is evaluated on the same held-out instances; a second call on the same
+    directory keeps every finished stage and runs nothing; another configuration there is refused."""
+    from hyqjax.studies.tune import forward, schedule, wallclock
+
+    cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.02, 0.04),
+                                    popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
+                                    heldout_duration=0.5, impl="jax", charge_compile=False)
+    base = wallclock.start_params(cfg)
+    p = schedule.make("shared")
+    ev = forward.SuccessEvaluator(p, base, 0.5, "jax")
+    th0 = p.theta_of(base)
+    r = ev(np.stack([th0, th0 + 0.5, th0]), forward.train_scenarios(4, 3, 0))
+    for k in ("clean", "completed", "progress", "mean_mobility"):
+        np.testing.assert_array_equal(r["columns"][k][0], r["columns"][k][2])  # same member, same scenarios
+    assert not np.array_equal(r["columns"]["progress"][0], r["columns"]["progress"][1])
+    assert r["physics_steps"] == 3 * 4 * 250
+    monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)  # one compiled program for the study
+    res = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
+    assert res["complete"]
+    members = {"table1", "start"} | {wallclock.member_key(m, "shared", s) for m in cfg.methods
+                                     for s in cfg.checkpoints_s}
+    assert set(res["heldout"]) == members
+    assert all(h["n"] == 6 for h in res["heldout"].values())
+    for m in cfg.methods:
+        run = res["runs"][f"{m}/shared"]
+        assert [pt["seconds"] for pt in run["points"]] == list(cfg.checkpoints_s)
+        assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250
+        assert [pt["physics_steps"] for pt in run["points"]] == sorted(pt["physics_steps"] for pt in run["points"])
+    assert {(c["method"], len(c["points"])) for c in res["budget_curves"]} == {(m, 2) for m in cfg.methods}
+    again = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
+    assert again["runs"] == json.loads(json.dumps(res["runs"])) and again["heldout"] == res["heldout"]
+    from hyqjax.studies.tune import figure
+
+    assert os.path.getsize(figure.plot_wallclock(again, str(tmp_path / "t.png"))) > 0
+    assert "random_search / shared (14)" in figure.wallclock_markdown(again)
+    with pytest.raises(RuntimeError, match="another configuration"):
+        wallclock.run_wallclock_study(dataclasses_replace(cfg, seed=5), str(tmp_path), log=lambda s: None)
+
+
+def dataclasses_replace(obj, **kw):
+    import dataclasses
+
+    return dataclasses.replace(obj, **kw)

@@ -36,7 +36,7 @@ def _names(s):
 
 
 #: Settings of ``--quick`` (a CPU-sized default run; every value can still be given explicitly).
-QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=8, heldout_chunk=2, window_ticks=100,
+QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=4, heldout_chunk=4, window_ticks=100,
              grad_train_per_height=1)
 
 

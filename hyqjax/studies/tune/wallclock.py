@@ -234,6 +234,10 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     """One method on one parameterisation under the wall-clock budget: its checkpoints and log."""
     theta0 = dict(cfg.start_from).get(run_key(method, param.name))
     theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
+    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
+                       f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
+            grad.programs(param)
     clock = search.Clock()
     trace = search.Trace(cfg.checkpoints_s, theta0)
     gen_seed = cfg.seed + 1 + 1000 * list(schedule.NAMES).index(param.name)
@@ -279,9 +283,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
                                      progress=progress, stop_at=cfg.hybrid_split * cfg.checkpoints_s[-1])
             theta_start = mean
             log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its mean")
-        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
-                       f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
-            step_fn, evaluate, cost = grad.programs(param)
+        step_fn, evaluate, cost = grad.programs(param)
         for name in grad.charge_names(param):
             charge(charges.seconds[name])
         search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
