@@ -220,7 +220,7 @@ def _validate_wallclock(args) -> None:
     if args.train_instances % 4:
         raise UsageError(f"--train-instances must be a multiple of 4 (one share per training height), "
                          f"got {args.train_instances}")
-    check_range("--train-duration", args.train_duration, 1.0, 120.0, "s")
+    check_range("--train-duration", args.train_duration, 0.1, 120.0, "s")
     check_range("--completed-weight", args.completed_weight, 0.0, 10.0)
     check_range("--hybrid-split", args.hybrid_split, 0.0, 1.0, lo_open=True, hi_open=True)
     check_range("--heldout-chunk", args.heldout_chunk, 1, 4096, integer=True)

@@ -136,7 +136,7 @@ class WallClockConfig:
                              f"training height), got {self.train_instances}")
         if self.heldout_seed == self.seed:
             raise ValueError(f"heldout_seed must differ from seed (held-out scenarios), got {self.heldout_seed}")
-        for k, lo, hi in (("train_duration", 1.0, 120.0), ("heldout_duration", 1.0, 120.0), ("window_lead", 0.1, 60.0)):
+        for k, lo, hi in (("train_duration", 0.1, 120.0), ("heldout_duration", 0.1, 120.0), ("window_lead", 0.1, 60.0)):
             if not (lo <= float(getattr(self, k)) <= hi):
                 raise ValueError(f"{k} must be in [{lo}, {hi}] s, got {getattr(self, k)}")
         for k, lo, hi in (("sigma", 0.0, 5.0), ("lr", 0.0, 1.0), ("hybrid_split", 0.0, 1.0)):
