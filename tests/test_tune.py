@@ -525,3 +525,35 @@ def dataclasses_replace(obj, **kw):
     import dataclasses
 
     return dataclasses.replace(obj, **kw)
+
+
+def test_gradient_diagnostics_measure_snr_and_rank_correlation():
+    """With a window objective that ranks held-out success perfectly (lower loss, higher success) the rank
+    correlation is -1; the signal-to-noise ratio is |mean| / (std / sqrt(W)) of the per-window gradients."""
+    from types import SimpleNamespace
+
+    from hyqjax.studies.tune import objective as obj_mod
+    from hyqjax.studies.tune import schedule, wallclock
+
+    cfg = wallclock.WallClockConfig(methods=("gradient",), dims=("shared",))
+    p = schedule.make("shared")
+    base = wallclock.start_params(cfg)
+    pw = np.stack([np.full(p.size, 1.0), np.full(p.size, 3.0)])[:, None, :]  # (W=2, L=1, P): mean 2, std sqrt(2)
+
+    def step_fn(th):
+        return dict(per_window_prefix_grad=pw, ok=np.array([True, True]))
+
+    def evaluate(ths):
+        return -np.asarray(ths)[:, 0]  # loss falls as theta_0 grows
+
+    grad = SimpleNamespace(fns={"shared": (step_fn, evaluate, 0)}, obj=obj_mod.ClosedLoopObjective(ticks=10))
+    th0 = p.theta_of(base)
+    members = {"start": (p, th0, base)}
+    heldout = {"start": dict(clean=0.1)}
+    for i in range(7):
+        members[f"m{i}"] = (p, th0 + 0.1 * (i + 1), base)
+        heldout[f"m{i}"] = dict(clean=0.2 + 0.05 * i)
+    d = wallclock.gradient_diagnostics(cfg, dict(heldout=heldout), {"shared": p}, base, grad, members)["shared"]
+    assert d["objective_vs_heldout_spearman"] == pytest.approx(-1.0)
+    assert d["snr_mean"] == pytest.approx(2.0 / (np.sqrt(2.0) / np.sqrt(2.0)))
+    assert len(d["iterates"]) == 8 and d["windows"] == 2

@@ -363,6 +363,10 @@ def _run_wallclock(args) -> int:
             k = wallclock.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
             if k in ho:
                 print(f"held-out ({n} instances): {k} (returned) {f(ho[k])}")
+    for d, g in res.get("diagnostics", {}).items():
+        print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
+              f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
+              f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
     w = wallclock.winner(res, cfg.wall_minutes[-1])
     if args.study and w:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "

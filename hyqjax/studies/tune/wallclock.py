@@ -364,9 +364,53 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
             forward.evaluate_sets(hev, [members[k] for k in left], sc, cfg.heldout_chunk, done=done,
                                   progress=lambda a, n, w: log(f"  held-out {a}/{n} sets ({time.perf_counter() - t:.1f} s)"))
     res["budget_curves"] = budget_curves(res)
+    if grad is not None and "diagnostics" not in res:
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  gradient diagnostics: {time.perf_counter() - t0:.0f} s"):
+            res["diagnostics"] = gradient_diagnostics(cfg, res, params, base, grad, members)
+        save()
+    elif "diagnostics" in prev:
+        res["diagnostics"] = prev["diagnostics"]
     res["complete"] = True
     save()
     return res
+
+
+def gradient_diagnostics(cfg: WallClockConfig, res: dict, params: dict, base, grad: _Gradient, members: dict) -> dict:
+    """What decides whether the gradient can pay, per parameterisation with a gradient run:
+
+    * the gradient's signal-to-noise ratio across windows at the start point, ``|mean| / (std / sqrt(W))`` per
+      coordinate (:func:`.study.gradient_stats`), and the median per-window gradient norm;
+    * how well the window objective ranks held-out success: Spearman's rank correlation between the window
+      objective ``L`` (lower is better) and held-out clean success over every iterate of that parameterisation
+      that was evaluated (a useful objective gives a clearly negative correlation).
+    """
+    from scipy import stats
+
+    from hyqjax.studies.tune import study
+
+    out = {}
+    for d, param in params.items():
+        if param.name not in grad.fns:
+            continue
+        step_fn, evaluate, _ = grad.fns[param.name]
+        r0 = step_fn(param.theta_of(base))
+        gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
+        snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
+        keys = [k for k, (p, _, b) in members.items() if p.name == d and k in res["heldout"] and k != "table1"]
+        thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])
+        k6 = 6  # the window program's batch (search.run_gradient's line search)
+        vals = []
+        for a in range(0, len(thetas), k6):
+            chunk = thetas[a:a + k6]
+            pad = np.concatenate([chunk, np.repeat(chunk[-1:], k6 - len(chunk), 0)])
+            vals.extend(np.asarray(evaluate(pad), np.float64)[: len(chunk)].tolist())
+        clean = [res["heldout"][k]["clean"] for k in keys]
+        rho = stats.spearmanr(vals, clean).statistic if len(set(clean)) > 1 and len(set(vals)) > 1 else float("nan")
+        out[d] = dict(snr_mean=float(np.nanmean(snr)), snr_median=float(np.nanmedian(snr)),
+                      snr_above_2=float(np.mean(snr > 2.0)), median_window_grad_norm=gs["median_norm"],
+                      windows=int(np.sum(np.asarray(r0["ok"]))), objective_vs_heldout_spearman=float(rho),
+                      iterates=keys, window_objective=vals, heldout_clean=clean)
+    return out
 
 
 def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict:
