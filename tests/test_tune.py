@@ -429,22 +429,26 @@ def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers
     assert len(tr.finish(clk)) == 2
 
 
-def test_charges_keep_compile_not_run_time():
+def test_charges_count_compile_not_run_time():
     import time as _t
 
     from hyqjax.studies.tune import search
 
     ch = search.Charges()
-    calls = []
-
-    def first():
-        calls.append(1)
-        _t.sleep(0.2 if len(calls) == 1 else 0.05)
-
-    ch.measure("p", first, first)
-    assert 0.1 < ch.seconds["p"] < 0.2
-    ch.measure("p", first, first)
-    assert len(calls) == 2  # measured once per program
+    f = jax.jit(lambda x: jnp.cumsum(jnp.sin(x) @ x.T, 0))
+    x = jnp.ones((64, 64))
+    with ch.track("p"):
+        jax.block_until_ready(f(x))
+    assert ch.seconds["p"] > 0.0
+    with ch.track("again"):  # compiled already: nothing to charge
+        jax.block_until_ready(f(x))
+        _t.sleep(0.05)
+    assert ch.seconds["again"] < 0.01
+    first = ch.seconds["p"]
+    with ch.track("p"):
+        jax.block_until_ready(jax.jit(lambda y: y * 3)(x))
+    assert ch.seconds["p"] == first  # measured once per program
+    assert ch.one_off("w", lambda: _t.sleep(0.05) or 7) == 7 and ch.seconds["w"] >= 0.05
 
 
 @pytest.mark.parametrize("kw, match", [(dict(methods=("pso",)), "methods must be"),

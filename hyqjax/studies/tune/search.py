@@ -25,6 +25,7 @@ hybrid (:func:`run_hybrid`) runs CMA-ES for ``split`` of the budget and then the
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -55,26 +56,47 @@ class Clock:
         return time.perf_counter() - self.t0 + self.charged
 
 
+#: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
+_TRACKING: list = []
+
+
+def _on_event(name, secs, **_):
+    if name in COMPILE_EVENTS:
+        for acc in _TRACKING:
+            acc[0] += secs
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_event)
+
+
 class Charges:
-    """Compile (and one-off setup) seconds per program name, measured the first time a program runs in this
-    process: ``measure(name, first, again)`` times ``first()`` and, when given, ``again()`` (the same call,
-    compiled), and keeps ``t(first) - t(again)`` (or ``t(first)``) as the program's charge."""
+    """Compile seconds per program name: :meth:`track` adds up JAX's compile events (:data:`COMPILE_EVENTS`;
+    tracing of nested functions counts once per level) during a program's first use in this process, so no run
+    is spent on measuring; :meth:`one_off` keeps the whole time of a one-off setup (e.g. the gradient's snapshot
+    windows: compile and forward run)."""
 
     def __init__(self, known: dict | None = None):
         self.seconds: dict[str, float] = dict(known or {})
 
-    def measure(self, name: str, first: Callable, again: Callable | None = None):
+    @contextlib.contextmanager
+    def track(self, name: str):
         if name in self.seconds:
-            return None
+            yield
+            return
+        acc = [0.0]
+        _TRACKING.append(acc)
+        try:
+            yield
+        finally:
+            _TRACKING.remove(acc)
+        self.seconds[name] = acc[0]
+
+    def one_off(self, name: str, fn: Callable):
         t = time.perf_counter()
-        out = first()
-        t1 = time.perf_counter() - t
-        t2 = 0.0
-        if again is not None:
-            t = time.perf_counter()
-            again()
-            t2 = time.perf_counter() - t
-        self.seconds[name] = max(t1 - t2, 0.0)
+        out = fn()
+        self.seconds.setdefault(name, time.perf_counter() - t)
         return out
 
 

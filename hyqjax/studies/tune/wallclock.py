@@ -3,10 +3,11 @@
 :func:`run_wallclock_study` (``hyqjax tune --study``, ``python -m experiments.tune_study``):
 
 1. **compile charges** (:class:`.search.Charges`): the forward success program (population ``N = popsize + 1``
-   members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) and, for the
-   gradient methods, the snapshot windows, the ``jacfwd`` step and the forward window program (MJX-JAX) are timed
-   once; each method's clock starts with the charges of the programs it uses, so every method pays its compile
-   as a stand-alone run would, whichever ran first in this process;
+   members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) compiles in the
+   first search method's clock (JAX's compile events are added up); the gradient's snapshot windows (compile and
+   forward run), its ``jacfwd`` step and forward window program (MJX-JAX) are built before a gradient method's
+   clock starts and timed; every method's clock then starts with the charges of the programs it uses and did not
+   compile itself, so every method pays its compile as a stand-alone run would, whichever ran first;
 2. **runs**: for every parameterisation in ``dims`` (:mod:`.schedule`) and every method in ``methods``
    (:mod:`.search`: ``cma_es``, ``snes``, ``open_es``, ``random_search`` maximise clean success on training
    scenarios, common random numbers per generation; ``gradient`` is Adam + line search on the closed-loop window
@@ -195,10 +196,8 @@ class _Gradient:
         self.su = windows.setup()
         sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + 11, params=base)
         spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
-        t = time.perf_counter()
-        self.win = windows.make_windows(sc, spec, self.su)
-        jax.block_until_ready(self.win.valid)
-        charges.seconds.setdefault("gradient_windows", time.perf_counter() - t)
+        self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
+            windows.make_windows(sc, spec, self.su)))
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
         self.fns: dict = {}
         self.charges = charges
@@ -215,10 +214,10 @@ class _Gradient:
             th = jnp.asarray(param.theta_of(self.base), jnp.float32)
             k = 6  # c = 0 and the five line-search scales of search.run_gradient
             cands = jnp.tile(th[None], (k, 1))
-            self.charges.measure(f"jacfwd/{param.name}", lambda: jax.block_until_ready(vj(th, self.win)),
-                                 lambda: jax.block_until_ready(vj(th, self.win)))
-            self.charges.measure(f"window_value/{param.name}", lambda: jax.block_until_ready(fval(cands, self.win)),
-                                 lambda: jax.block_until_ready(fval(cands, self.win)))
+            with self.charges.track(f"jacfwd/{param.name}"):
+                jax.block_until_ready(vj(th, self.win))
+            with self.charges.track(f"window_value/{param.name}"):
+                jax.block_until_ready(fval(cands, self.win))
             n_win = self.win.size
             cost = objective.physics_steps(n_win, self.obj, param.size) + k * objective.physics_steps(n_win, self.obj)
             self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
@@ -243,7 +242,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     gen_seed = cfg.seed + 1 + 1000 * list(schedule.NAMES).index(param.name)
 
     def f_gen(thetas, g):
-        return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g), param=param)
+        with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
+            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g), param=param)
 
     last = [0.0]
 
@@ -271,8 +271,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
 
 def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log):
     charge = clock.charge if cfg.charge_compile else (lambda s: None)
-    if method in search.SEARCH_METHODS or method == "hybrid":
-        charge(charges.seconds["forward"])
+    if (method in search.SEARCH_METHODS or method == "hybrid") and "forward" in charges.seconds:
+        charge(charges.seconds["forward"])  # compiled by an earlier method: charged as if compiled here
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           progress=progress)
@@ -315,15 +315,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     charges = search.Charges()
     n_members = cfg.popsize + 1
     todo = [(m, d) for d in cfg.dims for m in cfg.methods if run_key(m, d) not in res["runs"]]
-    if todo:
-        log(f"compiling the forward success program ({n_members} members x {cfg.train_instances} scenarios x "
-            f"{cfg.train_duration:g} s, impl {res['impl']}) ...")
-        th0 = np.tile(params[cfg.dims[0]].theta_of(base)[None], (n_members, 1))
-        warm = forward.train_scenarios(cfg.train_instances, cfg.seed + 999_999, 0)
-        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling and timing the forward program: "
-                       f"{time.perf_counter() - t0:.0f} s"):
-            charges.measure("forward", lambda: evaluator(th0, warm), lambda: evaluator(th0, warm))
-        log(f"forward program: {charges.seconds['forward']:.1f} s compile (charged to every search method)")
+    log(f"forward success program: {n_members} members x {cfg.train_instances} scenarios x {cfg.train_duration:g} s "
+        f"per generation, impl {res['impl']}; it compiles in the first search method's clock and is charged to the "
+        f"others")
     grad = None
     if any(m in search.GRADIENT_METHODS for m, _ in todo):
         log("snapshot windows for the gradient (MJX-JAX) ...")
