@@ -259,7 +259,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     t_wall = time.perf_counter()
     beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
                      f"{cfg.checkpoints_s[-1]:.0f} s (charged compile {clock.charged:.1f} s), "
-                     f"{clock.physics_steps:,} physics steps, {len(trace.log)} iterations")
+                     f"{clock.physics_steps:,} physics steps, {len(trace.log)} iterations"
+                     + ("" if trace.log else " (the first one compiles its programs unless an earlier run did)"))
     with beat:
         _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log)
     points = trace.finish(clock)
