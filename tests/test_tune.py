@@ -250,6 +250,31 @@ def test_per_robot_gradients_match_single_robot(cl64):
         assert not np.allclose(np.asarray(r["grad"][0]), np.asarray(r["grad"][1]))
 
 
+@pytest.mark.slow
+def test_scheduled_parameterisation_gradient_matches_central_differences(cl64):
+    """The window objective through the per-leg, feature-conditioned crawl (parameters selected per tick):
+    jacfwd against central differences on the same float64 window, along random directions and along the
+    swinging front leg's own K_base row; the hind legs' rows do not act in this window (zero gradient)."""
+    from hyqjax.studies.tune import schedule
+
+    win, sp, _, base, obj, _ = cl64
+    with jax.enable_x64(True):
+        su = windows.setup(dtype="float64")
+        par = schedule.Parameterisation("test", sp, per_leg=True, conditioned=("k_base", "search_forward"))
+        vj = objective.make_value_and_jac(win, base, par, obj, su)
+        th = jnp.asarray(par.theta_of(base))
+        r = vj(th, win)
+        g = np.asarray(r["grad"])
+        assert np.all(np.isfinite(g)) and bool(r["ok"][0])
+        rng = np.random.default_rng(1)
+        for v in [rng.standard_normal(par.size), np.eye(par.size)[par.names.index(f"k_base[{schedule.LEGS[int(win.leg[0])]}]")]]:
+            eps = 1e-6
+            fd = (float(vj(th + eps * v, win)["loss"]) - float(vj(th - eps * v, win)["loss"])) / (2 * eps)
+            assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
+        hind = [i for i, n in enumerate(par.names) if n.endswith("[LH]") or n.endswith("[RH]")]
+        assert np.abs(g[hind]).max() < 1e-3 * np.abs(g).max()
+
+
 def test_line_search_never_raises_the_objective_even_with_a_biased_gradient(tmp_path):
     """Adam with backtracking (``AdamConfig.line_search``): with a gradient whose first component has the
     wrong sign (the kind of bias a pathwise gradient through contact events has), plain Adam raises the
@@ -471,7 +496,10 @@ def test_wallclock_config_validation(kw, match):
                                          (["--dims", "per_leg,shared"], "take one name each"),
                                          (["--study", "--wall-minutes", "0"], "--wall-minutes must be"),
                                          (["--study", "--gradient-study"], "two different studies"),
-                                         (["--start-from", "/nonexistent.json"], "--start-from")])
+                                         (["--start-from", "/nonexistent.json"], "--start-from"),
+                                         (["--warm-start", "5"], "--warm-start belongs to --gradient-study"),
+                                         (["--study", "--methods", "open_es", "--popsize", "5"], "popsize must be even"),
+                                         (["--quick", "--study"], "--quick")])
 def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
     from hyqjax.cli.app import main
 

@@ -40,6 +40,12 @@ QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=4, h
              grad_train_per_height=1)
 
 
+#: Options only the gradient study (--gradient-study) uses: refused elsewhere.
+GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "train_heights", "prefixes", "warm_start", "baselines",
+                       "success_instances", "success_duration", "curve_instances", "baseline_wall_s",
+                       "select_instances", "select_every", "offset", "checkpoint_every")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/tune", help="run directory (a study resumes from it)")
     g = p.add_argument_group("the default tuner and the equal-wall-clock study (--study)")
@@ -192,9 +198,14 @@ def _validate_wallclock(args) -> None:
     from hyqjax.studies.tune import schedule, search, wallclock
 
     check_impl(args.impl)
+    defaults = _defaults()
+    for k in GRADIENT_STUDY_ONLY:
+        if getattr(args, k) != getattr(defaults, k):
+            raise UsageError(f"--{k.replace('_', '-')} belongs to --gradient-study; the default tuner and --study "
+                             f"do not use it")
     if args.quick:
         for k, v in QUICK.items():
-            if getattr(args, k, None) in (None, getattr(_defaults(), k, None)):
+            if getattr(args, k, None) in (None, getattr(defaults, k, None)):
                 setattr(args, k, v)
     wm = tuple(args.wall_minutes) if args.wall_minutes else (1.0, 3.0, 10.0)
     check_all("--wall-minutes", wm, 0.0, 600.0, "min", lo_open=True)
@@ -363,6 +374,15 @@ def _run_wallclock(args) -> int:
             k = wallclock.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
             if k in ho:
                 print(f"held-out ({n} instances): {k} (returned) {f(ho[k])}")
+    if not args.study:
+        from hyqjax.studies.tune import schedule
+
+        m, d = cfg.methods[0], cfg.dims[0]
+        par = schedule.make(d, cfg.groups)
+        start = par.describe(par.theta_of(wallclock.start_params(cfg)))
+        got = res["runs"][f"{m}/{d}"]["params"]
+        print("returned parameters (start in brackets): " + ", ".join(
+            f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))
     for d, g in res.get("diagnostics", {}).items():
         print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
               f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
