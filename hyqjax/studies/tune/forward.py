@@ -49,7 +49,8 @@ def train_scenarios(m: int, seed: int, generation: int, heights=TRAIN_HEIGHTS) -
     per = m // len(heights)
     if per * len(heights) != m or per < 1:
         raise ValueError(f"train instances must be a positive multiple of {len(heights)}, got {m}")
-    sc, _ = stepdown.make_scenarios(heights, [True], per, int(np.random.SeedSequence([seed, generation]).generate_state(1)[0]),
+    gen_seed = int(np.random.SeedSequence([seed, generation]).generate_state(1)[0])
+    sc, _ = stepdown.make_scenarios(heights, [True], per, gen_seed,
                                     **TRAIN_RANGES)
     return sc
 
@@ -104,7 +105,9 @@ class SuccessEvaluator:
         dtype = jnp.float32
         table, cond = jnp.asarray(table, dtype), jnp.asarray(cond, dtype)
         n, m = table.shape[0], scenario.batch_size
-        f32 = lambda x: jnp.asarray(x, dtype) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else jnp.asarray(x)  # noqa: E731
+        def f32(x):
+            return jnp.asarray(x, dtype) if jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating) else jnp.asarray(x)
+
         bases = bases or [self.base] * n
         base = jax.tree_util.tree_map(lambda *xs: jnp.stack([f32(x) for x in xs]), *bases)  # (N, ...)
         base = jax.tree_util.tree_map(lambda x: jnp.repeat(x, m, axis=0), base)

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import math
 import time
 from collections.abc import Callable
@@ -243,6 +242,3 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
             progress(clock, trace)
     return np.asarray(theta, np.float64)
 
-
-def dumps_row(row: dict) -> str:
-    return json.dumps(row, default=float)

@@ -142,7 +142,8 @@ class WallClockConfig:
                 raise ValueError(f"{k} must be in [{lo}, {hi}] s, got {getattr(self, k)}")
         for k, lo, hi in (("sigma", 0.0, 5.0), ("lr", 0.0, 1.0), ("hybrid_split", 0.0, 1.0)):
             if not (lo < float(getattr(self, k)) < hi or (k != "hybrid_split" and float(getattr(self, k)) == hi)):
-                raise ValueError(f"{k} must be in ({lo}, {hi}{')' if k == 'hybrid_split' else ']'}, got {getattr(self, k)}")
+                end = ")" if k == "hybrid_split" else "]"
+                raise ValueError(f"{k} must be in ({lo}, {hi}{end}, got {getattr(self, k)}")
         if not (0.0 <= self.completed_weight <= 10.0):
             raise ValueError(f"completed_weight must be in [0, 10], got {self.completed_weight}")
         if not isinstance(self.remedy, bool):
@@ -252,9 +253,10 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
             last[0] = clk.elapsed()
             row = tr.log[-1] if tr.log else {}
             val = row.get("iterate_fitness", row.get("loss_at_theta"))
+            what = "fitness" if "iterate_fitness" in row else "window loss"
             log(f"  {run_key(method, param.name)}: {clk.elapsed():7.1f} / {cfg.checkpoints_s[-1]:.0f} s, "
                 f"{clk.physics_steps:,} physics steps, {len(tr.log)} iterations"
-                + (f", iterate {'fitness' if 'iterate_fitness' in row else 'window loss'} {val:.3f}" if val is not None else ""))
+                + (f", iterate {what} {val:.3f}" if val is not None else ""))
 
     t_wall = time.perf_counter()
     beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
@@ -356,8 +358,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
 
         with heartbeat(log, lambda: f"  held-out: {len(res['heldout'])} of {len(members)} sets done, "
                        f"{time.perf_counter() - t:.0f} s"):
-            forward.evaluate_sets(hev, [members[k] for k in left], sc, cfg.heldout_chunk, done=done,
-                                  progress=lambda a, n, w: log(f"  held-out {a}/{n} sets ({time.perf_counter() - t:.1f} s)"))
+            forward.evaluate_sets(
+                hev, [members[k] for k in left], sc, cfg.heldout_chunk, done=done,
+                progress=lambda a, n, w: log(f"  held-out {a}/{n} sets ({time.perf_counter() - t:.1f} s)"))
     res["budget_curves"] = budget_curves(res)
     if grad is not None and "diagnostics" not in res:
         with heartbeat(log, lambda t0=time.perf_counter(): f"  gradient diagnostics: {time.perf_counter() - t0:.0f} s"):
