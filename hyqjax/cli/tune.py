@@ -1,7 +1,12 @@
-"""Tune the height reflex and the crawl for the step-down by gradient through the closed loop (crawl +
-reflex + joint impedance + MJX), with CMA-ES and random search at the same simulation budget (on the same
-objective and on closed-loop success directly) and a held-out closed-loop evaluation against Table I
-(hyqjax.studies.tune, docs/tuning.md).
+"""Tune the height reflex and the crawl for the step-down (hyqjax.studies.tune, docs/tuning.md). Three modes:
+
+* default: the tuner the equal-wall-clock study chose (``wallclock.DEFAULT_METHOD`` on
+  ``wallclock.DEFAULT_DIM``) for ``--wall-minutes`` (1 3 10), then the held-out evaluation of what it returns
+  next to the start point's and Table I's, and the budget-curve figure (DIR/results.json, DIR/tuning.png);
+  ``--quick`` is a small version for a CPU (a few minutes; it checks the pipeline, its numbers mean little);
+* ``--study``: the equal-wall-clock study (every method in ``--methods`` on every parameterisation in
+  ``--dims``, held-out budget curves against wall-clock and physics steps; hyqjax.studies.tune.wallclock);
+* ``--gradient-study``: the gradient study at equal physics budget (hyqjax.studies.tune.study), where
 
 DIR holds gradient/ (config.json, log.jsonl: one line per Adam step, checkpoint.npz: resumed by the same
 command), results.json (parameters, costs, gradient statistics, baselines, held-out success with Wilson
@@ -16,7 +21,7 @@ from __future__ import annotations
 import argparse
 
 NAME = "tune"
-HELP = "tune the height reflex and crawl by gradient through the closed-loop MJX step-down"
+HELP = "tune the height reflex and crawl on the closed-loop step-down (search, gradient, equal-wall-clock study)"
 ORDER = 30
 
 #: The baselines (the names of :data:`hyqjax.studies.tune.study.METHODS` after the gradient), checked here before
@@ -32,8 +37,53 @@ def _ints(s):
     return tuple(int(x) for x in s.split(",") if x.strip())
 
 
+def _names(s):
+    return tuple(x.strip() for x in s.split(",") if x.strip())
+
+
+#: Settings of ``--quick`` (a CPU-sized default run; every value can still be given explicitly).
+QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=4, heldout_chunk=4, window_ticks=100,
+             grad_train_per_height=1)
+
+
+#: Options only the gradient study (--gradient-study) uses: refused elsewhere.
+GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "train_heights", "prefixes", "warm_start", "baselines",
+                       "success_instances", "success_duration", "curve_instances", "baseline_wall_s",
+                       "select_instances", "select_every", "offset", "checkpoint_every")
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="out/tune", help="run directory (the gradient run resumes from its checkpoint)")
+    p.add_argument("--out", default="out/tune", help="run directory (a study resumes from it)")
+    g = p.add_argument_group("the default tuner and the equal-wall-clock study (--study)")
+    g.add_argument("--study", action="store_true",
+                   help="the equal-wall-clock study: every method on every parameterisation, held-out budget curves")
+    g.add_argument("--quick", action="store_true",
+                   help="a small version of the default tuner for a CPU: %s" % ", ".join(
+                       f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, tuple) else v}"
+                       for k, v in QUICK.items()))
+    g.add_argument("--methods", type=_names, default=None,
+                   help="--study: methods, comma-separated, from cma_es, snes, open_es, random_search, gradient, "
+                        "hybrid (default: all); default tuner: one method (default: the study's winner)")
+    g.add_argument("--dims", type=_names, default=None,
+                   help="parameterisations, comma-separated, from shared (14), per_leg (56), per_leg_cond (68), "
+                        "per_leg_cond_all (98) (--study default: shared,per_leg_cond)")
+    g.add_argument("--wall-minutes", type=float, nargs="+", default=None,
+                   help="wall-clock checkpoints per method (minutes, increasing; the last is the budget; compile "
+                        "included). Default 1 3 10")
+    g.add_argument("--popsize", type=int, default=16, help="population of the search methods (per generation)")
+    g.add_argument("--train-instances", type=int, default=32,
+                   help="training scenarios per generation, the same for every member (a multiple of 4)")
+    g.add_argument("--train-duration", type=float, default=24.0, help="simulated seconds of a training run")
+    g.add_argument("--completed-weight", type=float, default=0.1,
+                   help="fitness = clean + this x completed (completion breaks ties)")
+    g.add_argument("--hybrid-split", type=float, default=0.5, help="share of the budget the hybrid searches first")
+    g.add_argument("--heldout-chunk", type=int, default=8, help="parameter sets per held-out batch")
+    g.add_argument("--no-compile-charge", action="store_true",
+                   help="do not charge each method the compile of its programs (default: charged, as a stand-alone "
+                        "run pays it)")
+    g.add_argument("--start-from", default="",
+                   help="warm start: a results.json of an earlier default run or study; its last iterate of the "
+                        "same method and parameterisation is the start")
     p.add_argument("--objective", default="closed_loop", choices=["closed_loop", "kinematic"],
                    help="closed_loop: jacfwd through MJX windows (default); kinematic: the reflex-only surrogate")
     p.add_argument("--groups", default="k_base,damping,mobility,k_x,delta,body_height,step_length,step_height,"
@@ -53,16 +103,20 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--train-per-height", type=int, default=2, help="training scenarios per height")
     p.add_argument("--windows-per-scenario", type=int, default=2, help="snapshot windows per scenario (legs over the edge)")
     p.add_argument("--lead", type=float, default=10.0, help="forward run that takes the snapshots (s)")
-    p.add_argument("--window-ticks", type=int, default=750, help="window length (control ticks of 2 ms)")
+    p.add_argument("--window-ticks", type=int, default=None,
+                   help="window length (control ticks of 2 ms; default 750, 500 in the wall-clock modes)")
     p.add_argument("--prefixes", type=_ints, default=(50, 125, 250, 500),
                    help="shorter window lengths (ticks) at which the gradient statistics are also reported")
     p.add_argument("--warm-start", type=int, default=0, help="kinematic-surrogate steps before the closed loop")
     p.add_argument("--baselines", default=",".join(BASELINES),
                    help="baselines at the same budget (comma-separated; empty for none)")
-    p.add_argument("--sigma", type=float, default=0.5, help="initial step of CMA-ES and random search (theta units)")
+    p.add_argument("--sigma", type=float, default=None,
+                   help="initial step of the search methods (theta units; default 0.5, 0.3 in the wall-clock modes)")
     p.add_argument("--success-instances", type=int, default=8, help="full runs per candidate for the success baselines")
     p.add_argument("--success-duration", type=float, default=24.0, help="simulated seconds of those runs")
-    p.add_argument("--heldout", type=int, default=36, help="held-out closed-loop instances per method (0: skip)")
+    p.add_argument("--heldout", type=int, default=None,
+                   help="held-out closed-loop instances per parameter set (default 2000; 36 with --gradient-study, "
+                        "where 0 skips)")
     p.add_argument("--heldout-seed", type=int, default=7777, help="held-out seed (never used for training)")
     p.add_argument("--heldout-duration", type=float, default=24.0, help="simulated seconds per held-out instance")
     p.add_argument("--curve-instances", type=int, default=0,
@@ -74,6 +128,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="keep the gradient iterate with the best clean success over this many full runs of "
                         "selection scenarios (counted in the budget; 0: the last iterate)")
     p.add_argument("--select-every", type=int, default=5, help="iterates compared by the selection: every N steps")
+    p.add_argument("--gradient-study", action="store_true",
+                   help="the gradient study at equal physics budget (the options above this group's)")
     p.add_argument("--offset", type=int, default=0, help="window start, control ticks after the snapshot trigger")
     p.add_argument("--checkpoint-every", type=int, default=5, help="checkpoint period (Adam steps)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -86,8 +142,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def validate(args) -> None:
     """Every option checked, the configuration built and the run directory probed before anything is compiled
     or written (a refused command leaves nothing behind)."""
-    from hyqjax.cli.common import check_all, check_impl, check_out_free, check_range, prepare_out
+    from hyqjax.cli.common import UsageError
 
+    if args.study and args.gradient_study:
+        raise UsageError("--study and --gradient-study are two different studies; give one")
+    if args.quick and (args.study or args.gradient_study):
+        raise UsageError("--quick is a small version of the default tuner; it does not combine with --study or "
+                         "--gradient-study")
+    if args.gradient_study:
+        return _validate_gradient_study(args)
+    return _validate_wallclock(args)
+
+
+def _validate_gradient_study(args) -> None:
+    from hyqjax.cli.common import UsageError, check_all, check_impl, check_out_free, check_range, prepare_out
+
+    for opt, val in (("--methods", args.methods), ("--dims", args.dims), ("--wall-minutes", args.wall_minutes),
+                     ("--start-from", args.start_from or None)):
+        if val is not None:
+            raise UsageError(f"{opt} belongs to the default tuner and --study, not to --gradient-study")
+    args.window_ticks = 750 if args.window_ticks is None else args.window_ticks
+    args.sigma = 0.5 if args.sigma is None else args.sigma
+    args.heldout = 36 if args.heldout is None else args.heldout
     check_impl(args.impl)
 
     check_range("--steps", args.steps, 0, 100000, integer=True)
@@ -129,8 +205,130 @@ def validate(args) -> None:
     args.options_checked = True
 
 
-def _names(text: str) -> tuple:
-    return tuple(x.strip() for x in text.split(",") if x.strip())
+
+
+def _validate_wallclock(args) -> None:
+    """The default tuner and --study: every setting checked in one line before anything compiles."""
+    from hyqjax.cli.common import UsageError, check_all, check_impl, check_out_free, check_range, prepare_out
+    from hyqjax.studies.tune import schedule, search, wallclock
+
+    check_impl(args.impl)
+    defaults = _defaults()
+    for k in GRADIENT_STUDY_ONLY:
+        if getattr(args, k) != getattr(defaults, k):
+            raise UsageError(f"--{k.replace('_', '-')} belongs to --gradient-study; the default tuner and --study "
+                             f"do not use it")
+    if args.quick:
+        for k, v in QUICK.items():
+            if getattr(args, k, None) in (None, getattr(defaults, k, None)):
+                setattr(args, k, v)
+    wm = tuple(args.wall_minutes) if args.wall_minutes else (1.0, 3.0, 10.0)
+    check_all("--wall-minutes", wm, 0.0, 600.0, "min", lo_open=True)
+    if list(wm) != sorted(set(wm)):
+        raise UsageError(f"--wall-minutes must be increasing, got {' '.join(f'{x:g}' for x in wm)}")
+    if args.study:
+        methods = args.methods if args.methods is not None else search.METHODS
+        dims = args.dims if args.dims is not None else ("shared", "per_leg_cond")
+    else:
+        methods = args.methods if args.methods is not None else (wallclock.DEFAULT_METHOD,)
+        dims = args.dims if args.dims is not None else (wallclock.DEFAULT_DIM,)
+        if len(methods) != 1 or len(dims) != 1:
+            raise UsageError(f"--methods and --dims take one name each without --study, got "
+                             f"{','.join(methods)} / {','.join(dims)}")
+    for opt, vals, allowed in (("--methods", methods, search.METHODS), ("--dims", dims, tuple(schedule.NAMES))):
+        bad = [v for v in vals if v not in allowed]
+        if bad or not vals:
+            raise UsageError(f"{opt} must be names among {','.join(allowed)}, got {','.join(vals) or 'nothing'}")
+        if len(set(vals)) != len(vals):
+            raise UsageError(f"{opt} names a method or parameterisation twice: {','.join(vals)}")
+    check_range("--popsize", args.popsize, 2, 4096, integer=True)
+    check_range("--train-instances", args.train_instances, 4, 100000, integer=True)
+    if args.train_instances % 4:
+        raise UsageError(f"--train-instances must be a multiple of 4 (one share per training height), "
+                         f"got {args.train_instances}")
+    check_range("--train-duration", args.train_duration, 0.1, 120.0, "s")
+    check_range("--completed-weight", args.completed_weight, 0.0, 10.0)
+    check_range("--hybrid-split", args.hybrid_split, 0.0, 1.0, lo_open=True, hi_open=True)
+    check_range("--heldout-chunk", args.heldout_chunk, 1, 4096, integer=True)
+    args.window_ticks = 500 if args.window_ticks is None else args.window_ticks
+    args.sigma = 0.3 if args.sigma is None else args.sigma
+    args.heldout = 2000 if args.heldout is None else args.heldout
+    check_range("--window-ticks", args.window_ticks, 1, 20000, integer=True)
+    check_range("--sigma", args.sigma, 0.0, 5.0, lo_open=True)
+    check_range("--heldout", args.heldout, 1, 10**6, integer=True)
+    check_range("--seed", args.seed, 0, 2**31 - 1, integer=True)
+    check_range("--heldout-seed", args.heldout_seed, 0, 2**31 - 1, integer=True)
+    check_range("--heldout-duration", args.heldout_duration, 1.0, 120.0, "s")
+    check_range("--train-per-height", args.train_per_height, 1, 1000, integer=True)
+    check_range("--windows-per-scenario", args.windows_per_scenario, 1, 8, integer=True)
+    check_range("--lead", args.lead, 0.1, 60.0, "s")
+    check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
+    if args.heldout_seed == args.seed:
+        raise UsageError(f"--heldout-seed must differ from --seed (the held-out scenarios), got {args.heldout_seed}")
+    groups = _names(args.groups)
+    try:
+        cfg = wallclock.WallClockConfig(
+            methods=tuple(methods), dims=tuple(dims), wall_minutes=wm, groups=groups, remedy=not args.paper_crawl,
+            seed=args.seed, popsize=args.popsize, train_instances=args.train_instances,
+            train_duration=args.train_duration, sigma=args.sigma, completed_weight=args.completed_weight,
+            grad_train_per_height=getattr(args, "grad_train_per_height", None) or args.train_per_height,
+            windows_per_scenario=args.windows_per_scenario, window_lead=args.lead, window_ticks=args.window_ticks,
+            lr=args.lr, hybrid_split=args.hybrid_split, heldout=args.heldout, heldout_seed=args.heldout_seed,
+            heldout_duration=args.heldout_duration, heldout_chunk=args.heldout_chunk, impl=args.impl,
+            charge_compile=not args.no_compile_charge,
+            start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
+    except ValueError as e:
+        msg = str(e)
+        opt = msg.split(" ")[0].replace("_", "-")
+        raise UsageError(f"--{opt}: {msg}" if not msg.startswith("--") else msg) from None
+    check_out_free(args.out)
+    prepare_out(args.out)
+    try:
+        wallclock.previous(args.out, cfg)
+    except RuntimeError as e:
+        raise UsageError(str(e)) from None
+    args.wallclock_config = cfg
+    args.options_checked = True
+
+
+def _defaults():
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    return p.parse_args([])
+
+
+def _start_from(path: str, methods, dims, groups) -> tuple:
+    """``(("method/dim", theta), ...)`` from an earlier results.json: each run's last iterate, for the runs of the
+    same method and parameterisation; refused in one line when absent or of another size."""
+    import json
+    import os
+
+    from hyqjax.cli.common import UsageError
+    from hyqjax.studies.tune import schedule
+
+    if not os.path.isfile(path):
+        raise UsageError(f"--start-from {path}: no such file (give a results.json of an earlier run)")
+    try:
+        with open(path) as f:
+            runs = json.load(f).get("runs", {})
+    except (OSError, ValueError) as e:
+        raise UsageError(f"--start-from {path}: not a readable results.json ({e.__class__.__name__})") from None
+    out = []
+    for m in methods:
+        for d in dims:
+            r = runs.get(f"{m}/{d}")
+            if r is None:
+                continue
+            theta = r.get("theta") or []
+            size = schedule.make(d, groups).size
+            if len(theta) != size:
+                raise UsageError(f"--start-from {path}: {m}/{d} has {len(theta)} parameters, the parameterisation "
+                                 f"{d} of --groups has {size}")
+            out.append((f"{m}/{d}", tuple(float(x) for x in theta)))
+    if not out:
+        raise UsageError(f"--start-from {path}: no run of {','.join(methods)} on {','.join(dims)} in it "
+                         f"(it holds {', '.join(sorted(runs)) or 'none'})")
+    return tuple(out)
 
 
 def _config(args):
@@ -167,10 +365,55 @@ def run(args) -> int:
 
     # The run directory's lock first, before anything heavy is imported: a second run stops (or waits) at once.
     with DirLock(args.out, wait=args.wait, what="tune run"):
-        return _run_locked(args)
+        if args.gradient_study:
+            return _run_gradient_study(args)
+        return _run_wallclock(args)
 
 
-def _run_locked(args) -> int:
+def _run_wallclock(args) -> int:
+    import os
+
+    from hyqjax.studies.tune import figure, wallclock
+
+    cfg = args.wallclock_config
+    what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
+    print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
+          f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
+    res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True))
+    fig = figure.plot_wallclock(res, os.path.join(args.out, "tuning.png"))
+    print(figure.wallclock_markdown(res))
+    ho = res["heldout"]
+    f = lambda h: (f"clean {h['clean']:.3f} [{h['clean_ci95'][0]:.3f}, {h['clean_ci95'][1]:.3f}], "  # noqa: E731
+                   f"completed {h['completed']:.3f} [{h['completed_ci95'][0]:.3f}, {h['completed_ci95'][1]:.3f}]")
+    n = res["heldout_set"]["instances"]
+    print(f"held-out ({n} instances): start point {f(ho['start'])}; Table I, paper crawl {f(ho['table1'])}")
+    for m in cfg.methods:
+        for d in cfg.dims:
+            k = wallclock.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
+            if k in ho:
+                print(f"held-out ({n} instances): {k} (returned) {f(ho[k])}")
+    if not args.study:
+        from hyqjax.studies.tune import schedule
+
+        m, d = cfg.methods[0], cfg.dims[0]
+        par = schedule.make(d, cfg.groups)
+        start = par.describe(par.theta_of(wallclock.start_params(cfg)))
+        got = res["runs"][f"{m}/{d}"]["params"]
+        print("returned parameters (start in brackets): " + ", ".join(
+            f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))
+    for d, g in res.get("diagnostics", {}).items():
+        print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
+              f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
+              f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
+    w = wallclock.winner(res, cfg.wall_minutes[-1])
+    if args.study and w:
+        print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
+              f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the others')")
+    print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
+    return 0
+
+
+def _run_gradient_study(args) -> int:
     from hyqjax.cli.common import UsageError
 
     try:

@@ -1,4 +1,4 @@
-"""Gradient-free baselines at equal simulation budget: CMA-ES (the ``cmaes`` package) and random search.
+"""Gradient-free baselines at equal simulation budget: CMA-ES (``evosax``) and random search.
 
 Both search the same unconstrained ``theta`` (:class:`.space.ParamSpace`) from the same start, on either
 
@@ -11,7 +11,7 @@ tangents costs ``W n (1 + P)`` steps, a candidate on the same windows ``W n``: p
 baseline gets ``1 + P`` candidate evaluations; a candidate judged by success on ``M`` full runs of ``T``
 ticks costs ``M T``.
 
-CMA-ES: ``cmaes.CMA(mean=theta_0, sigma=sigma_0)``, population ``lambda`` (default ``4 + 3 ln P``),
+CMA-ES: ``evosax.algorithms.CMA_ES`` from ``theta_0`` with ``std_init = sigma_0`` (jitted ask / tell), population ``lambda`` (default ``4 + 3 ln P``),
 generations until the budget is spent; the reported point is the best candidate evaluated (and the final
 mean, on request of the caller). Random search: ``theta_0 + sigma N(0, I)``, the best candidate kept.
 ``max_wall_s`` (> 0) also stops a search at that wall time (the budget spent is returned). Every
@@ -24,6 +24,8 @@ import math
 import time
 from collections.abc import Callable
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 
@@ -36,26 +38,32 @@ def cma_es(f_pop: Callable[[np.ndarray], np.ndarray], theta0: np.ndarray, budget
            sigma: float = 0.5, popsize: int | None = None, seed: int = 0, progress=None,
            max_wall_s: float = 0.0) -> dict:
     """Minimise ``f_pop`` by CMA-ES within ``budget`` physics steps (``cost_per_eval`` per candidate)."""
-    from cmaes import CMA
+    from hyqjax.studies.tune.search import make_strategy
 
     theta0 = np.asarray(theta0, np.float64)
     p = theta0.size
     lam = popsize or (4 + int(3 * math.log(p)))
-    opt = CMA(mean=theta0.copy(), sigma=sigma, population_size=lam, seed=seed)
+    es, params = make_strategy("cma_es", p, lam, sigma)
+    key = jax.random.key(seed)
+    key, k0 = jax.random.split(key)
+    state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
+    ask, tell = jax.jit(es.ask), jax.jit(es.tell)
     spent, best, best_theta, hist, t0 = 0, math.inf, theta0.copy(), [], time.time()
     while spent + lam * cost_per_eval <= budget and not (max_wall_s and time.time() - t0 > max_wall_s):
-        xs = np.stack([opt.ask() for _ in range(lam)])
+        key, ka, kt = jax.random.split(key, 3)
+        pop, state = ask(ka, state, params)
+        xs = np.asarray(pop, np.float64)
         vals = np.asarray(f_pop(xs), np.float64)
         vals = np.where(np.isfinite(vals), vals, np.inf)
         spent += lam * cost_per_eval
         i = int(np.argmin(vals))
         if vals[i] < best:
             best, best_theta = float(vals[i]), xs[i].copy()
-        opt.tell([(x, float(v) if np.isfinite(v) else 1e9) for x, v in zip(xs, vals)])
+        state, _ = tell(kt, pop, jnp.asarray(np.where(np.isfinite(vals), vals, 1e9), jnp.float32), state, params)
         _record(hist, spent, best, best_theta, t0)
         if progress is not None:
             progress(spent, best)
-    return dict(theta=best_theta, value=best, mean=np.asarray(opt.mean), history=hist, popsize=lam,
+    return dict(theta=best_theta, value=best, mean=np.asarray(state.mean, np.float64), history=hist, popsize=lam,
                 generations=len(hist), budget_spent=spent)
 
 

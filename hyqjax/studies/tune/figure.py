@@ -84,3 +84,71 @@ def summary_markdown(res: dict) -> str:
             lines.append(f"| {p['ticks']} | {p['median_norm']:.3g} | {p['max_norm']:.3g} | {snr.mean():.2f} | "
                          f"{snr.min():.2f} / {snr.max():.2f} |")
     return "\n".join(lines)
+
+
+def plot_wallclock(res: dict, path: str) -> str:
+    """Budget curves of the equal-wall-clock study: held-out clean (top) and completed (bottom) success against
+    wall-clock minutes (left) and physics steps (right), one colour per method and one line style per
+    parameterisation; Table I and the start point as bands (Wilson 95%)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 2, figsize=(13, 8.5), sharey="row")
+    ho = res.get("heldout", {})
+    methods = list(dict.fromkeys(c["method"] for c in res.get("budget_curves", [])))
+    dims = list(dict.fromkeys(c["dim"] for c in res.get("budget_curves", [])))
+    styles = ["-", "--", ":", "-."]
+    for row, metric in enumerate(("clean", "completed")):
+        for col, xkey in enumerate(("minutes", "physics_steps")):
+            ax = axes[row, col]
+            for key, color, label in (("table1", "0.85", "Table I, paper crawl"), ("start", "0.65", "start")):
+                if key in ho:
+                    lo, hi = ho[key][f"{metric}_ci95"]
+                    ax.axhspan(lo, hi, color=color, alpha=0.6, label=f"{label} ({ho[key][metric]:.2f})")
+            for c in res.get("budget_curves", []):
+                pts = sorted(c["points"], key=lambda p: p[xkey])
+                if not pts:
+                    continue
+                x = np.asarray([max(p[xkey], 1) for p in pts], float)
+                y = np.asarray([p[metric] for p in pts])
+                lo = np.asarray([p[f"{metric}_ci95"][0] for p in pts])
+                hi = np.asarray([p[f"{metric}_ci95"][1] for p in pts])
+                ax.errorbar(x, y, yerr=[y - lo, hi - y], fmt="o" + styles[dims.index(c["dim"]) % 4], capsize=2,
+                            color=f"C{methods.index(c['method'])}", label=f"{c['method']} / {c['dim']} ({c['size']})")
+            ax.set_xscale("log")
+            ax.set_xlabel("wall-clock budget [min], compile included" if xkey == "minutes"
+                          else "physics steps [tangents counted]")
+            if col == 0:
+                ax.set_ylabel(f"held-out {metric} success")
+            ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=7, ncol=2)
+    fig.suptitle(f"equal wall-clock tuning study, {res.get('device', '')}, impl {res.get('impl', '')}, "
+                 f"{res.get('heldout_set', {}).get('instances', '?')} held-out instances", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def wallclock_markdown(res: dict) -> str:
+    """Markdown table of the wall-clock study: held-out clean / completed [95%] per method, dim and checkpoint."""
+    ho = res.get("heldout", {})
+    minutes = res["config"]["wall_minutes"]
+    f = lambda h, k: f"{h[k]:.3f} [{h[k + '_ci95'][0]:.3f}, {h[k + '_ci95'][1]:.3f}]"  # noqa: E731
+    lines = ["| parameters | " + " | ".join(f"clean @ {m:g} min" for m in minutes) + " | completed @ "
+             f"{minutes[-1]:g} min | physics steps | charged compile (s) |",
+             "|---|" + "---|" * len(minutes) + "---|---:|---:|"]
+    for key in ("table1", "start"):
+        if key in ho:
+            lines.append(f"| {key} | " + " | ".join(f(ho[key], "clean") for _ in minutes)
+                         + f" | {f(ho[key], 'completed')} | – | – |")
+    for c in res.get("budget_curves", []):
+        r = res["runs"][f"{c['method']}/{c['dim']}"]
+        by = {round(p["minutes"], 6): p for p in c["points"]}
+        cells = [f(by[round(m, 6)], "clean") if round(m, 6) in by else "–" for m in minutes]
+        last = by.get(round(minutes[-1], 6))
+        lines.append(f"| {c['method']} / {c['dim']} ({c['size']}) | " + " | ".join(cells)
+                     + f" | {f(last, 'completed') if last else '–'} | {r['physics_steps']:,} | {r['charged_s']:.1f} |")
+    return "\n".join(lines)

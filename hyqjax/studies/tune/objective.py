@@ -46,6 +46,7 @@ from hyqjax.core import kinematics, robot, spatial
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import params as rparams
 from hyqjax.sim import contacts
+from hyqjax.sim import rollout as sim
 from hyqjax.studies.tune import windows as wmod
 from hyqjax.studies.tune.space import ParamSpace
 
@@ -101,8 +102,17 @@ def _sp(x, s):
 
 def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpace, obj: ClosedLoopObjective,
                  su: wmod.Setup) -> dict[str, jax.Array]:
-    """Terms of ONE window (``vmap`` over windows; ``mx`` that window's model)."""
-    p = space.crawl_params(theta, base)
+    """Terms of ONE window (``vmap`` over windows; ``mx`` that window's model). ``space`` is a
+    :class:`.space.ParamSpace` (one parameter set) or a :class:`.schedule.Parameterisation` (parameters selected
+    per tick by swing leg and features; the stability term is the largest over the legs' rows)."""
+    from hyqjax.studies.tune import schedule
+
+    sched = isinstance(space, schedule.Parameterisation)  # static
+    if sched:
+        sp = space.scheduled(theta, base)
+        p = space.params_at(sp, 0, jnp.zeros(len(schedule.FEATURES), theta.dtype))
+    else:
+        p = space.crawl_params(theta, base)
     ids, slots = su.ids, su.slots
     dt = float(su.m.opt.timestep)
     dtype = d.qpos.dtype
@@ -113,7 +123,12 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
 
     def body(carry, _):
         d, cs, tau = carry
-        d1, cs1, tau1, info = wmod.tick(mx, ids, p, d, cs, tau, dt)
+        if sched:
+            obs = sim.observe(ids, d, tau, mx)
+            pk = space.params_at(sp, cs.sequence[cs.seq_index], schedule.features(cs, obs).astype(theta.dtype))
+        else:
+            pk = p
+        d1, cs1, tau1, info = wmod.tick(mx, ids, pk, d, cs, tau, dt)
         dist = contacts.slot_distances(d1)
         clear = jnp.sum(_sp(obj.clearance - dist[strike_slots], obj.clearance_soft))
         q = d1.qpos[qadr]
@@ -130,7 +145,12 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
         return (d1, cs1, tau1), y
 
     _, ys = jax.lax.scan(body, (d, cs, tau), None, length=obj.ticks)
-    stab = jax.nn.relu(rparams.stability_number(p.reflex, dt) - 0.9) ** 2
+    if sched:
+        rows = [space.params_at(sp, leg, jnp.zeros(len(schedule.FEATURES), theta.dtype)).reflex for leg in range(4)]
+        sigma = jnp.max(jnp.stack([rparams.stability_number(r, dt) for r in rows]))
+    else:
+        sigma = rparams.stability_number(p.reflex, dt)
+    stab = jax.nn.relu(sigma - 0.9) ** 2
     cum = {k: jnp.cumsum(v) for k, v in ys.items() if k != "x"}
 
     def at(n):

@@ -1,0 +1,244 @@
+"""Tuning methods under a wall-clock budget: success-driven search (CMA-ES, SNES, OpenES, random search), the
+closed-loop gradient, and the hybrid (search, then gradient polish).
+
+Every method runs against a :class:`Clock` and returns, for each checkpoint ``c`` (seconds), the iterate it would
+hand back had it been stopped at ``c``: the last iterate it had finished by then (the start point if it had
+finished none, e.g. while compiling). The clock counts everything a stand-alone run would pay: the compile of
+each program the method uses (:class:`Charges`, measured once per process and *charged* to every method that
+uses the program, so that a method run after another does not profit from its compile), the snapshot windows of
+the gradient, every evaluation and every optimiser update. Physics steps are counted next to it (tangents of
+forward-mode derivatives included).
+
+Success-driven methods (:func:`run_search`) maximise the fitness of :mod:`.forward` (clean success plus
+``w_c`` times completed, on ``M`` training scenarios per generation, the same for every member: common random
+numbers). Per generation the population and one extra member, the iterate the method would return, run in one
+batch (``N = popsize + 1``), so the returned iterate's fitness is logged on the same scenarios:
+
+* ``cma_es``, ``snes``, ``open_es``: ``evosax`` 0.3.2 (jitted ``ask`` / ``tell``; ``tell`` minimises, so it gets
+  ``-F``); the iterate is the search distribution's mean;
+* ``random_search``: candidates ``theta_0 + sigma z`` around the start; the iterate is the incumbent, replaced
+  by a generation's best candidate when that candidate's fitness exceeds the incumbent's on the same scenarios.
+
+The gradient (:func:`run_gradient`) is Adam with the batched line search of :mod:`.optimize` on the closed-loop
+window objective of :mod:`.objective` (``jax.jacfwd`` on MJX-JAX; snapshot windows at the start point). The
+hybrid (:func:`run_hybrid`) runs CMA-ES for ``split`` of the budget and then the gradient from its mean.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search")
+GRADIENT_METHODS = ("gradient", "hybrid")
+METHODS = SEARCH_METHODS + GRADIENT_METHODS
+
+
+class Clock:
+    """Wall seconds since ``start()`` plus the compile time charged so far (:class:`Charges`)."""
+
+    def __init__(self):
+        self.t0 = time.perf_counter()
+        self.charged = 0.0
+        self.physics_steps = 0
+
+    def charge(self, seconds: float) -> None:
+        self.charged += float(seconds)
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0 + self.charged
+
+
+#: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
+_TRACKING: list = []
+
+
+def _on_event(name, secs, **_):
+    if name in COMPILE_EVENTS:
+        for acc in _TRACKING:
+            acc[0] += secs
+
+
+jax.monitoring.register_event_duration_secs_listener(_on_event)
+
+
+class Charges:
+    """Compile seconds per program name: :meth:`track` adds up JAX's compile events (:data:`COMPILE_EVENTS`;
+    tracing of nested functions counts once per level) during a program's first use in this process, so no run
+    is spent on measuring; :meth:`one_off` keeps the whole time of a one-off setup (e.g. the gradient's snapshot
+    windows: compile and forward run)."""
+
+    def __init__(self, known: dict | None = None):
+        self.seconds: dict[str, float] = dict(known or {})
+
+    @contextlib.contextmanager
+    def track(self, name: str):
+        if name in self.seconds:
+            yield
+            return
+        acc = [0.0]
+        _TRACKING.append(acc)
+        try:
+            yield
+        finally:
+            _TRACKING.remove(acc)
+        self.seconds[name] = acc[0]
+
+    def one_off(self, name: str, fn: Callable):
+        t = time.perf_counter()
+        out = fn()
+        self.seconds.setdefault(name, time.perf_counter() - t)
+        return out
+
+
+@dataclasses.dataclass
+class Trace:
+    """What a method did: per generation / step a log row; per checkpoint the iterate it would return."""
+
+    checkpoints: tuple
+    theta0: np.ndarray
+    log: list = dataclasses.field(default_factory=list)
+    points: list = dataclasses.field(default_factory=list)
+    _last: tuple = None
+
+    def __post_init__(self):
+        self._last = (np.asarray(self.theta0, np.float64).copy(), 0)
+
+    def done(self, clock: Clock) -> bool:
+        return clock.elapsed() >= self.checkpoints[-1]
+
+    def advance(self, clock: Clock, theta, row: dict | None = None) -> None:
+        """Record that ``theta`` is the iterate after the work just finished (``clock`` now); checkpoints that
+        passed during that work get the iterate from before it."""
+        now = clock.elapsed()
+        for c in self.checkpoints[len(self.points):]:
+            if now < c:
+                break
+            self.points.append(dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._last[1])))
+        self._last = (np.asarray(theta, np.float64).copy(), int(clock.physics_steps))
+        if row is not None:
+            row.update(wall_s=round(now, 3), physics_steps=int(clock.physics_steps))
+            self.log.append(row)
+
+    def finish(self, clock: Clock) -> list:
+        """Checkpoints not reached (the budget ran out at the last one): the final iterate."""
+        for c in self.checkpoints[len(self.points):]:
+            self.points.append(dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._last[1])))
+        return self.points
+
+
+def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float = 0.05):
+    """An ``evosax`` strategy and its parameters (``std_init`` / ``std_schedule`` = ``sigma``)."""
+    import optax
+    from evosax.algorithms import CMA_ES, SNES, Open_ES
+
+    sol = jnp.zeros(size, jnp.float32)
+    if method == "cma_es":
+        es = CMA_ES(population_size=popsize, solution=sol)
+        params = es.default_params.replace(std_init=sigma)
+    elif method == "snes":
+        es = SNES(population_size=popsize, solution=sol)
+        params = es.default_params.replace(std_init=sigma)
+    elif method == "open_es":
+        es = Open_ES(population_size=popsize, solution=sol, optimizer=optax.adam(lr),
+                     std_schedule=optax.constant_schedule(sigma))
+        params = es.default_params
+    else:
+        raise ValueError(f"method must be one of {list(SEARCH_METHODS)}, got {method!r}")
+    return es, params
+
+
+def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
+               seed: int = 0, generation0: int = 0, progress: Callable | None = None, stop_at: float | None = None):
+    """Maximise ``f_gen(thetas (N, P), generation) -> dict(fitness (N,), clean, completed, physics_steps)`` with
+    ``method`` until ``clock`` passes ``stop_at`` (default the last checkpoint). Returns the final iterate."""
+    theta0 = np.asarray(theta0, np.float64)
+    stop_at = trace.checkpoints[-1] if stop_at is None else stop_at
+    key = jax.random.key(seed)
+    gen = generation0
+    if method == "random_search":
+        rng = np.random.default_rng(seed)
+        inc, inc_fit = theta0.copy(), -math.inf
+        while clock.elapsed() < stop_at:
+            cand = theta0 + sigma * rng.standard_normal((popsize, theta0.size))
+            r = f_gen(np.concatenate([inc[None], cand]), gen)
+            clock.physics_steps += r["physics_steps"]
+            fit = np.asarray(r["fitness"])
+            inc_fit = fit[0]
+            i = int(np.argmax(fit[1:]))
+            if fit[1 + i] > inc_fit:
+                inc, inc_fit = cand[i].copy(), float(fit[1 + i])
+            trace.advance(clock, inc, dict(generation=gen, iterate_fitness=float(fit[0]),
+                                           iterate_clean=float(np.mean(r["clean"][0])), best_fitness=float(fit.max()),
+                                           mean_fitness=float(fit[1:].mean())))
+            gen += 1
+            if progress:
+                progress(clock, trace)
+        return inc
+    es, params = make_strategy(method, theta0.size, popsize, sigma)
+    key, k0 = jax.random.split(key)
+    state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
+    ask, tell = jax.jit(es.ask), jax.jit(es.tell)
+    while clock.elapsed() < stop_at:
+        key, ka, kt = jax.random.split(key, 3)
+        pop, state = ask(ka, state, params)
+        mean = np.asarray(state.mean, np.float64)
+        r = f_gen(np.concatenate([mean[None], np.asarray(pop, np.float64)]), gen)
+        clock.physics_steps += r["physics_steps"]
+        fit = np.asarray(r["fitness"], np.float64)
+        state, _ = tell(kt, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
+        new_mean = np.asarray(state.mean, np.float64)
+        if not np.all(np.isfinite(new_mean)):
+            raise FloatingPointError(f"{method}: the search mean became non-finite at generation {gen}")
+        # the returned iterate after this generation is the new mean (its fitness is measured next generation)
+        trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),
+                                            iterate_clean=float(np.mean(r["clean"][0])),
+                                            best_fitness=float(fit[1:].max()), mean_fitness=float(fit[1:].mean()),
+                                            std=float(np.mean(np.asarray(state.std)))))
+        gen += 1
+        if progress:
+            progress(clock, trace)
+    return np.asarray(state.mean, np.float64)
+
+
+def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, trace: Trace, lr: float = 0.1,
+                 clip: float = 1.0, line_search=(0.125, 0.25, 0.5, 1.0, 2.0), step_cost: int = 0,
+                 progress: Callable | None = None):
+    """Adam + batched line search (:mod:`.optimize`'s step) on ``step_fn(theta) -> dict(loss, grad)`` until the
+    clock passes the last checkpoint; ``evaluate(thetas (K, P)) -> (K,)`` scores the line-search candidates
+    together with ``theta`` itself (``c = 0``, so acceptance compares values of one program). ``step_cost``:
+    physics steps of one step (tangents and line search included)."""
+    from hyqjax.studies.tune import optimize
+
+    opt = optimize.make_optimizer(optimize.AdamConfig(lr=lr, clip=clip))
+    theta = jnp.asarray(theta0, jnp.float32)
+    state = opt.init(theta)
+    update = jax.jit(lambda g, s, th: opt.update(g, s, th))
+    scales = jnp.asarray((0.0,) + tuple(line_search), jnp.float32)
+    step = 0
+    while not trace.done(clock):
+        r = step_fn(theta)
+        g = jnp.asarray(r["grad"], jnp.float32)
+        upd, state = update(g, state, theta)
+        cands = theta[None] + scales[:, None] * jnp.asarray(upd, jnp.float32)[None]
+        vals = np.asarray(evaluate(cands), np.float64)
+        vals = np.where(np.isfinite(vals), vals, np.inf)
+        i = int(np.argmin(vals))
+        theta = cands[i]
+        clock.physics_steps += step_cost
+        trace.advance(clock, np.asarray(theta), dict(step=step, loss=float(r["loss"]), loss_at_theta=float(vals[0]),
+                                                     grad_norm=float(jnp.linalg.norm(g)),
+                                                     chosen=float(scales[i]), best_loss=float(vals[i])))
+        step += 1
+        if progress:
+            progress(clock, trace)
+    return np.asarray(theta, np.float64)
+

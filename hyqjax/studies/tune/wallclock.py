@@ -1,0 +1,466 @@
+"""The equal-wall-clock tuning study: every method, every parameterisation, the same wall-clock budget on one GPU.
+
+:func:`run_wallclock_study` (``hyqjax tune --study``, ``python -m experiments.tune_study``):
+
+1. **compile charges** (:class:`.search.Charges`): the forward success program (population ``N = popsize + 1``
+   members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) compiles in the
+   first search method's clock (JAX's compile events are added up); the gradient's snapshot windows (compile and
+   forward run), its ``jacfwd`` step and forward window program (MJX-JAX) are built before a gradient method's
+   clock starts and timed; every method's clock then starts with the charges of the programs it uses and did not
+   compile itself, so every method pays its compile as a stand-alone run would, whichever ran first;
+2. **runs**: for every parameterisation in ``dims`` (:mod:`.schedule`) and every method in ``methods``
+   (:mod:`.search`: ``cma_es``, ``snes``, ``open_es``, ``random_search`` maximise clean success on training
+   scenarios, common random numbers per generation; ``gradient`` is Adam + line search on the closed-loop window
+   objective; ``hybrid`` is CMA-ES for ``hybrid_split`` of the budget, then the gradient from its mean) until its
+   clock reaches the last of ``wall_minutes``; at every checkpoint the iterate it would return is kept with the
+   physics steps spent by then (tangents of the ``jacfwd`` counted);
+3. **held-out evaluation** of Table I (the paper's crawl), the start point and every (method, dim, checkpoint)
+   iterate on the same ``>= heldout`` instances drawn wider than training (:func:`.forward.heldout_scenarios`:
+   heights 14-30 cm, of which 14, 18, 22, 26, 30 cm never trained on; start 0-15 cm, friction 0.4-1.0, payload
+   0-15 kg; another seed), 24 s each, in chunks of ``heldout_chunk`` members;
+4. ``results.json`` (every iterate's ``theta``, so that any other held-out set can re-evaluate it), the budget
+   curves (held-out clean and completed success against wall-clock and against physics steps) and the figure.
+
+Resuming: ``results.json`` is written after every run and every held-out chunk; the same command on the same
+directory keeps every finished run and every finished held-out member (a run cut off by a kill starts over: its
+wall-clock budget is measured from its own start). Another configuration in the directory is refused.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hyqjax.crawl import controller as crawl
+from hyqjax.io.atomic import provenance, write_json
+from hyqjax.sim import backend
+from hyqjax.studies import statistics, stepdown
+from hyqjax.studies import stepdown_outcome as so
+from hyqjax.studies.tune import forward, schedule, search
+from hyqjax.studies.tune import space as spmod
+
+#: What ``hyqjax tune`` runs by default: the method and parameterisation with the best held-out clean success at
+#: 10 minutes in the equal-wall-clock study on one GPU (docs/tuning.md). Flip these two names to change it.
+DEFAULT_METHOD = "random_search"
+DEFAULT_DIM = "shared"
+
+
+@contextlib.contextmanager
+def heartbeat(log, message, every: float = 5.0):
+    """Call ``log(message())`` every ``every`` seconds while the block runs (compiles and long batches report
+    progress too)."""
+    stop = threading.Event()
+
+    def beat():
+        while not stop.wait(every):
+            log(message())
+
+    th = threading.Thread(target=beat, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        th.join()
+
+
+def run_key(method: str, dim: str) -> str:
+    return f"{method}/{dim}"
+
+
+@dataclasses.dataclass(frozen=True)
+class WallClockConfig:
+    """Settings of the study (module docstring); every field is checked at construction (one line naming it)."""
+
+    methods: tuple = search.METHODS
+    dims: tuple = ("shared", "per_leg_cond")
+    wall_minutes: tuple = (1.0, 3.0, 10.0)
+    groups: tuple = spmod.DEFAULT_GROUPS
+    remedy: bool = True
+    seed: int = 0
+    # success-driven search
+    popsize: int = 16
+    train_instances: int = 32
+    train_duration: float = 24.0
+    sigma: float = 0.3
+    completed_weight: float = 0.1
+    # gradient (MJX-JAX)
+    grad_train_per_height: int = 2
+    windows_per_scenario: int = 2
+    window_lead: float = 10.0
+    window_ticks: int = 500
+    lr: float = 0.1
+    hybrid_split: float = 0.5
+    # held-out
+    heldout: int = 2000
+    heldout_seed: int = 7777
+    heldout_duration: float = 24.0
+    heldout_chunk: int = 8
+    #: MJX implementation of the forward runs (search, held-out); the gradient always runs under impl jax
+    impl: str = "auto"
+    #: warm starts: ``(("method/dim", theta), ...)``, the start of that method on that parameterisation
+    start_from: tuple = ()
+    #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
+    charge_compile: bool = True
+
+    def __post_init__(self):
+        backend.validate_impl(self.impl)
+        bad = [m for m in self.methods if m not in search.METHODS]
+        if bad or not self.methods or len(set(self.methods)) != len(self.methods):
+            raise ValueError(f"methods must be distinct names among {list(search.METHODS)}, got {list(self.methods)}")
+        bad = [d for d in self.dims if d not in schedule.NAMES]
+        if bad or not self.dims or len(set(self.dims)) != len(self.dims):
+            raise ValueError(f"dims must be distinct names among {list(schedule.NAMES)}, got {list(self.dims)}")
+        spmod.ParamSpace.make(self.groups)
+        wm = tuple(self.wall_minutes)
+        if not wm or any(not (0.0 < float(x) <= 600.0) for x in wm) or list(wm) != sorted(set(wm)):
+            raise ValueError(f"wall_minutes must be increasing values in (0, 600] minutes, got {list(wm)}")
+        for k, lo, hi in (("popsize", 2, 4096), ("train_instances", 4, 100000), ("grad_train_per_height", 1, 1000),
+                          ("windows_per_scenario", 1, 8), ("window_ticks", 1, 20000), ("heldout", 1, 10**6),
+                          ("heldout_chunk", 1, 4096), ("seed", 0, 2**31 - 1), ("heldout_seed", 0, 2**31 - 1)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if "open_es" in self.methods and self.popsize % 2:
+            raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
+        if not isinstance(self.charge_compile, bool):
+            raise ValueError(f"charge_compile must be True or False, got {self.charge_compile!r}")
+        if self.train_instances % len(forward.TRAIN_HEIGHTS):
+            raise ValueError(f"train_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
+                             f"training height), got {self.train_instances}")
+        if self.heldout_seed == self.seed:
+            raise ValueError(f"heldout_seed must differ from seed (held-out scenarios), got {self.heldout_seed}")
+        for k, lo, hi in (("train_duration", 0.1, 120.0), ("heldout_duration", 0.1, 120.0), ("window_lead", 0.1, 60.0)):
+            if not (lo <= float(getattr(self, k)) <= hi):
+                raise ValueError(f"{k} must be in [{lo}, {hi}] s, got {getattr(self, k)}")
+        for k, lo, hi in (("sigma", 0.0, 5.0), ("lr", 0.0, 1.0), ("hybrid_split", 0.0, 1.0)):
+            if not (lo < float(getattr(self, k)) < hi or (k != "hybrid_split" and float(getattr(self, k)) == hi)):
+                end = ")" if k == "hybrid_split" else "]"
+                raise ValueError(f"{k} must be in ({lo}, {hi}{end}, got {getattr(self, k)}")
+        if not (0.0 <= self.completed_weight <= 10.0):
+            raise ValueError(f"completed_weight must be in [0, 10], got {self.completed_weight}")
+        if not isinstance(self.remedy, bool):
+            raise ValueError(f"remedy must be True or False, got {self.remedy!r}")
+        for key, theta in self.start_from:
+            m, _, d = str(key).partition("/")
+            if m not in self.methods or d not in self.dims:
+                raise ValueError(f"start_from names {key!r}, not a run of this study ({list(self.methods)} on "
+                                 f"{list(self.dims)})")
+            size = schedule.make(d, self.groups).size
+            if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
+                raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
+
+    @property
+    def checkpoints_s(self) -> tuple:
+        return tuple(60.0 * float(m) for m in self.wall_minutes)
+
+    def to_dict(self) -> dict:
+        return json.loads(json.dumps(dataclasses.asdict(self), default=list))
+
+
+def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:
+    """Where every method starts: Table I and the default crawl, with the shin-strike remedy if ``cfg.remedy``."""
+    return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
+
+
+def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
+    """``results.json`` of an earlier run of the same configuration (None if none or unreadable); another
+    configuration there is refused."""
+    path = os.path.join(out_dir, "results.json")
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as f:
+            prev = json.load(f)
+    except (OSError, ValueError):
+        return None
+    if prev.get("kind") != "wallclock" or prev.get("config") != cfg.to_dict():
+        raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
+    return prev
+
+
+class _Gradient:
+    """The gradient's programs (MJX-JAX), built once: windows at the start point, ``jacfwd`` step, forward window
+    value of a batch of candidates; their one-off costs go into ``charges``."""
+
+    def __init__(self, cfg: WallClockConfig, base, charges: search.Charges, log):
+        from hyqjax.studies.tune import evaluate, objective, windows
+
+        self.cfg, self.base = cfg, base
+        self.su = windows.setup()
+        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + 11, params=base)
+        spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
+        self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
+            windows.make_windows(sc, spec, self.su)))
+        self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
+        self.fns: dict = {}
+        self.charges = charges
+        log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
+            f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
+
+    def programs(self, param: schedule.Parameterisation):
+        """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
+        from hyqjax.studies.tune import objective
+
+        if param.name not in self.fns:
+            vj = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
+            fval = objective.make_value(self.base, param, self.obj, self.su)
+            th = jnp.asarray(param.theta_of(self.base), jnp.float32)
+            k = 6  # c = 0 and the five line-search scales of search.run_gradient
+            cands = jnp.tile(th[None], (k, 1))
+            with self.charges.track(f"jacfwd/{param.name}"):
+                jax.block_until_ready(vj(th, self.win))
+            with self.charges.track(f"window_value/{param.name}"):
+                jax.block_until_ready(fval(cands, self.win))
+            n_win = self.win.size
+            cost = objective.physics_steps(n_win, self.obj, param.size) + k * objective.physics_steps(n_win, self.obj)
+            self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
+                                    lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
+        return self.fns[param.name]
+
+    def charge_names(self, param) -> list:
+        return ["gradient_windows", f"jacfwd/{param.name}", f"window_value/{param.name}"]
+
+
+def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConfig, evaluator: forward.SuccessEvaluator,
+               charges: search.Charges, grad: _Gradient | None, base, log=print) -> dict:
+    """One method on one parameterisation under the wall-clock budget: its checkpoints and log."""
+    theta0 = dict(cfg.start_from).get(run_key(method, param.name))
+    theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
+    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
+                       f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
+            grad.programs(param)
+    clock = search.Clock()
+    trace = search.Trace(cfg.checkpoints_s, theta0)
+    gen_seed = cfg.seed + 1 + 1000 * list(schedule.NAMES).index(param.name)
+
+    def f_gen(thetas, g):
+        with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
+            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g), param=param)
+
+    last = [0.0]
+
+    def progress(clk, tr):
+        if clk.elapsed() - last[0] >= 5.0 or tr.done(clk):
+            last[0] = clk.elapsed()
+            row = tr.log[-1] if tr.log else {}
+            val = row.get("iterate_fitness", row.get("loss_at_theta"))
+            what = "fitness" if "iterate_fitness" in row else "window loss"
+            log(f"  {run_key(method, param.name)}: {clk.elapsed():7.1f} / {cfg.checkpoints_s[-1]:.0f} s, "
+                f"{clk.physics_steps:,} physics steps, {len(tr.log)} iterations"
+                + (f", iterate {what} {val:.3f}" if val is not None else ""))
+
+    t_wall = time.perf_counter()
+    beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
+                     f"{cfg.checkpoints_s[-1]:.0f} s (charged compile {clock.charged:.1f} s), "
+                     f"{clock.physics_steps:,} physics steps, {len(trace.log)} iterations"
+                     + ("" if trace.log else " (the first one compiles its programs unless an earlier run did)"))
+    with beat:
+        _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log)
+    points = trace.finish(clock)
+    return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
+                charged_s=clock.charged, wall_s=time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
+                physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
+                params=param.describe(np.asarray(points[-1]["theta"])))
+
+
+def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log):
+    charge = clock.charge if cfg.charge_compile else (lambda s: None)
+    if (method in search.SEARCH_METHODS or method == "hybrid") and "forward" in charges.seconds:
+        charge(charges.seconds["forward"])  # compiled by an earlier method: charged as if compiled here
+    if method in search.SEARCH_METHODS:
+        search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                          progress=progress)
+    else:
+        theta_start = theta0
+        if method == "hybrid":
+            mean = search.run_search("cma_es", f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                                     progress=progress, stop_at=cfg.hybrid_split * cfg.checkpoints_s[-1])
+            theta_start = mean
+            log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its mean")
+        step_fn, evaluate, cost = grad.programs(param)
+        for name in grad.charge_names(param):
+            charge(charges.seconds[name])
+        search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
+                            progress=progress)
+
+
+def member_key(method: str, dim: str, seconds: float) -> str:
+    return f"{method}/{dim}@{seconds / 60.0:g}min"
+
+
+def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
+    """Run (or resume) the study into ``out_dir`` (module docstring); returns the results dict."""
+    t_start = time.time()
+    os.makedirs(out_dir, exist_ok=True)
+    prev = previous(out_dir, cfg) or {}
+    res = dict(kind="wallclock", complete=False, provenance=provenance(seed=cfg.seed),
+               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl), config=cfg.to_dict(),
+               charges=dict(prev.get("charges", {})), runs=dict(prev.get("runs", {})),
+               heldout=dict(prev.get("heldout", {})))
+
+    def save():
+        res["wall_s"] = time.time() - t_start + prev.get("wall_s", 0.0)
+        write_json(os.path.join(out_dir, "results.json"), res)
+
+    base = start_params(cfg)
+    params = {d: schedule.make(d, cfg.groups) for d in cfg.dims}
+    evaluator = forward.SuccessEvaluator(params[cfg.dims[0]], base, cfg.train_duration, cfg.impl, cfg.completed_weight)
+    # compile charges are re-measured in every process (a resumed study's programs compile again)
+    charges = search.Charges()
+    n_members = cfg.popsize + 1
+    todo = [(m, d) for d in cfg.dims for m in cfg.methods if run_key(m, d) not in res["runs"]]
+    log(f"forward success program: {n_members} members x {cfg.train_instances} scenarios x {cfg.train_duration:g} s "
+        f"per generation, impl {res['impl']}; it compiles in the first search method's clock and is charged to the "
+        f"others")
+    grad = None
+    if any(m in search.GRADIENT_METHODS for m, _ in todo):
+        log("snapshot windows for the gradient (MJX-JAX) ...")
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  snapshot windows: {time.perf_counter() - t0:.0f} s"):
+            grad = _Gradient(cfg, base, charges, log)
+    for m, d in todo:
+        log(f"{run_key(m, d)} ({params[d].size} parameters): {cfg.wall_minutes} min budget")
+        r = run_method(m, params[d], cfg, evaluator, charges, grad, base, log)
+        res["runs"][run_key(m, d)] = r
+        res["charges"].update(charges.seconds)
+        save()
+        log(f"{run_key(m, d)}: done, {r['physics_steps']:,} physics steps, {len(r['log'])} iterations, "
+            f"{r['charged_s']:.1f} s charged compile")
+    res["charges"].update(charges.seconds)
+    save()
+    # ---- held-out
+    members = heldout_members(cfg, res, params, base)
+    left = [k for k in members if k not in res["heldout"]]
+    sc, heights = forward.heldout_scenarios(cfg.heldout, cfg.heldout_seed)
+    res["heldout_set"] = dict(instances=sc.batch_size, seed=cfg.heldout_seed, duration=cfg.heldout_duration,
+                              heights=[float(h) for h in forward.HELDOUT_HEIGHTS], ranges=forward.HELDOUT_RANGES,
+                              trained_heights=list(forward.TRAIN_HEIGHTS), train_ranges=forward.TRAIN_RANGES)
+    if left:
+        log(f"held-out: {len(left)} parameter sets x {sc.batch_size} instances x {cfg.heldout_duration:g} s "
+            f"({len(left) * sc.batch_size * round(cfg.heldout_duration / 0.002):,} physics steps) ...")
+        # the training program serves the held-out runs when they have its duration and batch shape
+        same = (cfg.heldout_duration == cfg.train_duration
+                and cfg.heldout_chunk * sc.batch_size == (cfg.popsize + 1) * cfg.train_instances)
+        hev = evaluator if same else forward.SuccessEvaluator(params[cfg.dims[0]], base, cfg.heldout_duration, cfg.impl)
+        t = time.perf_counter()
+
+        def done(i, cols):
+            res["heldout"][left[i]] = summarize(heights, cols)
+            save()
+
+        with heartbeat(log, lambda: f"  held-out: {len(res['heldout'])} of {len(members)} sets done, "
+                       f"{time.perf_counter() - t:.0f} s"):
+            forward.evaluate_sets(
+                hev, [members[k] for k in left], sc, cfg.heldout_chunk, done=done,
+                progress=lambda a, n, w: log(f"  held-out {a}/{n} sets ({time.perf_counter() - t:.1f} s)"))
+    res["budget_curves"] = budget_curves(res)
+    if grad is not None and "diagnostics" not in res:
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  gradient diagnostics: {time.perf_counter() - t0:.0f} s"):
+            res["diagnostics"] = gradient_diagnostics(cfg, res, params, base, grad, members)
+        save()
+    elif "diagnostics" in prev:
+        res["diagnostics"] = prev["diagnostics"]
+    res["complete"] = True
+    save()
+    return res
+
+
+def gradient_diagnostics(cfg: WallClockConfig, res: dict, params: dict, base, grad: _Gradient, members: dict) -> dict:
+    """What decides whether the gradient can pay, per parameterisation with a gradient run:
+
+    * the gradient's signal-to-noise ratio across windows at the start point, ``|mean| / (std / sqrt(W))`` per
+      coordinate (:func:`.study.gradient_stats`), and the median per-window gradient norm;
+    * how well the window objective ranks held-out success: Spearman's rank correlation between the window
+      objective ``L`` (lower is better) and held-out clean success over every iterate of that parameterisation
+      that was evaluated (a useful objective gives a clearly negative correlation).
+    """
+    from scipy import stats
+
+    from hyqjax.studies.tune import study
+
+    out = {}
+    for d, param in params.items():
+        if param.name not in grad.fns:
+            continue
+        step_fn, evaluate, _ = grad.fns[param.name]
+        r0 = step_fn(param.theta_of(base))
+        gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
+        snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
+        keys = [k for k, (p, _, b) in members.items() if p.name == d and k in res["heldout"] and k != "table1"]
+        thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])
+        k6 = 6  # the window program's batch (search.run_gradient's line search)
+        vals = []
+        for a in range(0, len(thetas), k6):
+            chunk = thetas[a:a + k6]
+            pad = np.concatenate([chunk, np.repeat(chunk[-1:], k6 - len(chunk), 0)])
+            vals.extend(np.asarray(evaluate(pad), np.float64)[: len(chunk)].tolist())
+        clean = [res["heldout"][k]["clean"] for k in keys]
+        rho = stats.spearmanr(vals, clean).statistic if len(set(clean)) > 1 and len(set(vals)) > 1 else float("nan")
+        out[d] = dict(snr_mean=float(np.nanmean(snr)), snr_median=float(np.nanmedian(snr)),
+                      snr_above_2=float(np.mean(snr > 2.0)), median_window_grad_norm=gs["median_norm"],
+                      windows=int(np.sum(np.asarray(r0["ok"]))), objective_vs_heldout_spearman=float(rho),
+                      iterates=keys, window_objective=vals, heldout_clean=clean)
+    return out
+
+
+def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict:
+    """Name -> (parameterisation, theta, base CrawlParams) of every set the held-out evaluation runs."""
+    p0 = params[cfg.dims[0]]
+    out = {"table1": (p0, p0.theta_of(base), crawl.CrawlParams.make()), "start": (p0, p0.theta_of(base), base)}
+    for key, r in res["runs"].items():
+        for pt in r["points"]:
+            out[member_key(r["method"], r["dim"], pt["seconds"])] = (params[r["dim"]], np.asarray(pt["theta"]), base)
+    return out
+
+
+def summarize(heights, cols: dict) -> dict:
+    """Clean / completed success with Wilson 95% intervals, per height, and the failure counts of one set."""
+    clean, comp = np.asarray(cols["clean"], bool), np.asarray(cols["completed"], bool)
+    n = int(clean.size)
+    per = []
+    for a, b in zip(statistics.success_curve(heights, clean), statistics.success_curve(heights, comp)):
+        per.append(dict(height=a["height"], n=a["n"], clean=a["rate"], clean_ci95=a["ci95"], completed=b["rate"],
+                        completed_ci95=b["ci95"]))
+    return dict(n=n, clean=float(clean.mean()), clean_ci95=list(stepdown.wilson_interval(int(clean.sum()), n)),
+                completed=float(comp.mean()), completed_ci95=list(stepdown.wilson_interval(int(comp.sum()), n)),
+                failure_counts={k: int(np.sum(cols[k])) for k in so.FAILURE_REASONS}, per_height=per)
+
+
+def budget_curves(res: dict) -> list:
+    """Per (method, dim): held-out clean / completed at every checkpoint, with the wall-clock and physics steps."""
+    out = []
+    for key, r in res["runs"].items():
+        pts = []
+        for pt in r["points"]:
+            h = res["heldout"].get(member_key(r["method"], r["dim"], pt["seconds"]))
+            if h is None:
+                continue
+            pts.append(dict(minutes=pt["seconds"] / 60.0, physics_steps=pt["physics_steps"], clean=h["clean"],
+                            clean_ci95=h["clean_ci95"], completed=h["completed"], completed_ci95=h["completed_ci95"]))
+        out.append(dict(method=r["method"], dim=r["dim"], size=r["size"], points=pts))
+    return out
+
+
+def winner(res: dict, minutes: float) -> dict | None:
+    """The (method, dim) with the highest held-out clean success at ``minutes`` (ties: higher completed), and
+    whether its 95% interval is clear of every other's."""
+    rows = []
+    for c in res.get("budget_curves", []):
+        p = next((p for p in c["points"] if abs(p["minutes"] - minutes) < 1e-9), None)
+        if p:
+            rows.append((p["clean"], p["completed"], c["method"], c["dim"], p))
+    if not rows:
+        return None
+    rows.sort(key=lambda r: (r[0], r[1]), reverse=True)
+    best = rows[0]
+    clear = all(best[4]["clean_ci95"][0] > r[4]["clean_ci95"][1] for r in rows[1:])
+    return dict(method=best[2], dim=best[3], clean=best[0], completed=best[1], clean_ci95=best[4]["clean_ci95"],
+                clear_of_all_others=bool(clear))
