@@ -1,7 +1,7 @@
 """Tune the height reflex and the crawl for the step-down (hyqjax.studies.tune, docs/tuning.md). Three modes:
 
-* default: the tuner the equal-wall-clock study chose (``wallclock.DEFAULT_METHOD`` on
-  ``wallclock.DEFAULT_DIM``) for ``--wall-minutes`` (1 3 10), then the held-out evaluation of what it returns
+* default: the tuner the equal-wall-clock study chose (``names.DEFAULT_METHOD`` on
+  ``names.DEFAULT_DIM``) for ``--wall-minutes`` (1 3 10), then the held-out evaluation of what it returns
   next to the start point's and Table I's, and the budget-curve figure (DIR/results.json, DIR/tuning.png);
   ``--quick`` is a small version for a CPU (a few minutes; it checks the pipeline, its numbers mean little);
 * ``--study``: the equal-wall-clock study (every method in ``--methods`` on every parameterisation in
@@ -210,7 +210,7 @@ def _validate_gradient_study(args) -> None:
 def _validate_wallclock(args) -> None:
     """The default tuner and --study: every setting checked in one line before anything compiles."""
     from hyqjax.cli.common import UsageError, check_all, check_impl, check_out_free, check_range, prepare_out
-    from hyqjax.studies.tune import schedule, search, wallclock
+    from hyqjax.studies.tune import names
 
     check_impl(args.impl)
     defaults = _defaults()
@@ -227,15 +227,15 @@ def _validate_wallclock(args) -> None:
     if list(wm) != sorted(set(wm)):
         raise UsageError(f"--wall-minutes must be increasing, got {' '.join(f'{x:g}' for x in wm)}")
     if args.study:
-        methods = args.methods if args.methods is not None else search.METHODS
+        methods = args.methods if args.methods is not None else names.METHODS
         dims = args.dims if args.dims is not None else ("shared", "per_leg_cond")
     else:
-        methods = args.methods if args.methods is not None else (wallclock.DEFAULT_METHOD,)
-        dims = args.dims if args.dims is not None else (wallclock.DEFAULT_DIM,)
+        methods = args.methods if args.methods is not None else (names.DEFAULT_METHOD,)
+        dims = args.dims if args.dims is not None else (names.DEFAULT_DIM,)
         if len(methods) != 1 or len(dims) != 1:
             raise UsageError(f"--methods and --dims take one name each without --study, got "
                              f"{','.join(methods)} / {','.join(dims)}")
-    for opt, vals, allowed in (("--methods", methods, search.METHODS), ("--dims", dims, tuple(schedule.NAMES))):
+    for opt, vals, allowed in (("--methods", methods, names.METHODS), ("--dims", dims, names.DIMS)):
         bad = [v for v in vals if v not in allowed]
         if bad or not vals:
             raise UsageError(f"{opt} must be names among {','.join(allowed)}, got {','.join(vals) or 'nothing'}")
@@ -266,6 +266,14 @@ def _validate_wallclock(args) -> None:
     if args.heldout_seed == args.seed:
         raise UsageError(f"--heldout-seed must differ from --seed (the held-out scenarios), got {args.heldout_seed}")
     groups = _names(args.groups)
+    from hyqjax.studies.tune import space  # the groups' declarations (JAX's parameter classes, no MJX)
+
+    try:
+        space.ParamSpace.make(groups)
+    except ValueError as e:
+        raise UsageError(f"--groups: {e}") from None
+    from hyqjax.studies.tune import wallclock  # the study itself: MJX and the step-down, after every cheap check
+
     try:
         cfg = wallclock.WallClockConfig(
             methods=tuple(methods), dims=tuple(dims), wall_minutes=wm, groups=groups, remedy=not args.paper_crawl,

@@ -35,9 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search")
-GRADIENT_METHODS = ("gradient", "hybrid")
-METHODS = SEARCH_METHODS + GRADIENT_METHODS
+from hyqjax.studies.tune.names import GRADIENT_METHODS, METHODS, SEARCH_METHODS  # noqa: E402,F401
 
 
 class Clock:

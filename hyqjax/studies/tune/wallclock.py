@@ -48,8 +48,7 @@ from hyqjax.studies.tune import space as spmod
 
 #: What ``hyqjax tune`` runs by default: the method and parameterisation with the best held-out clean success at
 #: 10 minutes in the equal-wall-clock study on one GPU (docs/tuning.md). Flip these two names to change it.
-DEFAULT_METHOD = "random_search"
-DEFAULT_DIM = "shared"
+from hyqjax.studies.tune.names import DEFAULT_DIM, DEFAULT_METHOD  # noqa: E402,F401
 
 
 @contextlib.contextmanager
