@@ -14,7 +14,8 @@ stages and reruns the others):
    wall-clock the gradient took (compiles included);
 4. ``heldout``: the default, the gradient's and CMA-ES's parameters on ``--heldout`` instances (commands and
    seeds not used in optimisation: ``--heldout-seed``), ``--heldout-duration`` s each; and each method's best
-   parameters at 25 / 50 / 100% of the wall-clock on a subset (the budget curve);
+   parameters at 25 / 50 / 100% of the wall-clock and CMA-ES's final mean on ``--curve-instances`` other held-out
+   instances (the budget curve);
 5. ``envelope_after``: the map with the gradient's parameters.
 
 Writes ``OUT/results.json``, ``OUT/params_gradient.json``, ``OUT/params_cma_es.json`` (for ``--params``),
@@ -49,18 +50,19 @@ def parse(argv):
     ap.add_argument("--seed", type=int, default=0, help="seed of the training instances and the optimisers")
     # training
     ap.add_argument("--train", type=int, default=128, help="training instances")
-    ap.add_argument("--train-duration", type=float, default=4.0, help="training rollout (s), a multiple of 0.4")
+    ap.add_argument("--train-duration", type=float, default=3.2, help="training rollout (s), a multiple of 0.4")
     ap.add_argument("--train-speed", type=float, nargs=2, default=(0.0, 1.1), metavar=("LO", "HI"))
     ap.add_argument("--train-yaw-rate", type=float, nargs=2, default=(-0.9, 0.9), metavar=("LO", "HI"))
     ap.add_argument("--train-lateral", type=float, nargs=2, default=(-0.2, 0.2), metavar=("LO", "HI"))
     ap.add_argument("--train-friction", type=float, nargs=2, default=(0.4, 1.0), metavar=("LO", "HI"))
     ap.add_argument("--train-payload", type=float, nargs=2, default=(0.0, 12.0), metavar=("LO", "HI"))
-    ap.add_argument("--opt-seconds", type=float, default=150.0,
+    ap.add_argument("--opt-seconds", type=float, default=200.0,
                     help="gradient wall-clock limit (s, compiles included); CMA-ES gets what the gradient took")
     ap.add_argument("--lr", type=float, default=0.15, help="Adam step (theta units: one unit = a coordinate's scale)")
     ap.add_argument("--line-search", type=float, nargs="*", default=(0.5, 1.0, 2.0), help="line-search scales")
     ap.add_argument("--max-steps", type=int, default=500, help="upper bound on gradient steps")
-    ap.add_argument("--popsize", type=int, default=16, help="CMA-ES population")
+    ap.add_argument("--popsize", type=int, default=32,
+                    help="CMA-ES population (x --train instances per generation: 4,096 by default, the held-out shape)")
     ap.add_argument("--sigma", type=float, default=0.3, help="CMA-ES initial step (theta units)")
     # held-out
     ap.add_argument("--heldout", type=int, default=4096, help="held-out instances")
@@ -238,10 +240,14 @@ def run(args) -> dict:
                                   space.describe, stop_after=1, progress=False, evaluate=evaluate)
             step = r["step"]
             rec = r["log"][-1]
+            ls = rec.get("line_search", {})
+            after = min([v for v in ls.get("losses", []) if v is not None] + [rec["loss"]]) if ls.get("chosen") \
+                else rec["loss"]
             iterates.append(dict(step=step, wall_s=round(time.time() - t0, 3), theta=np.asarray(r["theta"]).tolist(),
-                                 loss_before=rec["loss"], terms=rec["terms"],
-                                 chosen=rec.get("line_search", {}).get("chosen")))
-            log(f"gradient step {step}: loss {rec['loss']:.4f} (terms {json.dumps({k: round(v, 3) for k, v in rec['terms'].items()})}), "
+                                 loss_before=rec["loss"], loss_after=after, terms=rec["terms"],
+                                 chosen=ls.get("chosen")))
+            terms = json.dumps({k: round(v, 3) for k, v in rec["terms"].items()})
+            log(f"gradient step {step}: loss {rec['loss']:.4f} -> {after:.4f} (terms {terms}), "
                 f"line search {rec.get('line_search', {}).get('chosen')}, {time.time() - t0:.0f} s")
         theta = np.asarray(iterates[-1]["theta"])
         wall = time.time() - t0
@@ -265,6 +271,7 @@ def run(args) -> dict:
                               cost_per_candidate=cost, log=log)
         theta = out_c["theta"]
         res["cma_es"] = dict(theta=np.asarray(theta).tolist(), params=space.describe(theta), value=out_c["value"],
+                             mean=np.asarray(out_c["mean"]).tolist(), mean_params=space.describe(out_c["mean"]),
                              generations=out_c["generations"], popsize=args.popsize, impl=args.cma_impl,
                              wall_s=time.time() - t0, physics_steps=out_c["budget_spent"],
                              history=out_c["history"])
@@ -293,7 +300,8 @@ def run(args) -> dict:
             s["cost_mean"] = float(np.mean(cols["cost"]))
             s["target_met"] = bool(s["failures"] == 0 and (s["yaw_error_worst_deg"] or 99) < 4.0)
             res["heldout"]["methods"][m] = s
-            log(f"held-out {m}: failures {s['failures']}/{s['n']} {s['reasons']}, worst yaw {s['yaw_error_worst_deg']}, "
+            log(f"held-out {m}: failures {s['failures']}/{s['n']} {s['reasons']}, worst yaw "
+                f"{s['yaw_error_worst_deg']}, "
                 f"> 4 deg {s['yaw_over_4deg']}, cost {s['cost_mean']:.3f}")
         # the budget curve: each method's best parameters at fractions of the common wall-clock, on a subset
         curve = []
@@ -305,6 +313,7 @@ def run(args) -> dict:
                 pts.append(("gradient", f, np.asarray(its[-1]["theta"])))
                 hs = [h for h in res["cma_es"]["history"] if h["wall_s"] <= f * wall + 1e-6]
                 pts.append(("cma_es", f, np.asarray(hs[-1]["theta"]) if hs else np.zeros(n_tan)))
+            pts.append(("cma_es_mean", 1.0, np.asarray(res["cma_es"]["mean"])))  # 8 points x 512: the held-out shape
             sub = ho_draw.batch(args.curve_instances, seed=args.heldout_seed + 1)
             _, cols = robust.population_cost(space, np.stack([p[2] for p in pts]), sub, args.heldout_duration,
                                              args.impl, max_batch=args.max_batch)
@@ -346,7 +355,8 @@ def budget_figure(res: dict, path: str) -> str:
     plt = plots._plt()
     fig, ax = plt.subplots(1, 2, figsize=(10, 3.8))
     g = res["gradient"]["iterates"]
-    ax[0].plot([it["wall_s"] for it in g[1:]], [it["loss_before"] for it in g[1:]], "o-", ms=3, label="gradient")
+    ax[0].plot([it["wall_s"] for it in g[1:]], [it["loss_after"] for it in g[1:]], "o-", ms=3,
+               label="gradient (after each step)")
     h = res["cma_es"]["history"]
     ax[0].plot([x["wall_s"] for x in h], [x["best"] for x in h], "-", label="CMA-ES (best so far)")
     ax[0].set_xlabel("wall-clock [s] (compiles included)")

@@ -200,7 +200,8 @@ def test_experiment_options_are_checked_before_any_compile(capsys):
 
     for argv, opt in ((["--train", "0"], "--train"), (["--train-speed", "0", "2"], "--train-speed"),
                       (["--heldout-duration", "1.3"], "--heldout-duration"), (["--impl", "cuda"], "--impl"),
-                      (["--heldout-friction", "0", "1"], "--heldout-friction"), (["--opt-seconds", "0"], "--opt-seconds")):
+                      (["--heldout-friction", "0", "1"], "--heldout-friction"),
+                      (["--opt-seconds", "0"], "--opt-seconds")):
         assert bounding_robust.main(argv + ["--out", "/tmp/hyqjax_unused"]) == 2
         assert opt in capsys.readouterr().err
     for argv, opt in ((["--yaw-rates", "0", "1", "0"], "--yaw-rates"), (["--instances", "0"], "--instances"),

@@ -210,7 +210,8 @@ def figure(spec: EnvelopeSpec, maps: dict[str, list[dict]], path: str, title: st
                 a.set_xlabel("forward speed command [m/s]")
                 a.set_ylabel("yaw-rate command [rad/s]")
     fig.suptitle(title or f"Bounding command envelope ({spec.instances} instances per command, friction "
-                          f"{spec.friction[0]:g}-{spec.friction[1]:g}, payload {spec.payload[0]:g}-{spec.payload[1]:g} kg,"
+                          f"{spec.friction[0]:g}-{spec.friction[1]:g}, payload {spec.payload[0]:g}-"
+                          f"{spec.payload[1]:g} kg,"
                           f" {spec.duration:g} s)", fontsize=10)
     return plots._save(fig, path)
 

@@ -17,9 +17,10 @@ Per control tick ``k`` (``dt`` = 2 ms), with ``psi`` the trunk's yaw, ``psi^d`` 
 
 The cost terms accumulate only while the instance has not fallen (a robot on the ground tells nothing about
 the gains). The cost of one instance (:func:`cost_terms`, :func:`total_cost`; bars are means over the ticks
-before a fall, ``n`` the ticks of the run):
+before a fall, the apex term's over the apexes before it):
 
-.. math:: L = w_\\psi \\overline{(e / 4^\\circ)^2} + w_x \\overline{\\mathrm{sp}_{0.5^\\circ}(|e| - 3^\\circ)^2} / (1^\\circ)^2
+.. math:: L = w_\\psi \\overline{(e / 4^\\circ)^2}
+          + w_x \\overline{\\mathrm{sp}_{0.5^\\circ}(|e| - 3^\\circ)^2} / (1^\\circ)^2
           + w_v \\overline{(\\epsilon_f / 0.1)^2} + w_l \\overline{(\\epsilon_l / 0.1)^2}
           + w_z \\overline{((z_a - z^*) / 0.02)^2} + w_M \\overline{M} / 0.02^2 + w_F\\, \\mathbb 1[\\text{fell}]
 
