@@ -225,7 +225,8 @@ def run(args) -> dict:
             return dict(loss=float(np.mean(np.where(np.isfinite(loss), loss, np.inf))), grad=r["grad"],
                         per_window_grad=r["per_instance_grad"], ok=r["ok"],
                         terms=dict({k: float(v) for k, v in r["terms"].items()}, falls=float(r["falls"]),
-                                   diverged=float(r["diverged"])))
+                                   diverged=float(r["diverged"]), clipped=float(r["clipped"]),
+                                   ok=float(np.sum(np.asarray(r["ok"])))))
 
         def evaluate(ths):
             return robust.population_cost(space, np.asarray(ths), train, args.train_duration, "jax")[0]

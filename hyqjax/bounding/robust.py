@@ -227,11 +227,15 @@ def make_instance_cost(space: RobustSpace, duration: float, spec: tracking.CostS
 
 
 def make_value_and_jac(space: RobustSpace, duration: float, spec: tracking.CostSpec = tracking.CostSpec(),
-                       control_dt: float = 0.002) -> Callable:
-    """A jitted ``g(theta, batch_args) -> dict(loss, grad, per_instance_loss, per_instance_grad, ok, terms)``:
+                       control_dt: float = 0.002, clip_factor: float = 3.0) -> Callable:
+    """A jitted ``g(theta, batch_args) -> dict(loss, grad, per_instance_loss, per_instance_grad, ok, terms, ...)``:
     one ``jax.jacfwd`` over ``theta`` of the per-instance costs (``vmap`` over the instances of
     ``batch_args = instance_args(batch)``). ``loss`` and ``grad`` are means over the instances whose cost and
-    gradient are finite and that did not diverge (``ok``); the others are counted, not averaged."""
+    gradient are finite and that did not diverge (``ok``); the others are counted (``ok``, ``diverged``), not
+    averaged. In ``grad`` each instance's gradient is capped at ``clip_factor`` times the median norm
+    (``clipped`` counts the capped ones; ``grad_unclipped`` is the plain mean)."""
+    if not clip_factor > 0:
+        raise ValueError(f"clip_factor must be > 0, got {clip_factor}")
     f = make_instance_cost(space, duration, spec, control_dt)
 
     def g(theta, args):
@@ -245,9 +249,15 @@ def make_value_and_jac(space: RobustSpace, duration: float, spec: tracking.CostS
         nw = jnp.maximum(jnp.sum(w), 1.0)
         jac = jnp.where(ok[:, None], jac, 0.0)
         lz = jnp.where(ok, loss, 0.0)
+        # Robust mean: an instance's gradient is capped at `clip_factor` x the median norm (a contact-rich rollout
+        # can have a pathwise gradient orders of magnitude above the others, which would dominate the mean).
+        norm = jnp.linalg.norm(jac, axis=-1)
+        cap = clip_factor * jnp.nanmedian(jnp.where(ok, norm, jnp.nan))
+        scale = jnp.where(norm > cap, cap / jnp.maximum(norm, 1e-30), 1.0)
         terms = {k: jnp.sum(w * jnp.where(ok, v, 0.0)) / nw for k, v in tracking.cost_terms(ms, spec).items()}
-        return dict(loss=jnp.sum(w * lz) / nw, grad=jnp.sum(w[:, None] * jac, 0) / nw, per_instance_loss=loss,
-                    per_instance_grad=jac, ok=ok, terms=terms, falls=jnp.sum(ms.fall.fall_tick >= 0),
+        return dict(loss=jnp.sum(w * lz) / nw, grad=jnp.sum((w * scale)[:, None] * jac, 0) / nw,
+                    grad_unclipped=jnp.sum(w[:, None] * jac, 0) / nw, per_instance_loss=loss, per_instance_grad=jac,
+                    ok=ok, clipped=jnp.sum(ok & (norm > cap)), terms=terms, falls=jnp.sum(ms.fall.fall_tick >= 0),
                     diverged=jnp.sum(div))
 
     return jax.jit(g)
