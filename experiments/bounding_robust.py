@@ -56,7 +56,7 @@ def parse(argv):
     ap.add_argument("--train-lateral", type=float, nargs=2, default=(-0.2, 0.2), metavar=("LO", "HI"))
     ap.add_argument("--train-friction", type=float, nargs=2, default=(0.4, 1.0), metavar=("LO", "HI"))
     ap.add_argument("--train-payload", type=float, nargs=2, default=(0.0, 12.0), metavar=("LO", "HI"))
-    ap.add_argument("--opt-seconds", type=float, default=200.0,
+    ap.add_argument("--opt-seconds", type=float, default=180.0,
                     help="gradient wall-clock limit (s, compiles included); CMA-ES gets what the gradient took")
     ap.add_argument("--lr", type=float, default=0.15, help="Adam step (theta units: one unit = a coordinate's scale)")
     ap.add_argument("--line-search", type=float, nargs="*", default=(0.5, 1.0, 2.0), help="line-search scales")
