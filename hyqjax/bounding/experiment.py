@@ -288,12 +288,17 @@ def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
     return dw.replace(qvel=d.qvel.astype(dw.qvel.dtype))
 
 
+def runner(cfg: sim.SimConfig, impl: str = "jax"):
+    """The batch runner of the bound for a static configuration and resolved MJX implementation
+    (:func:`hyqjax.sim.rollout.make_batch_runner`, built once per ``(cfg, impl)``, since a runner fixes the batched
+    model's structure, and compiled once per batch shape): ``runner(mx_batched, d0, params, push, progress=None,
+    chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of :func:`record`
+    (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
+    return _runner(cfg, impl)
+
+
 @functools.lru_cache(maxsize=8)
-def runner(cfg: sim.SimConfig):
-    """The batch runner of the bound for a static configuration (:func:`hyqjax.sim.rollout.make_batch_runner`,
-    built once per ``cfg`` and compiled once per batch shape): ``runner(mx_batched, d0, params, push,
-    progress=None, chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of
-    :func:`record` (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
+def _runner(cfg: sim.SimConfig, impl: str):
     _, _, ids = bc.model()
     return sim.make_batch_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
 

@@ -208,8 +208,10 @@ def columns(ms: TrackingMetrics, diverged, diverged_tick, control_dt: float = 0.
 # ----------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=8)
-def _runner(sim_cfg: sim.SimConfig, spec: CostSpec):
+@functools.lru_cache(maxsize=16)
+def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str):
+    """One batch runner per static config, cost spec and MJX implementation (a runner fixes the batched model's
+    pytree structure, which differs between the implementations)."""
     from hyqjax.bounding import controller as bctrl
     from hyqjax.bounding import cycle as bc
 
@@ -255,7 +257,7 @@ def run_batch(batch: bx.Batch, duration: float, impl: str = "auto", spec: CostSp
     if not (isinstance(max_batch, int) and max_batch >= 1):
         raise ValueError(f"max_batch must be an int >= 1, got {max_batch!r}")
     st = brollout.setup(control_dt, impl)
-    run = _runner(cfg.sim_config(), spec)
+    run = _runner(cfg.sim_config(), spec, st.impl)
     n = int(np.shape(batch.apex0)[0])
     size = -(-n // -(-n // max_batch))  # balanced chunks of at most max_batch
     out: list[dict] = []
