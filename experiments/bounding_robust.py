@@ -299,7 +299,8 @@ def run(args) -> dict:
             s = envelope.group_summary(dict(cols, speed_cmd=np.asarray(ho.params.command.velocity)[:, 0],
                                             lateral_cmd=np.asarray(ho.params.command.velocity)[:, 1]))
             s["cost_mean"] = float(np.mean(cols["cost"]))
-            s["target_met"] = bool(s["failures"] == 0 and (s["yaw_error_worst_deg"] or 99) < 4.0)
+            worst = s["yaw_error_worst_deg"]
+            s["target_met"] = bool(s["failures"] == 0 and worst is not None and worst < envelope.YAW_LIMIT_DEG)
             res["heldout"]["methods"][m] = s
             log(f"held-out {m}: failures {s['failures']}/{s['n']} {s['reasons']}, worst yaw "
                 f"{s['yaw_error_worst_deg']}, "
