@@ -2,7 +2,8 @@
 robust; experiments.bounding_envelope, experiments.bounding_robust).
 
 Fast lane: the parameter space, stored parameters, the envelope's statistics and area, failure reasons, option
-checks. Slow lane (two compiled programs, tiny: about 3-4 minutes on 2 cores, most of it compile time): the
+checks. Slow lane (two compiled programs, tiny; 8.5 minutes on 2 cores under a load average of 11, most of it
+compile time): the
 forward-mode derivative of the training cost against central differences, and a small map.
 """
 from __future__ import annotations
