@@ -15,6 +15,10 @@ Modules, one concept each:
   rollout     ``make_bounding_rollout``: the closed loop of one instance as a pure JAX function (jit / vmap /
               jacfwd) with a typed ``BoundingOutcome``, and the batch through the one compiled runner
   summary     per-instance ``InstanceResult`` and per-group tracking metrics, ablation contributions
+  tracking    device tracking metrics (worst yaw error, filtered speed errors, fall margins), the robust cost,
+              batched forward runs with them
+  envelope    the command envelope: fall rate and yaw error per command (Wilson intervals), the safe area
+  robust      robust baseline optimisation over commands / friction / payload: jacfwd + Adam, CMA-ES (evosax)
   plots       figures
 """
 from hyqjax.bounding.controller import bounding_controller, bounding_init, bounding_step

@@ -148,9 +148,26 @@ def stack_params(plist: list[BoundingParams]) -> BoundingParams:
     return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *plist)
 
 
-def make_batch(plist: list[BoundingParams], seed: int = 0, rand: Randomisation | None = None,
+def command_params(base: BoundingParams, commands, ramp_time: float = 1.0) -> BoundingParams:
+    """``base`` broadcast to one instance per row of ``commands`` (N, 3) = (forward speed, yaw rate, lateral
+    speed), each with its own :class:`hyqjax.bounding.params.BoundingCommand` (validated; vectorised, so a map of
+    tens of thousands of instances builds in milliseconds). Leaves of ``base`` may not carry a batch axis."""
+    cmd = np.atleast_2d(np.asarray(commands, np.float64))
+    if cmd.ndim != 2 or cmd.shape[1] != 3 or cmd.shape[0] < 1:
+        raise ValueError(f"commands must have shape (N, 3) (speed, yaw rate, lateral speed), got {cmd.shape}")
+    n = cmd.shape[0]
+    c = BoundingCommand.make(speed=cmd[:, 0], yaw_rate=cmd[:, 1], lateral_speed=cmd[:, 2],
+                             ramp_time=np.full(n, ramp_time))
+    p = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(jnp.asarray(x), (n,) + jnp.shape(x)), base)
+    return p.replace(command=c)
+
+
+def make_batch(plist: list[BoundingParams] | BoundingParams, seed: int = 0, rand: Randomisation | None = None,
                push_force=0.0, push_time=2.0, push_duration=0.1, n_unique: int | None = None) -> Batch:
     """Instances from per-instance params, with the seed's randomisation of initial state, friction, payload.
+
+    ``plist``: a list of per-instance params, or params whose every leaf has a leading batch axis (e.g.
+    :func:`command_params`).
 
     ``push_force``: scalar or (B,) lateral push magnitudes (N); the sign alternates over instances
     (``+y`` for even, ``-y`` for odd instances), applied at the trunk CoM during ``[push_time, push_time + push_duration)``.
@@ -158,14 +175,17 @@ def make_batch(plist: list[BoundingParams], seed: int = 0, rand: Randomisation |
     several configurations (e.g. the ablation) run on identical instances.
     """
     rand = rand or Randomisation()
-    b = len(plist)
+    batched = isinstance(plist, BoundingParams)
+    if batched and np.ndim(plist.mass) != 1:
+        raise ValueError("plist as one BoundingParams must carry a leading batch axis on every leaf (command_params)")
+    b = int(np.shape(plist.mass)[0]) if batched else len(plist)
     if b < 1:
         raise ValueError("plist (instances) must not be empty")
     nu = b if n_unique is None else n_unique
     if not (isinstance(nu, int) and nu >= 1 and b % nu == 0):
         raise ValueError(f"n_unique must be a positive int dividing the batch size {b}, got {n_unique}")
     rng = np.random.default_rng(seed)
-    params = stack_params(plist)
+    params = plist if batched else stack_params(plist)
     ref = np.asarray(params.apex_ref.array(), np.float64)
 
     def draw(shape_tail, lo, hi):
@@ -267,12 +287,17 @@ def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
     return backend.get(backend.model_impl(mx_batched)).from_jax_data(mx_batched, d, m)
 
 
+def runner(cfg: sim.SimConfig, impl: str = "jax"):
+    """The batch runner of the bound for a static configuration and resolved MJX implementation
+    (:func:`hyqjax.sim.rollout.make_batch_runner`, built once per ``(cfg, impl)``, since a runner fixes the batched
+    model's structure, and compiled once per batch shape): ``runner(mx_batched, d0, params, push, progress=None,
+    chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of :func:`record`
+    (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
+    return _runner(cfg, impl)
+
+
 @functools.lru_cache(maxsize=8)
-def runner(cfg: sim.SimConfig):
-    """The batch runner of the bound for a static configuration (:func:`hyqjax.sim.rollout.make_batch_runner`,
-    built once per ``cfg`` and compiled once per batch shape): ``runner(mx_batched, d0, params, push,
-    progress=None, chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of
-    :func:`record` (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
+def _runner(cfg: sim.SimConfig, impl: str):
     _, _, ids = bc.model()
     return sim.make_batch_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
 

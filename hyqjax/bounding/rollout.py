@@ -261,7 +261,7 @@ class BoundingRollout:
         """The batch runner: :func:`hyqjax.bounding.experiment.runner` of this config without a mesh (shared with
         it), one kept per mesh otherwise."""
         if mesh is None:
-            return bx.runner(self.sim_config)
+            return bx.runner(self.sim_config, self.setup.impl)
         key = (tuple(mesh.devices.flat), mesh.axis_names)
         if key not in self._runners:
             self._runners[key] = sim.make_batch_runner(self.setup.ids, bctrl.bounding_controller, self.sim_config,

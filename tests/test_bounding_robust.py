@@ -1,0 +1,252 @@
+"""Tests of the bound's command envelope and its robust baseline optimisation (hyqjax.bounding: tracking, envelope,
+robust; experiments.bounding_envelope, experiments.bounding_robust).
+
+Fast lane: the parameter space, stored parameters, the envelope's statistics and area, failure reasons, option
+checks. Slow lane (two compiled programs, tiny; 8.5 minutes on 2 cores under a load average of 11, most of it
+compile time): the
+forward-mode derivative of the training cost against central differences, and a small map.
+"""
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hyqjax.bounding import envelope as be
+from hyqjax.bounding import experiment as bx
+from hyqjax.bounding import params as bp
+from hyqjax.bounding import robust as rb
+from hyqjax.bounding import tracking as bt
+from hyqjax.core.params import param_ranges
+
+
+# ----------------------------------------------------------------------------------------------
+# Parameter space and stored parameters
+# ----------------------------------------------------------------------------------------------
+
+
+def test_space_starts_at_the_default_controller_and_stays_in_the_declared_ranges():
+    base = bp.default_params()
+    sp = rb.RobustSpace.make(base)
+    assert sp.size == len(rb.COORDS) == 22
+    got = sp.describe(np.zeros(sp.size))
+    for n in sp.names:
+        assert got[n] == pytest.approx(rb.value_of(base, n), rel=1e-6, abs=1e-9)
+    ranges = param_ranges(bp.BoundingGains)
+    for name, scale, lo, hi in rb.COORDS:
+        assert scale > 0 and lo < hi and lo <= rb.value_of(base, name) <= hi
+        if name in ranges:
+            assert ranges[name].in_range(np.array([lo, hi])).all(), name
+    # Any theta, however large, gives parameters inside [lo, hi], which the parameter classes accept.
+    rng = np.random.default_rng(0)
+    for th in (rng.normal(0, 100, sp.size),):
+        vals = sp.describe(th)
+        p = rb.params_from_values(vals)
+        assert p.validate() is p
+        for name, _, lo, hi in rb.COORDS:
+            assert lo - 1e-6 <= vals[name] <= hi + 1e-6
+    # theta_of inverts values; apply writes the amplitudes on both legs of a pair and the gains.
+    th = sp.theta_of(dict(a_fz=850.0, k_speed=300.0))
+    p = sp.apply(jnp.asarray(th, jnp.float32), base)
+    amp = np.asarray(p.amplitudes)
+    assert amp[0, 2] == pytest.approx(850.0) and amp[1, 2] == pytest.approx(850.0)
+    assert amp[2, 2] == pytest.approx(float(base.amplitudes[2, 2]))
+    assert float(p.gains.k_speed) == pytest.approx(300.0)
+    with pytest.raises(ValueError, match="names"):
+        rb.RobustSpace.make(base, names=("k_unknown",))
+
+
+def test_space_apply_is_differentiable():
+    base = bp.default_params()
+    sp = rb.RobustSpace.make(base, names=("a_fz", "k_speed"))
+    g = jax.jacfwd(lambda th: jnp.stack([sp.apply(th, base).amplitudes[1, 2], sp.apply(th, base).gains.k_speed]))(
+        jnp.zeros(2))
+    np.testing.assert_allclose(np.asarray(g), np.diag([40.0, 100.0]), rtol=1e-6)
+
+
+def test_stored_parameters_round_trip_and_bad_files(tmp_path):
+    sp = rb.RobustSpace.make()
+    vals = sp.describe(np.linspace(-1, 1, sp.size))
+    path = tmp_path / "params.json"
+    rb.save_params(path, vals, dict(method="test"))
+    back = rb.load_params(path)
+    assert back.keys() == vals.keys()
+    for k in vals:
+        assert back[k] == pytest.approx(vals[k], rel=1e-12)
+    p = rb.params_from_values(back, speed=0.5)
+    assert float(p.gains.k_yaw) == pytest.approx(vals["k_yaw"], rel=1e-6)
+    assert float(p.amplitudes[2, 0]) == pytest.approx(vals["a_hx"], rel=1e-6)
+    assert float(p.command.velocity[0]) == 0.5
+    with pytest.raises(ValueError, match="unknown parameter"):
+        rb.save_params(tmp_path / "x.json", dict(k_nope=1.0))
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(dict(format=rb.FORMAT, amplitudes={}, gains=dict(k_nope=1.0))))
+    with pytest.raises(ValueError, match="k_nope"):
+        rb.load_params(bad)
+    bad.write_text("{")
+    with pytest.raises(ValueError, match="bad.json"):
+        rb.load_params(bad)
+    # A stored value outside a declared range is refused when the controller is built, naming the gain.
+    with pytest.raises(ValueError, match="k_speed"):
+        rb.params_from_values(dict(k_speed=-5.0))
+
+
+def test_training_and_heldout_draws_are_disjoint_and_in_their_boxes():
+    d = rb.Draw(speed=(0.0, 1.0), yaw_rate=(-0.8, 0.8), friction=(0.5, 1.0), payload=(0.0, 10.0))
+    a, b = d.commands(500, seed=0), d.commands(500, seed=7777)
+    assert not np.any(np.all(np.isclose(a[:, None], b[None]), -1))
+    for c in (a, b):
+        assert c[:, 0].min() >= 0 and c[:, 0].max() <= 1.0 and np.abs(c[:, 1]).max() <= 0.8 and np.all(c[:, 2] == 0)
+    batch = d.batch(16, seed=3)
+    fr, pm = np.asarray(batch.terrain.friction), np.asarray(batch.terrain.payload_mass)
+    assert fr.min() >= 0.5 and fr.max() <= 1.0 and pm.min() >= 0 and pm.max() <= 10.0
+    np.testing.assert_allclose(np.asarray(batch.params.command.velocity)[:, 0], d.commands(16, 3)[:, 0], rtol=1e-6)
+    with pytest.raises(ValueError, match="speed"):
+        rb.Draw(speed=(0.0, 2.0))
+    # A population of candidates on a batch: candidate-major, the instances repeated per candidate.
+    sp = rb.RobustSpace.make()
+    th = np.zeros((3, sp.size))
+    th[1, sp.names.index("k_yaw")] = 1.0
+    pop = rb.population_batch(sp, th, batch)
+    assert pop.apex0.shape == (48, 5)
+    k_yaw = np.asarray(pop.params.gains.k_yaw)
+    assert np.all(k_yaw[:16] == 200.0) and np.all(k_yaw[16:32] == 350.0)
+    np.testing.assert_array_equal(np.asarray(pop.terrain.friction)[32:], fr)
+
+
+# ----------------------------------------------------------------------------------------------
+# Envelope statistics
+# ----------------------------------------------------------------------------------------------
+
+
+def test_envelope_spec_grid_batch_and_validation():
+    spec = be.EnvelopeSpec(speeds=(0.0, 0.5), yaw_rates=(-0.5, 0.0, 0.5), lateral_speeds=(0.0, 0.2), instances=3)
+    cmds = spec.commands
+    assert cmds.shape == (12, 3) and spec.size == 36
+    assert {tuple(c) for c in cmds} == {(v, w, l) for v in (0.0, 0.5) for w in (-0.5, 0.0, 0.5) for l in (0.0, 0.2)}
+    b = spec.batch()
+    fr = np.asarray(b.terrain.friction).reshape(12, 3)
+    assert np.all(fr == fr[0]) and len(set(fr[0])) == 3  # common random numbers across commands
+    np.testing.assert_allclose(np.asarray(b.params.command.velocity)[::3, 0], cmds[:, 0], atol=1e-7)
+    for kw, name in ((dict(speeds=(0.0, 2.0)), "speeds"), (dict(instances=0), "instances"),
+                     (dict(friction=(0.0, 1.0)), "friction"), (dict(payload=(3.0, 1.0)), "payload"),
+                     (dict(lateral_speeds=(0.0, 0.0)), "lateral_speeds"), (dict(duration=0.1), "duration")):
+        with pytest.raises(ValueError, match=name):
+            be.EnvelopeSpec(**kw)
+
+
+def _cols(success, reasons=(), yaw=None, n=None):
+    n = len(success) if n is None else n
+    c = dict(success=np.asarray(success, bool), yaw_error_max_deg=np.asarray(yaw if yaw is not None else [1.0] * n))
+    for r in ("fell_low_trunk", "fell_roll", "fell_pitch", "diverged"):
+        c[r] = np.array([r == x for x in (list(reasons) + [None] * n)[:n]])
+    return c
+
+
+def test_group_summary_counts_failures_with_reasons_and_wilson_intervals():
+    cols = _cols([True] * 8 + [False, False], reasons=[None] * 8 + ["fell_pitch", "diverged"],
+                 yaw=[1.0, 2.0, 3.0, 5.0, 1.0, 1.0, 1.0, 1.0, 30.0, np.nan])
+    s = be.group_summary(cols)
+    assert s["n"] == 10 and s["failures"] == 2 and s["reasons"] == dict(fell_pitch=1, diverged=1)
+    assert s["fall_rate"] == pytest.approx(0.2)
+    lo, hi = s["fall_rate_ci95"]
+    assert 0.03 < lo < 0.2 < hi < 0.55
+    # Yaw statistics over the survivors only: the fallen instance's 30 deg is not the worst.
+    assert s["yaw_error_worst_deg"] == 5.0 and s["yaw_over_4deg"] == 1
+    assert s["yaw_over_4deg_rate"] == pytest.approx(1 / 8)
+
+
+def test_safe_area_is_the_area_owned_by_commands_below_the_threshold():
+    spec = be.EnvelopeSpec(speeds=(0.0, 0.5, 1.0), yaw_rates=(-0.4, 0.0, 0.4), instances=100)
+    np.testing.assert_allclose(be.cell_widths(spec.speeds), [0.25, 0.5, 0.25])
+    pc = []
+    for v, w, lat in spec.commands:
+        fails = 5 if v == 1.0 else 0  # the fastest column falls 5% of the time
+        pc.append(dict(speed=v, yaw_rate=w, lateral=lat, fall_rate=fails / 100,
+                       fall_rate_ci95=list(be.statistics.wilson_interval(fails, 100))))
+    a = be.safe_area(spec, pc)
+    assert a["total_area"] == pytest.approx(1.0 * 0.8)
+    assert a["area_point"] == pytest.approx(0.75 * 0.8)
+    assert a["area_wilson"] == 0.0  # 0 of 100 cannot show a rate below 1% (upper bound 3.7%)
+    g = be.grids(spec, pc, "fall_rate")
+    assert g.shape == (1, 3, 3) and np.all(g[0, :, 2] == 0.05)
+
+
+def test_columns_name_the_first_failure():
+    fm = bx.FallMetrics(fall_tick=np.array([-1, 100, 300, 50]), low_trunk=np.array([False, True, False, False]),
+                        roll=np.array([False, False, False, True]), pitch=np.zeros(4, bool), ticks=np.full(4, 400),
+                        min_z=np.full(4, 0.5), max_roll=np.zeros(4), max_pitch=np.zeros(4))
+    z = np.zeros(4)
+    ms = bt.TrackingMetrics(fall=fm, max_yaw_err=np.radians([1.0, 2, 3, 4]), eps=np.zeros((4, 2)),
+                            settled_v=np.array([[4.0, 0.4], [0, 0], [0, 0], [0, 0]]), settled_n=np.array([8, 0, 0, 0]),
+                            alive_n=np.array([400, 100, 300, 50]), sum_yaw2=z, sum_yaw_excess2=z,
+                            sum_eps2=np.zeros((4, 2)), sum_margin=z, apex_n=np.ones(4, int), sum_apex2=z)
+    c = bt.columns(ms, diverged=np.array([False, False, True, True]), diverged_tick=np.array([-1, -1, 200, 80]))
+    assert list(c["success"]) == [True, False, False, False]
+    assert list(c["fell_low_trunk"]) == [False, True, False, False]
+    assert list(c["diverged"]) == [False, False, True, False]  # diverged at 200, before its fall at 300
+    assert list(c["fell_roll"]) == [False, False, False, True]  # fell at 50, diverged later at 80
+    np.testing.assert_allclose(c["fail_time"][1:], [0.202, 0.402, 0.102])
+    assert c["speed_mean"][0] == 0.5 and np.isnan(c["speed_mean"][1])
+    np.testing.assert_allclose(c["yaw_error_max_deg"], [1, 2, 3, 4])
+    terms = bt.cost_terms(ms, bt.CostSpec(), np)
+    assert list(terms["fall"]) == [0.0, 20.0, 20.0, 20.0] and set(terms) == set(bt.TERMS)
+
+
+def test_experiment_options_are_checked_before_any_compile(capsys):
+    from experiments import bounding_envelope, bounding_robust
+
+    for argv, opt in ((["--train", "0"], "--train"), (["--train-speed", "0", "2"], "--train-speed"),
+                      (["--heldout-duration", "1.3"], "--heldout-duration"), (["--impl", "cuda"], "--impl"),
+                      (["--heldout-friction", "0", "1"], "--heldout-friction"),
+                      (["--opt-seconds", "0"], "--opt-seconds")):
+        assert bounding_robust.main(argv + ["--out", "/tmp/hyqjax_unused"]) == 2
+        assert opt in capsys.readouterr().err
+    for argv, opt in ((["--yaw-rates", "0", "1", "0"], "--yaw-rates"), (["--instances", "0"], "--instances"),
+                      (["--params", "/nonexistent.json"], "nonexistent"), (["--duration", "1.0"], "--duration")):
+        assert bounding_envelope.main(argv + ["--out", "/tmp/hyqjax_unused"]) == 2
+        assert opt in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------------------------
+# Compiled: the gradient of the training cost, a small map
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_forward_mode_gradient_of_the_training_cost_matches_central_differences():
+    """The gradient of make_value_and_jac (jacfwd through 0.4 s of the closed loop, MJX JAX, 4 tangents) along one
+    direction against central differences of its own loss: one compiled program, called at theta and theta +- eps v."""
+    sp = rb.RobustSpace.make(names=("a_fz", "a_hz", "k_yaw", "k_stance_pitch"))
+    batch = rb.Draw(speed=(0.6, 0.6), yaw_rate=(0.5, 0.5)).batch(1, seed=0)
+    g = rb.make_value_and_jac(sp, 0.4)
+    args = rb.instance_args(batch)
+    v = np.array([1.0, -1.0, 0.5, 0.5])
+    eps = 0.05
+    r0, rp, rm = (g(jnp.asarray(x * v, jnp.float32), args) for x in (0.0, eps, -eps))
+    assert bool(r0["ok"][0]) and int(r0["falls"]) == 0 and int(r0["clipped"]) == 0
+    der = float(np.asarray(r0["grad"]) @ v)
+    fd = (float(rp["loss"]) - float(rm["loss"])) / (2 * eps)
+    assert float(r0["loss"]) > 0 and abs(der) > 1e-3 * float(r0["loss"])  # the direction moves the cost
+    assert der == pytest.approx(fd, rel=0.05), (float(r0["loss"]), der, fd)
+    np.testing.assert_allclose(np.asarray(r0["grad"]), np.asarray(r0["grad_unclipped"]), rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_small_map_tracks_and_counts():
+    """Two commands x two instances, 3.2 s: in place and 0.5 m/s turning at 0.3 rad/s bound without falling, with
+    the yaw error below 4 deg and the settled speed near the command; the statistics and the area follow."""
+    spec = be.EnvelopeSpec(speeds=(0.0, 0.5), yaw_rates=(0.3,), instances=2, friction=(0.7, 1.0), payload=(0.0, 5.0),
+                           duration=3.2)
+    cols = be.run(spec, impl="jax")
+    assert cols["success"].all(), cols
+    assert np.all(cols["yaw_error_max_deg"] < 4.0) and np.all(cols["yaw_error_max_deg"] > 0)
+    sp = cols["speed_mean"]
+    assert np.all(np.abs(sp[:2]) < 0.15) and np.all(np.abs(sp[2:] - 0.5) < 0.2), sp
+    assert np.all(np.isfinite(cols["cost"])) and np.all(cols["cost_fall"] == 0)
+    pc = be.summarise(spec, cols)
+    assert [c["speed"] for c in pc] == [0.0, 0.5] and all(c["failures"] == 0 for c in pc)
+    assert be.safe_area(spec, pc)["area_point"] == 0.0  # one yaw rate: a line, no area
