@@ -50,6 +50,8 @@ class StepdownConfig:
       strike_force: a shin or trunk contact pressing on the terrain harder than this (N) is a strike.
       layout: terrain structure (rough blocks).
       impl: MJX implementation, ``auto | jax | warp`` (:mod:`hyqjax.sim.backend`).
+      terminate: end a run's episode when it falls (tilt past ``max_tilt`` or a trunk strike) and freeze it there
+        (:mod:`hyqjax.studies.stepdown_outcome`); False runs every instance to ``duration``.
     """
 
     duration: float = 24.0
@@ -60,9 +62,12 @@ class StepdownConfig:
     strike_force: float = 100.0
     layout: hmodel.TerrainLayout = hmodel.TerrainLayout()
     impl: str = "auto"
+    terminate: bool = True
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
+        if not isinstance(self.terminate, bool):
+            raise ValueError(f"terminate must be True or False, got {self.terminate!r}")
         self.sim_config()  # validates duration, control_dt, record_every
         for name, lo, hi in (("max_tilt", 0.0, np.pi), ("min_progress", 0.0, 100.0), ("strike_force", 0.0, 1e5)):
             v = getattr(self, name)
@@ -170,8 +175,9 @@ def record_trace(d, obs: sim.Observation, info: crawl.CrawlInfo, sites=None):
 
 
 def make_metrics(ids: hmodel.ModelIds, cfg: StepdownConfig) -> sim.Metrics:
-    """The step-down metrics of :mod:`hyqjax.studies.stepdown_outcome` for ``cfg``."""
-    return so.make_metrics(ids, cfg.strike_force)
+    """The step-down metrics of :mod:`hyqjax.studies.stepdown_outcome` for ``cfg`` (with the episode end at a fall
+    when ``cfg.terminate``)."""
+    return so.make_metrics(ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None)
 
 
 class StepdownRollout:

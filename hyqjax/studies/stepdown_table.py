@@ -25,7 +25,8 @@ def summarize(table: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> list[
 
     ``completed`` / ``clean``: counts, rates and Wilson 95% intervals (``success*`` repeat ``clean`` for readers of
     older results); ``lost_foothold_share``: share of runs with at least one lost foothold;
-    ``mean_lost_footholds``: lost footholds per run; ``joint_past_range``: share of runs.
+    ``mean_lost_footholds``: lost footholds per run; ``joint_past_range``: share of runs; ``diverged`` and
+    ``terminated`` (runs that fell and were ended at their failure tick): counts, kept apart.
     """
     rows = []
     for h in sorted(set(table["height"].tolist())):
@@ -51,13 +52,15 @@ def summarize(table: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> list[
                 peak_pitch=float(np.mean(out["peak_pitch"][mask])),
                 time_all_down=_nan_stat(np.nanmean, out["time_all_down"][mask]),
                 diverged=int(np.sum(out["diverged"][mask])),
+                terminated=int(np.sum(out["terminated"][mask])) if "terminated" in out else 0,
             ))
     return rows
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
     head = (f"{'height':>7} {'reflex':>6} {'completed':>14} {'95% CI':>11} {'clean':>14} {'95% CI':>11} "
-            f"{'lost fh':>7} {'jnt range':>9} {'shin str':>8} {'min m_sw':>8} {'mean m':>7} {'pitch':>6} {'t_down':>6}")
+            f"{'lost fh':>7} {'jnt range':>9} {'shin str':>8} {'min m_sw':>8} {'mean m':>7} {'pitch':>6} {'t_down':>6}"
+            f" {'fell':>4} {'div':>3}")
     lines = [head, "-" * len(head)]
     for r in rows:
         cells = []
@@ -67,8 +70,10 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         lines.append(
             f"{r['height']:7.2f} {('on' if r['reflex'] else 'off'):>6} {cells[0]} {cells[1]}"
             f" {r['lost_foothold_share']:7.0%} {r['joint_past_range']:9.0%} {r['shin_strike']:8.0%}"
-            f" {r['min_swing_mobility']:8.3f} {r['mean_mobility']:7.3f} {r['peak_pitch']:6.3f} {r['time_all_down']:6.1f}")
+            f" {r['min_swing_mobility']:8.3f} {r['mean_mobility']:7.3f} {r['peak_pitch']:6.3f} {r['time_all_down']:6.1f}"
+            f" {r.get('terminated', 0):4d} {r.get('diverged', 0):3d}")
     lines.append("completed: all feet on the lower ground, no lost foothold, no joint past its range, no trunk strike, "
                  "no tilt, finite; clean: completed and no shin/trunk contact above the strike force. "
-                 "lost fh, jnt range, shin str: share of runs.")
+                 "lost fh, jnt range, shin str: share of runs; fell: runs ended at a fall (tilt or trunk strike), "
+                 "div: simulator blow-ups (counts).")
     return "\n".join(lines)
