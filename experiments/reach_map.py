@@ -178,6 +178,19 @@ def scenario_of(rows: dict, idx: np.ndarray, params: dict):
                              yaw=jnp.asarray(rows["yaw"][idx], jnp.float32), params=bparams, push=push)
 
 
+#: Largest automatic chunk (instances per compiled batch) on a GPU (MuJoCo Warp's closed loop peaks at about 65k on
+#: an H100, benchmarks/RESULTS.md) and on a CPU.
+MAX_CHUNK_GPU = 65536
+MAX_CHUNK_CPU = 32
+
+
+def balanced_chunk(n: int, largest: int) -> int:
+    """The smallest chunk that runs ``n`` instances in as few chunks of at most ``largest`` as possible (so the last
+    chunk's padding stays below one instance per chunk)."""
+    k = -(-n // largest)
+    return -(-n // k)
+
+
 #: Outcome columns a chunk file keeps.
 KEEP = ("completed", "clean", "diverged", "terminated", "terminated_tick", "diverged_tick", "feet_not_down",
         "no_progress", "lost_foothold", "joint_past_range", "tilt", "trunk_strike", "shin_strike", "reflex_failure",
@@ -314,7 +327,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tuned-method", default="gradient", help="which of its methods (e.g. gradient)")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run")
-    ap.add_argument("--chunk", type=int, default=0, help="instances per compiled batch (0: 65536 on a GPU, 32 on a CPU)")
+    ap.add_argument("--chunk", type=int, default=0,
+                    help="instances per compiled batch (0: as few chunks of at most 65536 on a GPU, 32 on a CPU)")
     ap.add_argument("--no-terminate", action="store_true", help="run fallen instances to the end (no episode end)")
     args = ap.parse_args(argv)
     try:
@@ -327,8 +341,11 @@ def main(argv=None) -> int:
     from hyqjax.io import atomic
     from hyqjax.studies import stepdown
 
-    params, custom = config.pop("_params"), config.pop("_custom")
-    del custom
+    from hyqjax.sim import backend
+
+    params = config.pop("_params")
+    # A map resumes only on the same kind of device and implementation (float32 results depend on the layout).
+    config.update(device=jax.devices()[0].device_kind, impl_resolved=backend.resolve_impl(args.impl))
     os.makedirs(args.out, exist_ok=True)
     config_hash = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
     cfg_path = os.path.join(args.out, "config.json")
@@ -342,9 +359,9 @@ def main(argv=None) -> int:
     else:
         atomic.write_json(cfg_path, dict(config=config, config_hash=config_hash))
     gpu = jax.devices()[0].platform == "gpu"
-    chunk = args.chunk or (65536 if gpu else 32)
     rows = build_rows(args.variants, args.spread, args.heights, args.instances, args.seed)
     n = len(rows["height"])
+    chunk = args.chunk or balanced_chunk(n, MAX_CHUNK_GPU if gpu else MAX_CHUNK_CPU)
     cfg = stepdown.StepdownConfig(duration=args.duration, impl=args.impl, terminate=not args.no_terminate)
     print(f"{n} instances x {args.duration:g} s in chunks of {min(chunk, n)} on {jax.devices()[0].device_kind} "
           f"(impl {stepdown.setup(cfg).impl})", flush=True)
@@ -390,8 +407,6 @@ def check(args) -> dict:
     if len(set(args.variants)) != len(args.variants):
         raise UsageError("--variants: a variant is named twice")
     params = variant_params(args.variants, custom, args.tuned, args.tuned_method)
-    import jax
-
     described = {}
     for v in args.variants:
         p = params[v]
@@ -399,13 +414,12 @@ def check(args) -> dict:
                         if f.name not in ("gains", "reflex")}
         described[v]["reflex"] = {f.name: np.asarray(getattr(p.reflex, f.name)).tolist()
                                   for f in dataclasses.fields(p.reflex)}
-    del jax
     return dict(impl=args.impl, instances=args.instances, heights=[float(h) for h in args.heights],
                 spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
                 seed=args.seed, duration=args.duration, terminate=not args.no_terminate,
                 tuned=os.path.abspath(args.tuned) if "tuned" in args.variants else None,
-                tuned_method=args.tuned_method if "tuned" in args.variants else None,
-                _params=params, _custom=custom)
+                tuned_method=args.tuned_method if "tuned" in args.variants else None, custom=args.custom,
+                _params=params)
 
 
 def format_cells(cells) -> str:

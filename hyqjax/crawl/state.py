@@ -141,7 +141,8 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     st = CrawlState(
         phase=jnp.asarray(PHASE_BODY), seq_index=jnp.asarray(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
-        normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype), search_depth=z, stance=jnp.ones(4, dtype), deep=jnp.zeros(4, bool),
+        normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype), search_depth=z, stance=jnp.ones(4, dtype),
+        deep=jnp.zeros(4, bool),
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )

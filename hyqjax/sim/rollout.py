@@ -155,9 +155,9 @@ def freeze_diverged(new: mjx.Data, old: mjx.Data, diverged: jax.Array) -> mjx.Da
     """``new``, with the :data:`FROZEN_FIELDS` of ``old`` where ``diverged`` (one instance: a scalar flag; the
     rollout passes ``diverged | terminated``).
 
-    An instance that diverged (or was terminated) steps on from its frozen state every tick and its result is discarded, so its
-    state and outcome are those of its last finite tick; the other derived fields of its final data are those
-    of the discarded step. Valid under both MJX implementations (no batched select over Warp's shared
+    An instance that diverged (or was terminated) steps on from its frozen state every tick and its result is
+    discarded, so its state and outcome are those of its last finite (live) tick; the other derived fields of its
+    final data are those of the discarded step. Valid under both MJX implementations (no batched select over Warp's shared
     contact buffers)."""
     names = [f for f in FROZEN_FIELDS if hasattr(new, f) and getattr(new, f) is not None]
     return new.replace(**{f: jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, b, a), getattr(new, f),
@@ -264,8 +264,8 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
     """Simulate ONE instance for ``cfg.n_ticks`` control ticks (``vmap`` it for a batch; pure, differentiable).
 
     :func:`rollout_init` then :func:`rollout_advance` over all ticks. Returns the final state, metrics, the
-    divergence flag and tick, the termination flag and failure tick, and the decimated trace (``record(d, obs, info)`` every ``cfg.record_every``
-    ticks). ``push`` optionally applies an external force to the trunk.
+    divergence flag and tick, the termination flag and failure tick, and the decimated trace (``record(d, obs, info)``
+    every ``cfg.record_every`` ticks). ``push`` optionally applies an external force to the trunk.
     """
     carry = rollout_init(mx, ids, d0, controller, params, metrics)
     rec = record if cfg.record_every else None

@@ -70,7 +70,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         lines.append(
             f"{r['height']:7.2f} {('on' if r['reflex'] else 'off'):>6} {cells[0]} {cells[1]}"
             f" {r['lost_foothold_share']:7.0%} {r['joint_past_range']:9.0%} {r['shin_strike']:8.0%}"
-            f" {r['min_swing_mobility']:8.3f} {r['mean_mobility']:7.3f} {r['peak_pitch']:6.3f} {r['time_all_down']:6.1f}"
+            f" {r['min_swing_mobility']:8.3f} {r['mean_mobility']:7.3f} {r['peak_pitch']:6.3f}"
+            f" {r['time_all_down']:6.1f}"
             f" {r.get('terminated', 0):4d} {r.get('diverged', 0):3d}")
     lines.append("completed: all feet on the lower ground, no lost foothold, no joint past its range, no trunk strike, "
                  "no tilt, finite; clean: completed and no shin/trunk contact above the strike force. "
