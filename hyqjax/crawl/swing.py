@@ -8,7 +8,8 @@ Swing phase: the trunk holds still; the swing foot follows, in the terrain frame
 ``x^H0(t) = x_lift + s(tau) (x_target - x_lift) + z(tau) n - d_search(t) d`` with the swing profile of
 :func:`hyqjax.control.trajectories.swing_profile` (a quintic apex of ``step_height``), ``tau = t / t_swing``
 and, after the nominal swing, the haptic search ``d_search`` growing at ``search_speed`` along ``-d``
-(``d = n`` in the paper, :func:`hyqjax.crawl.remedy.search_direction`). It is mapped into the trunk frame with
+(``d = n`` in the paper, :func:`hyqjax.crawl.remedy.search_direction`; the remedy's forward part saturates at
+``search_forward_limit``, :func:`hyqjax.crawl.remedy.search_forward_excess`). It is mapped into the trunk frame with
 the *measured* roll and pitch (angular kinematic adjustment), so a trunk rotation such as the reflex's squat
 does not drag the foot along in the world.
 
