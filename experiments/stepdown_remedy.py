@@ -76,8 +76,8 @@ class Extra:
     min_front_landing_x: jax.Array  # smallest x past the edge of a front foot at the end of a deep swing (m)
 
 
-def make_metrics(ids, strike_force: float) -> sim.Metrics:
-    base = so.make_metrics(ids, strike_force)
+def make_metrics(ids, strike_force: float, terminal_tilt: float | None = None) -> sim.Metrics:
+    base = so.make_metrics(ids, strike_force, terminal_tilt)
     ci = ids.contacts
     sites = np.asarray(ids.foot_sites)
 
@@ -105,7 +105,8 @@ def make_metrics(ids, strike_force: float) -> sim.Metrics:
         )
         return base.update(b, d, obs, info), e
 
-    return sim.Metrics(init, update)
+    terminal = None if base.terminal is None else (lambda ms: base.terminal(ms[0]))
+    return sim.Metrics(init, update, terminal)
 
 
 def build(instances: int, seed: int, variants) -> tuple[stepdown.Scenario, dict[str, np.ndarray]]:
@@ -125,7 +126,8 @@ def build(instances: int, seed: int, variants) -> tuple[stepdown.Scenario, dict[
 def run(sc: stepdown.Scenario, cfg: stepdown.StepdownConfig):
     st = stepdown.setup(cfg)
     runner = sim.make_batch_runner(st.ids, crawl.crawl_controller(cfg.control_dt), cfg.sim_config(),
-                                   make_metrics(st.ids, cfg.strike_force), None, params_axes=0)
+                                   make_metrics(st.ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None),
+                                   None, params_axes=0)
     from hyqjax.sim import model as hmodel
 
     mb = hmodel.batch_model(st.mx, st.ids, sc.terrain)
@@ -174,6 +176,7 @@ def summarise(table, cols):
                 mean_mobility=float(np.nanmean(cols["mean_mobility"][m])),
                 mean_peak_pitch=float(np.mean(cols["peak_pitch"][m])),
                 diverged=int(cols["diverged"][m].sum()),
+                terminated=int(cols["terminated"][m].sum()),
                 r_clean_vs_start_distance=_pearson(table["start_distance"][m], clean),
                 r_clean_vs_friction=_pearson(table["friction"][m], clean),
                 r_clean_vs_payload=_pearson(table["payload_mass"][m], clean),

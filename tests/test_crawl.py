@@ -81,6 +81,63 @@ def test_forward_search_only_for_front_legs_with_the_remedy_and_the_reflex():
     np.testing.assert_allclose(remedy.search_direction(on.replace(use_reflex=jnp.asarray(0.0)), 1, n, step), n)
 
 
+def test_speed_limit_removes_driving_torque_past_the_limit_and_never_braking_torque():
+    from hyqjax.crawl.controller import speed_limited_torques
+    from hyqjax.crawl.params import JOINT_SPEED_BAND
+
+    lim = robot.VELOCITY_LIMIT
+    qd = jnp.asarray([0.0, 5.0, -11.9, lim + 0.5 * JOINT_SPEED_BAND, -(lim + 0.5 * JOINT_SPEED_BAND),
+                      lim + JOINT_SPEED_BAND, 40.0, 40.0, -40.0, 100.0, 3.0, -3.0], jnp.float32)
+    tau = jnp.asarray([150.0, -150.0, -150.0, 100.0, -100.0, 150.0, 150.0, -150.0, 150.0, -80.0, 7.0, 7.0], jnp.float32)
+    out = np.asarray(speed_limited_torques(tau, qd, jnp.float32(lim)))
+    # Below the limit the torques are exactly the commanded ones.
+    assert np.array_equal(out[[0, 1, 2, 10, 11]], np.asarray(tau)[[0, 1, 2, 10, 11]])
+    # In the band a torque along the motion is scaled linearly; at its end and beyond it is zero.
+    np.testing.assert_allclose(out[[3, 4]], [50.0, -50.0], rtol=1e-6)
+    assert out[5] == 0.0 and out[6] == 0.0
+    # A torque against the motion (braking) is never limited, at any speed.
+    assert out[7] == -150.0 and out[8] == 150.0 and out[9] == -80.0
+
+
+def test_saturating_forward_search_is_the_linear_one_below_its_limit_and_straight_down_beyond():
+    p = CrawlParams.make(shin_remedy=True, search_forward=0.5)
+    n = jnp.asarray([0.0, 0.0, 1.0])
+    step = jnp.asarray([0.3, 0.0, 0.0])
+    assert np.asarray(remedy.search_forward_unit(p, 1, n, step)).tolist() == [1.0, 0.0, 0.0]
+    assert np.asarray(remedy.search_forward_unit(p, 3, n, step)).tolist() == [0.0, 0.0, 0.0]  # hind leg
+    assert float(remedy.search_forward_excess(p, jnp.float32(0.4))) == 0.0  # the default never saturates
+    sat = p.replace(search_forward_limit=jnp.float32(0.1))
+    d, u = remedy.search_direction(sat, 1, n, step), remedy.search_forward_unit(sat, 1, n, step)
+
+    def foot(s):  # the search's foot offset from the foothold at depth s, as crawl.swing plans it
+        return np.asarray(-s * d - remedy.search_forward_excess(sat, jnp.float32(s)) * u)
+
+    np.testing.assert_allclose(foot(0.1), [0.05, 0.0, -0.1], atol=1e-6)  # linear: 0.5 m forward per m
+    np.testing.assert_allclose(foot(0.3), [0.10, 0.0, -0.3], atol=1e-6)  # saturated at 10 cm ahead
+    np.testing.assert_allclose(foot(0.5), [0.10, 0.0, -0.5], atol=1e-6)
+
+
+def test_step_down_options_lower_and_tilt_the_trunk_only_while_a_step_down_is_under_way():
+    # The trunk pitched 0.2 rad on a flat stance: in the horizontal frame the feet plane pitches by as much.
+    obs = dataclasses.replace(_obs(), quat=jnp.asarray([np.cos(0.1), 0.0, np.sin(0.1), 0.0], jnp.float32))
+    p0 = CrawlParams.make(shin_remedy=True)
+    p1 = p0.replace(step_down_lowering=jnp.float32(0.05), terrain_adaptation_step=jnp.float32(0.5))
+    st = crawl_state.crawl_init(p0, obs)
+    st = dataclasses.replace(st, seq_index=jnp.asarray(2))
+    start = jax.jit(crawl_state.start_body_phase)
+    for deep in (False, True):
+        s = dataclasses.replace(st, deep=jnp.zeros(4, bool).at[1].set(deep))
+        a, b = start(p0, s, obs), start(p1, s, obs)
+        if not deep:  # no step down under way: exactly the default plan
+            assert np.array_equal(np.asarray(a.body_delta), np.asarray(b.body_delta))
+            assert np.array_equal(np.asarray(a.rp_target), np.asarray(b.rp_target))
+        else:
+            np.testing.assert_allclose(float(b.body_delta[2] - a.body_delta[2]), -0.05, atol=1e-5)
+            adapt0, adapt1 = 0.3, 0.3 + 0.5 * 0.7
+            assert abs(float(a.rp_target[1])) > 0.05
+            np.testing.assert_allclose(np.asarray(b.rp_target) * adapt0, np.asarray(a.rp_target) * adapt1, atol=1e-6)
+
+
 def test_crawl_params_reject_bad_values_with_the_parameter_name():
     with pytest.raises(ValueError, match="search_forward"):
         CrawlParams.make(search_forward=-1.0)

@@ -131,6 +131,32 @@ def test_outcome_hierarchy(hyq, metrics, reason, completed):
     assert float(out.progress) == pytest.approx(1.9)
 
 
+@pytest.mark.parametrize("metrics, fell", [
+    ({}, False), (dict(shin_strike=True), False), (dict(lost_footholds=2), False),
+    (dict(joint_past_range=True), False), (dict(peak_pitch=0.39), False), (dict(time_all_down=-1.0), False),
+    (dict(peak_pitch=0.4), True), (dict(peak_roll=3.0), True), (dict(trunk_strike=True), True),
+    (dict(peak_roll=float("nan")), True),
+])
+def test_episode_ends_only_at_failures_no_later_tick_undoes(metrics, fell):
+    """The step-down's episode end (a fall: tilt past max_tilt or a trunk strike) is a failure of the outcome that
+    no later tick can undo, so it never ends a run that would complete; the outcome carries the flag and tick."""
+    import jax.numpy as jnp
+
+    from hyqjax.studies import stepdown_outcome as so
+
+    res = _fake_result(**metrics)
+    assert bool(so.fallen(res.metrics, 0.4)) == fell
+    ids = type("Ids", (), dict(foot_sites=(0, 1, 2, 3)))()
+    out = so.outcome(res, ids, max_tilt=0.4, min_progress=0.5)
+    if fell:
+        assert not bool(out.completed) and not bool(out.clean)
+    assert not bool(out.terminated) and int(out.terminated_tick) == -1  # a result without the flags
+    out = so.outcome(res._replace(terminated=jnp.array(fell), terminated_tick=jnp.asarray(7 if fell else -1)), ids,
+                     max_tilt=0.4, min_progress=0.5)
+    assert bool(out.terminated) == fell and int(out.terminated_tick) == (7 if fell else -1)
+    assert not bool(out.diverged) or metrics.get("peak_roll") != 3.0
+
+
 def test_summary_reports_completed_clean_with_wilson_and_share_of_runs():
     table = dict(height=np.full(4, 0.16), reflex=np.ones(4, bool))
     n = 4
@@ -139,8 +165,9 @@ def test_summary_reports_completed_clean_with_wilson_and_share_of_runs():
                lost_footholds=np.array([0, 0, 0, 3]), joint_past_range=np.zeros(n, bool),
                shin_strike=np.array([0, 1, 0, 0], bool), min_swing_mobility=np.full(n, 0.1),
                mean_mobility=np.full(n, 0.8), peak_pitch=np.full(n, 0.1), time_all_down=np.full(n, 10.0),
-               diverged=np.zeros(n, bool))
+               diverged=np.zeros(n, bool), terminated=np.array([0, 0, 0, 1], bool))
     (row,) = stepdown.summarize(table, out)
+    assert (row["terminated"], row["diverged"]) == (1, 0)
     assert (row["completed"], row["clean"], row["n"]) == (3, 2, 4)
     assert row["completed_ci95"] == pytest.approx(stepdown.wilson_interval(3, 4))
     assert row["clean_ci95"] == pytest.approx(stepdown.wilson_interval(2, 4))

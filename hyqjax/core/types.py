@@ -59,7 +59,10 @@ class Controller(NamedTuple):
 
 
 class Metrics(NamedTuple):
-    """Metrics accumulated on the device: ``init(d) -> m``, ``update(m, d, obs, info) -> m``."""
+    """Metrics accumulated on the device: ``init(d) -> m``, ``update(m, d, obs, info) -> m``, and optionally
+    ``terminal(m) -> bool``: the instance has failed past recovery, so its episode ends at this tick
+    (:func:`hyqjax.sim.rollout.rollout_advance` freezes it; ``None``: episodes run to the end)."""
 
     init: Callable[[mjx.Data], Any]
     update: Callable[[Any, mjx.Data, Observation, Any], Any]
+    terminal: Callable[[Any], Any] | None = None

@@ -10,7 +10,8 @@ One control tick (:func:`crawl_step`), following Fig. 2:
    ``qd^d = J^-1 xd_f`` (:func:`hyqjax.crawl.swing.joint_velocities`);
 4. **trunk control** (:mod:`hyqjax.control.trunk`): a PD wrench on the trunk pose relative to ``H0`` (by leg
    odometry), distributed over the stance feet by the friction-constrained QP; ``tau_ff = -J^T f``;
-5. **joint impedance** (:mod:`hyqjax.control.impedance`): ``tau = Kp (q^d - q) + Kd (qd^d - qd) + tau_ff``;
+5. **joint impedance** (:mod:`hyqjax.control.impedance`): ``tau = Kp (q^d - q) + Kd (qd^d - qd) + tau_ff``,
+   within the actuators' velocity limit (:func:`speed_limited_torques`, ``joint_speed_limit``);
 6. **phase logic**: after the nominal ``t_swing`` the foot keeps *searching* at ``search_speed`` until the
    estimated ground reaction force along the normal exceeds ``touchdown_force`` (haptic touchdown, footnote 1:
    30 N) or a limit is reached — the leg's extension ``max_leg_extension``, an end stop of the swing leg's
@@ -33,7 +34,7 @@ from hyqjax.core import robot
 from hyqjax.core import spatial
 from hyqjax.crawl import remedy
 from hyqjax.crawl import swing
-from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, CrawlParams  # noqa: F401  (re-exported)
+from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
 from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
     LIMIT_DEPTH, LIMIT_END_STOP, LIMIT_EXTENSION, LIMIT_NONE, PHASE_BODY, PHASE_SWING,
     CrawlInfo, CrawlState, crawl_init, start_body_phase, start_swing_phase,
@@ -63,6 +64,20 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas,
     return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
 
 
+def speed_limited_torques(tau, qd, limit):
+    """Joint torques within the actuators' velocity limit: ``tau_i`` where it brakes joint ``i`` (``tau_i qd_i <=
+    0``), else ``tau_i clip((limit + JOINT_SPEED_BAND - |qd_i|) / JOINT_SPEED_BAND, 0, 1)``: full up to ``limit``,
+    none from ``limit + JOINT_SPEED_BAND`` on, so no torque drives a joint past it. Below ``limit`` the torques
+    are exactly ``tau``.
+
+    Without it an ideal torque source spins an unloaded lower leg (about 0.036 kg m^2 about the knee, armature
+    included) at 150 N m / 0.036 kg m^2 = 4,000 rad/s^2: a stance foot that has slipped off the edge, or every leg
+    of a robot that has fallen over while the trunk controller still distributes its weight over them, reaches
+    100 rad/s in about 12 ticks (docs/stepdown.md, "Divergences")."""
+    scale = jnp.clip((limit + JOINT_SPEED_BAND - jnp.abs(qd)) / JOINT_SPEED_BAND, 0.0, 1.0)
+    return jnp.where((tau * qd > 0) & (scale < 1.0), tau * scale, tau)
+
+
 def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
     rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
@@ -87,6 +102,7 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
                        | ((q_cmd >= q_max - p.joint_margin) & (qd_cmd > 0)), 0.0, qd_cmd)
     tau_ff = trunk_feedforward(p, st, obs, rp_meas, p_des, v_des, rp_des)
     tau = impedance.joint_impedance(p.gains, q_cmd, qd_cmd, obs.q, obs.qd, tau_ff)
+    tau = speed_limited_torques(tau, obs.qd, p.joint_speed_limit)
 
     # --- mobility of every leg along the terrain normal (Eq. 12), at the measured configuration.
     jac = kinematics.foot_jacobians(obs.q)

@@ -20,6 +20,10 @@ FOOT_SEQUENCES = {
     "lf-rh-rf-lh": (0, 3, 1, 2),
 }
 
+#: Width (rad/s) of the speed band over which a joint's torque along its motion falls to zero
+#: (``CrawlParams.joint_speed_limit``).
+JOINT_SPEED_BAND = 4.0
+
 #: The trunk-frame CoM offset in the standing pose (m), from the MJCF's masses.
 COM_OFFSET_B = np.array([0.00696, 0.0, -0.0426])
 
@@ -61,10 +65,20 @@ class CrawlParams:
       search_forward: with the remedy and the reflex, the search moves the foot this far forward per metre
         searched below the nominal foothold (m/m).
       deep_search: a swing that searched deeper than this (m) below its nominal foothold found a step down.
+      search_forward_limit: the remedy's forward search saturates at this many metres ahead of the nominal
+        foothold (below that depth the foot searches straight down), so a deep search stays inside the leg's
+        workspace; the default (1.5 m) is beyond any search (``search_forward * max_search_depth <= 1.2 m``).
+      step_down_lowering: while a step down is under way (a leg's last swing found one, ``deep_search``), body
+        phases hold the trunk this much lower (m): workspace for the legs that still have to reach down.
+      terrain_adaptation_step: while a step down is under way, the trunk follows this extra fraction of the tilt
+        that ``terrain_adaptation`` leaves (``a + s (1 - a)`` of the feet plane's roll/pitch).
       velocity_feedforward: 0..1, gain on the joint velocity references ``qd^d = J^-1 xd`` (0: the PD damps
         toward zero velocity).
       joint_margin: joint references are kept this far inside each joint's range (rad), so that the
         impedance holding a leg against its workspace does not press the joint onto its end stop.
+      joint_speed_limit: the actuators' velocity limit (rad/s): the torque a joint gets along its motion falls
+        linearly from full at this speed to zero :data:`JOINT_SPEED_BAND` above it, so no torque drives a joint
+        faster (:func:`hyqjax.crawl.controller.speed_limited_torques`; braking torque is never limited).
       weight_qp: weight distribution by the friction-pyramid QP (True) or least-norm forces clipped into the
         cones (False), :mod:`hyqjax.control.trunk`. Static (PyTree metadata, shared by a batch): the QP's
         fixed-iteration ADMM costs ten times the rest of the controller, and a per-instance switch would run it
@@ -95,8 +109,13 @@ class CrawlParams:
     mass: jax.Array = param_field(robot.TOTAL_MASS, 10.0, 300.0, "kg", "mass the trunk controller supports")
     search_forward: jax.Array = param_field(0.5, 0.0, 2.0, "m/m", "forward search per metre searched (remedy)")
     deep_search: jax.Array = param_field(0.05, 0.0, 0.5, "m", "a swing searching deeper found a step down")
+    search_forward_limit: jax.Array = param_field(1.5, 0.0, 1.5, "m", "forward search saturates this far ahead")
+    step_down_lowering: jax.Array = param_field(0.0, 0.0, 0.2, "m", "trunk lowered while a step down is under way")
+    terrain_adaptation_step: jax.Array = param_field(0.0, 0.0, 1.0, "", "extra tilt followed during a step down")
     velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
+    joint_speed_limit: jax.Array = param_field(robot.VELOCITY_LIMIT, 1.0, 1000.0, "rad/s",
+                                               "no torque along a joint's motion beyond this speed (+ band)")
     weight_qp: bool = param_field(False, doc="friction-pyramid QP (True) or clipped least norm (False); static",
                                   static=True)
     foot_sequence: jax.Array = dataclasses.field(
@@ -111,7 +130,9 @@ class CrawlParams:
              max_step_length=0.3, body_height=0.56, stability_margin=0.07, touchdown_force=30.0,
              search_speed=0.15, max_search_depth=0.4, max_leg_extension=0.678, terrain_adaptation=0.3,
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS,
-             search_forward=0.5, deep_search=0.05, velocity_feedforward=0.0, joint_margin=0.0, weight_qp=False,
+             search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, step_down_lowering=0.0,
+             terrain_adaptation_step=0.0, velocity_feedforward=0.0, joint_margin=0.0,
+             joint_speed_limit=robot.VELOCITY_LIMIT, weight_qp=False,
              foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
              gains: impedance.ImpedanceGains | None = None,
              reflex_params: reflex.ReflexParams | None = None) -> "CrawlParams":
@@ -124,7 +145,10 @@ class CrawlParams:
                      max_leg_extension=max_leg_extension, terrain_adaptation=terrain_adaptation, max_tilt=max_tilt,
                      mu=mu, k_com=k_com, d_com=d_com, k_rot=k_rot, d_rot=d_rot, mass=mass,
                      search_forward=search_forward, deep_search=deep_search,
-                     velocity_feedforward=velocity_feedforward, joint_margin=joint_margin)
+                     search_forward_limit=search_forward_limit, step_down_lowering=step_down_lowering,
+                     terrain_adaptation_step=terrain_adaptation_step,
+                     velocity_feedforward=velocity_feedforward, joint_margin=joint_margin,
+                     joint_speed_limit=joint_speed_limit)
         specs = param_ranges(CrawlParams)
         vals = {}
         for name, v in given.items():

@@ -20,7 +20,9 @@ their shins do not reach the edge):
 * **forward search** (:func:`search_direction`, with the height reflex on): below the nominal foothold the
   search moves a front foot ``search_forward`` metres forward (along the step) per metre of depth, vertically
   rather than along the tilted normal, so the foothold lands further past the edge; the reflex's squat gives
-  the leg the reach this needs.
+  the leg the reach this needs. The forward part saturates at ``search_forward_limit`` metres
+  (:func:`search_forward_excess`): deeper, the foot searches straight down, so a deep search does not carry the
+  foot out of the leg's workspace (off by default).
 """
 from __future__ import annotations
 
@@ -34,6 +36,16 @@ def is_front(leg):
     return leg < 2
 
 
+def _forward_unit(p: CrawlParams, leg, n, step_vec):
+    """``(u, on)``: the horizontal unit step direction (the trunk's x when the step is shorter than 1 cm) and
+    whether the remedy's forward search applies to ``leg`` (a front leg, remedy and reflex on)."""
+    dtype = n.dtype
+    fwd = jnp.stack([step_vec[0], step_vec[1], jnp.zeros((), dtype)])
+    norm = jnp.linalg.norm(fwd)
+    u = jnp.where(norm > 0.01, fwd / jnp.maximum(norm, 1e-9), jnp.array([1.0, 0.0, 0.0], dtype))
+    return u, (p.shin_remedy > 0.5) & (p.use_reflex > 0.5) & is_front(leg)
+
+
 def search_direction(p: CrawlParams, leg, n, step_vec):
     """Direction ``d`` (H0) with the search at depth ``s`` placing the foot at ``foothold - s d``.
 
@@ -42,12 +54,22 @@ def search_direction(p: CrawlParams, leg, n, step_vec):
     is shorter than 1 cm).
     """
     dtype = n.dtype
-    fwd = jnp.stack([step_vec[0], step_vec[1], jnp.zeros((), dtype)])
-    norm = jnp.linalg.norm(fwd)
-    u = jnp.where(norm > 0.01, fwd / jnp.maximum(norm, 1e-9), jnp.array([1.0, 0.0, 0.0], dtype))
+    u, on = _forward_unit(p, leg, n, step_vec)
     d_remedy = jnp.array([0.0, 0.0, 1.0], dtype) - p.search_forward * u
-    on = (p.shin_remedy > 0.5) & (p.use_reflex > 0.5) & is_front(leg)
     return jnp.where(on, d_remedy, n)
+
+
+def search_forward_unit(p: CrawlParams, leg, n, step_vec):
+    """``u`` of :func:`search_direction` where the forward search applies, zero elsewhere (H0, (3,))."""
+    u, on = _forward_unit(p, leg, n, step_vec)
+    return jnp.where(on, u, jnp.zeros_like(u))
+
+
+def search_forward_excess(p: CrawlParams, search):
+    """How far the linear forward search ``search_forward * s`` has gone past ``search_forward_limit`` at depth
+    ``s`` (m; 0 below the limit). The swing takes it back along the forward unit, so the forward offset is
+    ``min(search_forward * s, search_forward_limit)``; below the limit the plan is exactly the linear one."""
+    return jnp.maximum(p.search_forward * search - p.search_forward_limit, 0.0)
 
 
 def partner(leg):

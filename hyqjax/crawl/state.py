@@ -52,6 +52,7 @@ class CrawlState:
     swing_target: jax.Array  # (3,) nominal foothold of the swing foot in H0
     normal_h0: jax.Array  # (3,) terrain normal in H0 sampled at the swing start (Eq. 7)
     search_dir: jax.Array  # (3,) the search moves the foot along -search_dir per metre of depth (H0)
+    search_fwd: jax.Array  # (3,) unit of the remedy's forward search (H0; zero where it does not apply)
     search_depth: jax.Array  # depth searched past the nominal foothold (m)
     stance: jax.Array  # (4,) 1.0 for stance legs
     deep: jax.Array  # (4,) bool: the leg's last swing searched deeper than deep_search (a step down)
@@ -98,8 +99,13 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlS
     feet, rp = feet_h(obs)
     leg = st.sequence[st.seq_index]
     com_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
-    delta = footholds.body_target(feet, leg, com_h, p.stability_margin, p.body_height)
-    rp_target = jnp.clip(p.terrain_adaptation * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
+    # While a step down is under way (a leg's last swing found one) the options lower the trunk and let it follow
+    # more of the feet plane's tilt; at their defaults (0) both terms are exactly zero.
+    stepping = jnp.any(st.deep).astype(feet.dtype)
+    height = p.body_height - p.step_down_lowering * stepping
+    adapt = p.terrain_adaptation + p.terrain_adaptation_step * (1.0 - p.terrain_adaptation) * stepping
+    delta = footholds.body_target(feet, leg, com_h, p.stability_margin, height)
+    rp_target = jnp.clip(adapt * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
@@ -117,10 +123,12 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> Crawl
     target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
     target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
     search_dir = remedy.search_direction(p, leg, n, target - lift)
+    search_fwd = remedy.search_forward_unit(p, leg, n, target - lift)
     stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
-                               normal_h0=n, search_dir=search_dir, search_depth=jnp.zeros_like(st.search_depth),
+                               normal_h0=n, search_dir=search_dir, search_fwd=search_fwd,
+                               search_depth=jnp.zeros_like(st.search_depth),
                                stance=stance)
 
 
@@ -133,7 +141,8 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     st = CrawlState(
         phase=jnp.asarray(PHASE_BODY), seq_index=jnp.asarray(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
-        normal_h0=up, search_dir=up, search_depth=z, stance=jnp.ones(4, dtype), deep=jnp.zeros(4, bool),
+        normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype), search_depth=z, stance=jnp.ones(4, dtype),
+        deep=jnp.zeros(4, bool),
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )

@@ -8,7 +8,8 @@ Swing phase: the trunk holds still; the swing foot follows, in the terrain frame
 ``x^H0(t) = x_lift + s(tau) (x_target - x_lift) + z(tau) n - d_search(t) d`` with the swing profile of
 :func:`hyqjax.control.trajectories.swing_profile` (a quintic apex of ``step_height``), ``tau = t / t_swing``
 and, after the nominal swing, the haptic search ``d_search`` growing at ``search_speed`` along ``-d``
-(``d = n`` in the paper, :func:`hyqjax.crawl.remedy.search_direction`). It is mapped into the trunk frame with
+(``d = n`` in the paper, :func:`hyqjax.crawl.remedy.search_direction`; the remedy's forward part saturates at
+``search_forward_limit``, :func:`hyqjax.crawl.remedy.search_forward_excess`). It is mapped into the trunk frame with
 the *measured* roll and pitch (angular kinematic adjustment), so a trunk rotation such as the reflex's squat
 does not drag the foot along in the world.
 
@@ -25,6 +26,7 @@ from hyqjax.control import trajectories
 from hyqjax.core import kinematics
 from hyqjax.core import robot, smallmat
 from hyqjax.core import spatial
+from hyqjax.crawl import remedy
 from hyqjax.crawl.params import CrawlParams
 from hyqjax.crawl.state import PHASE_BODY, CrawlState
 
@@ -43,6 +45,7 @@ def _feet_at(p: CrawlParams, st: CrawlState, t, search, rp_meas):
     s_tan, z_n, _ = trajectories.swing_profile(t / p.t_swing, p.step_height)
     start = st.feet_h0[leg]
     swing_pos = start + s_tan * (st.swing_target - start) + z_n * st.normal_h0 - search * st.search_dir
+    swing_pos = swing_pos - remedy.search_forward_excess(p, search) * st.search_fwd  # saturating forward search
     x_b = jnp.einsum("ji,lj->li", r_des, st.feet_h0 - p_des)
     x_sw_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]).T @ (swing_pos - p_des)
     x_b = jnp.where((~in_body) & (jnp.arange(4) == leg)[:, None], x_sw_b[None, :], x_b)

@@ -24,6 +24,11 @@ names are also reachable from this module.
 An instance whose state becomes non-finite or whose speed exceeds ``SimConfig.max_speed`` is
 *diverged*: its state is frozen at the last finite tick and the flag is returned, so a sweep
 counts it as a failure instead of averaging NaN.
+
+An instance whose metrics say it has failed past recovery (``Metrics.terminal``, e.g. the step-down's fall)
+is *terminated*: its episode ends at that tick, the *failure tick*, and it is frozen there the same way (state,
+controller state and metrics), so a controller that keeps commanding a fallen robot cannot drive it into a
+simulator blow-up. An instance that never meets its terminal condition runs exactly as without one.
 """
 from __future__ import annotations
 
@@ -132,11 +137,12 @@ FROZEN_FIELDS = ("time", "qpos", "qvel", "act", "history", "qacc_warmstart", "pl
 
 
 def freeze_diverged(new: mjx.Data, old: mjx.Data, diverged: jax.Array) -> mjx.Data:
-    """``new``, with the :data:`FROZEN_FIELDS` of ``old`` where ``diverged`` (one instance: a scalar flag).
+    """``new``, with the :data:`FROZEN_FIELDS` of ``old`` where ``diverged`` (one instance: a scalar flag; the
+    rollout passes ``diverged | terminated``).
 
-    An instance that diverged steps on from its frozen state every tick and its result is discarded, so its
-    state and outcome are those of its last finite tick; the other derived fields of its final data are those
-    of the discarded step. Valid under both MJX implementations (no batched select over Warp's shared
+    An instance that diverged (or was terminated) steps on from its frozen state every tick and its result is
+    discarded, so its state and outcome are those of its last finite (live) tick; the other derived fields of its
+    final data are those of the discarded step. Valid under both MJX implementations (no batched select over Warp's shared
     contact buffers)."""
     names = [f for f in FROZEN_FIELDS if hasattr(new, f) and getattr(new, f) is not None]
     return new.replace(**{f: jax.tree_util.tree_map(lambda a, b: jnp.where(diverged, b, a), getattr(new, f),
@@ -153,15 +159,23 @@ class RolloutCarry(NamedTuple):
     diverged: jax.Array
     diverged_tick: jax.Array
     tick: jax.Array
+    terminated: jax.Array
+    terminated_tick: jax.Array
 
 
 class RolloutResult(NamedTuple):
+    """A rollout's final state, controller state and metrics, its divergence flag and tick (-1: none), the trace,
+    and its termination flag and failure tick (``Metrics.terminal``; -1: none). A diverged or terminated instance's
+    state, controller state and metrics are those of its last live tick."""
+
     data: mjx.Data
     ctrl_state: Any
     metrics: Any
     diverged: jax.Array
     diverged_tick: jax.Array
     trace: Any
+    terminated: Any = None
+    terminated_tick: Any = None
 
 
 def rollout_init(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
@@ -170,7 +184,7 @@ def rollout_init(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: 
     tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
     obs0 = observe(ids, d0, tau0, mx)
     carry = RolloutCarry(d0, controller.init(params, obs0), metrics.init(d0), tau0, jnp.array(False),
-                         jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32))
+                         jnp.array(-1, jnp.int32), jnp.array(0, jnp.int32), jnp.array(False), jnp.array(-1, jnp.int32))
     # Strong types (as the scan's output carry has them), so the chunks after the first reuse its program.
     return jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
 
@@ -183,25 +197,32 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
 
     Per tick: observe, ``controller.step``, clip torques to ``robot.TORQUE_LIMIT``, ``cfg.substeps`` calls of
     ``mjx.step``, divergence check (non-finite state or ``|qvel| >= cfg.max_speed`` freezes the instance at its
-    last finite state), metric update. With ``record``, ``n_ticks`` must be a multiple of ``cfg.record_every``.
+    last finite state), metric update, then ``metrics.terminal`` (if given): an instance that meets it is
+    terminated at this tick and frozen from the next one on (a frozen instance's discarded step is never counted
+    as a divergence). With ``record``, ``n_ticks`` must be a multiple of ``cfg.record_every``.
     """
     def tick(c: RolloutCarry, _):
-        d, cs, ms, tau_prev, div, div_tick, k = c
+        d, cs, ms, tau_prev, div, div_tick, k, term, term_tick = c
         obs = observe(ids, d, tau_prev, mx)
         cs_new, tau, info = controller.step(params, cs, obs)
         tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
         d_new = _physics(mx, d, tau, ids, cfg.substeps, push)
         ok = _finite_tree((d_new.qpos, d_new.qvel, tau)) & (jnp.max(jnp.abs(d_new.qvel)) < cfg.max_speed)
-        newly = (~div) & (~ok)
-        div = div | ~ok
-        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
-        d_new = freeze_diverged(d_new, d, div)
+        newly = (~div) & (~term) & (~ok)
+        div = div | newly
+        frozen = div | term
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)  # noqa: E731
+        d_new = freeze_diverged(d_new, d, frozen)
         cs_new = keep(cs_new, cs)
-        tau = jnp.where(div, tau_prev, tau)
+        tau = jnp.where(frozen, tau_prev, tau)
         ms_new = keep(metrics.update(ms, d_new, obs, info), ms)
         div_tick = jnp.where(newly, k, div_tick)
+        if metrics.terminal is not None:  # static: the episode ends at the failure tick
+            ended = (~frozen) & jnp.asarray(metrics.terminal(ms_new), bool)
+            term = term | ended
+            term_tick = jnp.where(ended, k, term_tick)
         out = record(d_new, obs, info) if record is not None else None
-        return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1), out
+        return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
 
     if record is not None and cfg.record_every:
         if n_ticks % cfg.record_every:
@@ -217,7 +238,8 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
 
 
 def rollout_result(carry: RolloutCarry, trace: Any = None) -> RolloutResult:
-    return RolloutResult(carry.data, carry.ctrl_state, carry.metrics, carry.diverged, carry.diverged_tick, trace)
+    return RolloutResult(carry.data, carry.ctrl_state, carry.metrics, carry.diverged, carry.diverged_tick, trace,
+                         carry.terminated, carry.terminated_tick)
 
 
 def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Controller, params: Any,
@@ -227,8 +249,8 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
     """Simulate ONE instance for ``cfg.n_ticks`` control ticks (``vmap`` it for a batch; pure, differentiable).
 
     :func:`rollout_init` then :func:`rollout_advance` over all ticks. Returns the final state, metrics, the
-    divergence flag and tick, and the decimated trace (``record(d, obs, info)`` every ``cfg.record_every``
-    ticks). ``push`` optionally applies an external force to the trunk.
+    divergence flag and tick, the termination flag and failure tick, and the decimated trace (``record(d, obs, info)``
+    every ``cfg.record_every`` ticks). ``push`` optionally applies an external force to the trunk.
     """
     carry = rollout_init(mx, ids, d0, controller, params, metrics)
     rec = record if cfg.record_every else None

@@ -56,6 +56,8 @@ class StepdownConfig:
       layout: terrain structure (rough blocks).
       impl: simulator, ``auto | jax | warp | c`` (:mod:`hyqjax.sim.backend`; ``auto`` is C MuJoCo on a machine
         without an accelerator, MuJoCo Warp on a CUDA GPU with warp-lang, MJX-JAX otherwise).
+      terminate: end a run's episode when it falls (tilt past ``max_tilt`` or a trunk strike) and freeze it there
+        (:mod:`hyqjax.studies.stepdown_outcome`); False runs every instance to ``duration``.
     """
 
     duration: float = 24.0
@@ -66,9 +68,12 @@ class StepdownConfig:
     strike_force: float = 100.0
     layout: hmodel.TerrainLayout = hmodel.TerrainLayout()
     impl: str = "auto"
+    terminate: bool = True
 
     def __post_init__(self):
         backend.validate_impl(self.impl, SUPPORTED_IMPLS)
+        if not isinstance(self.terminate, bool):
+            raise ValueError(f"terminate must be True or False, got {self.terminate!r}")
         self.sim_config()  # validates duration, control_dt, record_every
         for name, lo, hi in (("max_tilt", 0.0, np.pi), ("min_progress", 0.0, 100.0), ("strike_force", 0.0, 1e5)):
             v = getattr(self, name)
@@ -189,8 +194,9 @@ def record_trace(d, obs: sim.Observation, info: crawl.CrawlInfo, sites=None):
 
 
 def make_metrics(ids: hmodel.ModelIds, cfg: StepdownConfig) -> sim.Metrics:
-    """The step-down metrics of :mod:`hyqjax.studies.stepdown_outcome` for ``cfg``."""
-    return so.make_metrics(ids, cfg.strike_force)
+    """The step-down metrics of :mod:`hyqjax.studies.stepdown_outcome` for ``cfg`` (with the episode end at a fall
+    when ``cfg.terminate``)."""
+    return so.make_metrics(ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None)
 
 
 class StepdownRollout:

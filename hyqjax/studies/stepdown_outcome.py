@@ -14,6 +14,14 @@ are updated every control tick from the simulated state, the contact sensors
   part of its swings (Eq. 12); ``mean_mobility``: the overall mobility of footnote 8,
   ``sum_k sum_i c_sd(k) m_i(k)``, divided by the number of swing-down ticks so runs of different length compare.
 
+Episode end (:func:`make_metrics` with ``terminal_tilt``, the default of every step-down): a run that tilts past
+``terminal_tilt`` (``|roll|`` or ``|pitch|``; the step-down passes its ``max_tilt``) or strikes the trunk has fallen:
+neither failure can be undone by a later tick, so its episode ends there. The rollout freezes it at that tick (its
+*failure tick*, ``terminated_tick``) and its outcome is the one recorded up to it (``terminated``). A run that
+never tilts that far nor strikes the trunk, every completed run among them, runs exactly as without the episode
+end. ``terminated`` and ``diverged`` are counted separately: a terminated run is a failure with its reasons (tilt,
+trunk strike), not a simulator blow-up.
+
 Outcome hierarchy (:class:`StepdownOutcome`, from :func:`outcome`):
 
 * ``completed`` (the paper's criterion): all four feet reached the lower ground and stay past the edge,
@@ -68,8 +76,9 @@ class StepdownMetrics:
     contact_overflow: jax.Array
 
 
-def make_metrics(ids: hmodel.ModelIds, strike_force: float) -> sim.Metrics:
-    """Step-down metrics accumulated on the device (see the module docstring)."""
+def make_metrics(ids: hmodel.ModelIds, strike_force: float, terminal_tilt: float | None = None) -> sim.Metrics:
+    """Step-down metrics accumulated on the device (see the module docstring); with ``terminal_tilt`` (rad), their
+    ``terminal``: the run has fallen (:func:`fallen`)."""
     ci = ids.contacts
     sites = np.asarray(ids.foot_sites)
     qadr = np.asarray(ids.qpos_joints)
@@ -117,7 +126,15 @@ def make_metrics(ids: hmodel.ModelIds, strike_force: float) -> sim.Metrics:
             contact_overflow=ms.contact_overflow | contacts.overflow(d),
         )
 
-    return sim.Metrics(init, update)
+    terminal = None if terminal_tilt is None else (lambda ms: fallen(ms, terminal_tilt))
+    return sim.Metrics(init, update, terminal)
+
+
+def fallen(ms: StepdownMetrics, terminal_tilt: float) -> jax.Array:
+    """The episode end of the step-down: ``|roll|`` or ``|pitch|`` has reached ``terminal_tilt`` (rad) or the trunk
+    struck the terrain. Both are failures of :func:`outcome` that no later tick undoes (peaks and sticky flags), so
+    ending the run there changes no ``completed`` or ``clean`` outcome (with ``terminal_tilt >= max_tilt``)."""
+    return ~((ms.peak_roll < terminal_tilt) & (ms.peak_pitch < terminal_tilt)) | ms.trunk_strike
 
 
 @jax.tree_util.register_dataclass
@@ -129,7 +146,9 @@ class StepdownOutcome:
     :data:`FAILURE_REASONS` (``diverged`` includes non-finite metrics). Measurements: peak shin / trunk
     contact forces (N), ``lost_footholds`` (count), ``peak_roll`` / ``peak_pitch`` (rad), mobility (Eq. 12,
     footnote 8; NaN ``min_swing_mobility`` without a swing-down tick), ``time_all_down`` (s, NaN if never),
-    ``progress`` (m), ``diverged_tick`` (-1 if never), and the crawl's step counts.
+    ``progress`` (m), ``diverged_tick`` (-1 if never), ``terminated`` and its failure tick ``terminated_tick`` (-1 if
+    never; the episode end of the module docstring: the outcome is the one recorded up to that tick), and the
+    crawl's step counts.
     """
 
     completed: jax.Array
@@ -157,6 +176,8 @@ class StepdownOutcome:
     time_all_down: jax.Array
     progress: jax.Array
     diverged_tick: jax.Array
+    terminated: jax.Array
+    terminated_tick: jax.Array
     n_steps: jax.Array
     n_touchdowns: jax.Array
     n_limit_stops: jax.Array
@@ -189,7 +210,10 @@ def outcome(res: sim.RolloutResult, ids: hmodel.ModelIds, max_tilt: float, min_p
         min_swing_mobility=jnp.where(ms.swing_down_ticks > 0, ms.min_swing_mobility, nan),
         mean_mobility=mean_mobility, mobility_sum=ms.mobility_sum, swing_down_ticks=ms.swing_down_ticks,
         time_all_down=jnp.where(ms.time_all_down >= 0, ms.time_all_down, nan), progress=progress,
-        diverged_tick=res.diverged_tick, n_steps=cs.n_steps, n_touchdowns=cs.n_touchdowns,
+        diverged_tick=res.diverged_tick,
+        terminated=jnp.asarray(False) if res.terminated is None else res.terminated,
+        terminated_tick=jnp.asarray(-1, jnp.int32) if res.terminated_tick is None else res.terminated_tick,
+        n_steps=cs.n_steps, n_touchdowns=cs.n_touchdowns,
         n_limit_stops=cs.n_limit_stops)
 
 

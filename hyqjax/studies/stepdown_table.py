@@ -46,7 +46,8 @@ def summarize(table: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> list[
 
     ``completed`` / ``clean``: counts, rates and Wilson 95% intervals (``success*`` repeat ``clean`` for readers of
     older results); ``lost_foothold_share``: share of runs with at least one lost foothold;
-    ``mean_lost_footholds``: lost footholds per run; ``joint_past_range``: share of runs;
+    ``mean_lost_footholds``: lost footholds per run; ``joint_past_range``: share of runs; ``diverged`` and
+    ``terminated`` (runs that fell and were ended at their failure tick): counts, kept apart;
     ``failure_reasons``: :func:`failure_reasons` of the cell (runs per reason among those not clean).
     """
     rows = []
@@ -74,6 +75,7 @@ def summarize(table: dict[str, np.ndarray], out: dict[str, np.ndarray]) -> list[
                 time_all_down=_nan_stat(np.nanmean, out["time_all_down"][mask]),
                 diverged=int(np.sum(out["diverged"][mask])),
                 failure_reasons=failure_reasons(out, mask),
+                terminated=int(np.sum(out["terminated"][mask])) if "terminated" in out else 0,
             ))
     return rows
 
@@ -84,7 +86,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     time to get all feet down, and the failure reasons (runs per reason among the runs that are not clean)."""
     head = (f"{'height':>7} {'reflex':>6} {'completed':>14} {'95% CI':>11} {'clean':>14} {'95% CI':>11} "
             f"{'lost fh':>7} {'jnt range':>9} {'shin str':>8} {'min m_sw':>8} {'mean m':>7} {'pitch':>6} {'t_down':>6}"
-            f"  failure reasons (runs)")
+            f"  {'fell':>4} {'div':>3}  failure reasons (runs)")
     lines = [head, "-" * len(head)]
     for r in rows:
         cells = []
@@ -96,9 +98,11 @@ def format_table(rows: list[dict[str, Any]]) -> str:
             f"{r['height']:7.2f} {('on' if r['reflex'] else 'off'):>6} {cells[0]} {cells[1]}"
             f" {r['lost_foothold_share']:7.0%} {r['joint_past_range']:9.0%} {r['shin_strike']:8.0%}"
             f" {r['min_swing_mobility']:8.3f} {r['mean_mobility']:7.3f} {r['peak_pitch']:6.3f} {r['time_all_down']:6.1f}"
+            f"  {r.get('terminated', 0):4d} {r.get('diverged', 0):3d}"
             f"  {'n/a' if reasons is None else reasons_text(reasons)}")
     lines.append(OUTCOME_HIERARCHY + ".")
     lines.append("lost fh, jnt range, shin str: share of runs; min m_sw, mean m: swing-leg and overall mobility (Eq. 12); "
-                 "pitch: mean peak |pitch| (rad); t_down: mean time to all feet down (s, nan: never); failure reasons: "
+                 "pitch: mean peak |pitch| (rad); t_down: mean time to all feet down (s, nan: never); fell: runs ended "
+                 "at a fall (tilt or trunk strike: the episode end), div: simulator blow-ups (counts); failure reasons: "
                  "runs per reason among those not clean (a run can have several).")
     return "\n".join(lines)

@@ -49,7 +49,9 @@ def count_outcomes(out: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     ``failure_reason`` (``"; "``-joined) lists, for an instance that is not clean (``~success``), each boolean
     failure column of the step-down outcome that is set (``feet_not_down``, ..., ``reflex_failure``: the
     reflex's own integration failed, ``contact_overflow``), then ``"diverged"`` / ``"non-finite metrics"``
-    where they apply and are not listed yet. A reason already given in ``failure_reason`` is kept. Returns a
+    where they apply and are not listed yet. A reason already given in ``failure_reason`` is kept. A *terminated*
+    instance (``terminated``: it fell and its episode ended at the failure tick) is a failure through the reasons
+    recorded up to that tick (tilt, trunk strike), not a divergence; its flag is kept as it is. Returns a
     new dict (``failure_reason`` as str).
     """
     out = dict(out)

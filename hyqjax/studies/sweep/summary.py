@@ -21,6 +21,11 @@ keys next to them (``completed``, ``completed_rate``, ``completed_ci95``, ``h95_
 without a ``completed`` column (a store written before the hierarchy) give None for every completed entry and
 a line in ``notes``; they never raise.
 
+Two counts are kept apart, overall and per reflex setting: ``diverged`` (simulator blow-ups: a non-finite state or
+a speed past ``SimConfig.max_speed``) and ``terminated`` (runs that fell, a tilt past ``max_tilt`` or a trunk strike,
+and whose episode ended at that failure tick: failures with their reasons, not blow-ups; None for rows written
+before the episode end).
+
 Height levels are the grid values, or equal-width bins over ``[lo, hi]`` (``bins``) for a random axis.
 An empty map cell has rate and interval ``null`` in ``summary.json`` (strict JSON, no NaN).
 """
@@ -115,6 +120,14 @@ def map_entries(levels: dict, m: np.ndarray, la: np.ndarray, lb: np.ndarray, sha
     return dict(n=nn.tolist(), **out)
 
 
+def _count(rows, key: str, mask=None) -> int | None:
+    """Instances with ``rows[key]`` set (within ``mask``); None where the rows have no such column (older stores)."""
+    if key not in rows:
+        return None
+    v = np.asarray(rows[key], bool)
+    return int(v[mask].sum() if mask is not None else v.sum())
+
+
 def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, Any]:
     """Counts, failure reasons, maps with Wilson 95% intervals and max safe heights per reflex setting, for the
     completed and the clean level (module docstring)."""
@@ -130,7 +143,7 @@ def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, A
             reasons[part or "unspecified"] = reasons.get(part or "unspecified", 0) + 1
     for lv in reversed(LEVELS):
         summary.update(rate_entries(levels[lv], KEYS[lv]))
-    summary.update(diverged=int(rows["diverged"].sum()), failure_reasons=reasons)
+    summary.update(diverged=int(rows["diverged"].sum()), terminated=_count(rows, "terminated"), failure_reasons=reasons)
     if levels["completed"] is None:
         summary["notes"] = [NO_COMPLETED_NOTE]
     modes = sorted(set(rows["reflex"].tolist()))
@@ -143,6 +156,7 @@ def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, A
         for lv in reversed(LEVELS):
             entry.update(rate_entries(lv_m[lv], KEYS[lv]))
         entry["mean_mobility"] = float(np.nanmean(rows["mean_mobility"][m]))
+        entry.update(diverged=int(rows["diverged"][m].sum()), terminated=_count(rows, "terminated", m))
         entry.update(height_entries(lv_m, np.asarray(hlab, float)[hl[m]], hl[m], rows["height"][m]))
         by_reflex["on" if r else "off"] = entry
     summary["by_reflex"] = by_reflex
@@ -212,7 +226,8 @@ def format_summary(summary: dict) -> str:
     n = summary.get("n_instances", 0)
     lines = [f"{n}/{summary.get('n_planned', 0)} instances"
              + "".join(f", {level_text(summary, lv, n, h95=False)}" for lv in LEVELS if n)
-             + f", {summary.get('diverged', 0)} diverged"]
+             + f", {summary.get('diverged', 0)} diverged"
+             + ("" if summary.get("terminated") is None else f", {summary['terminated']} terminated (fell)")]
     for name, r in summary.get("by_reflex", {}).items():
         mob = r.get("mean_mobility")
         lines.append(f"reflex {name:>3} (n = {r['n']}, mean mobility {'-' if mob is None else f'{mob:.3f}'}):")

@@ -9,6 +9,8 @@ Per method and per height (the per-height curves are ``statistics.success_curve`
 
 * **completed** and **clean** as ``hyqjax.studies.stepdown_outcome`` defines them (completed: no failure
   reason but a shin strike; clean: completed without a shin strike), with every failure reason counted;
+* the counts of ``diverged`` (simulator blow-ups) and ``terminated`` (runs that fell: their episode ended at the
+  failure tick) runs, kept apart;
 * the shin-strike share, and the largest height with >= 90% completion and with >= 95% clean success
   (point estimates; every height up to it must pass too).
 """
@@ -70,7 +72,7 @@ def run(scenario: stepdown.Scenario, params: list[crawl.CrawlParams], duration: 
     out, _ = rollout.run(full)
     cols = so.to_columns(jax.block_until_ready(out))
     wall = time.time() - t0
-    keep = {k: cols[k] for k in ("clean", "completed", "mean_mobility", *so.FAILURE_REASONS)}
+    keep = {k: cols[k] for k in ("clean", "completed", "mean_mobility", "terminated", *so.FAILURE_REASONS)}
     edges = np.cumsum([0, *counts])
     return {k: [np.asarray(v)[a:b] for a, b in zip(edges[:-1], edges[1:])] for k, v in keep.items()}, wall
 
@@ -96,7 +98,8 @@ def summarize(heights: np.ndarray, res: dict, i: int) -> dict:
     return dict(n=n, clean=float(s.mean()), clean_ci95=list(stepdown.wilson_interval(int(s.sum()), n)),
                 completed=float(c.mean()), completed_ci95=list(stepdown.wilson_interval(int(c.sum()), n)),
                 shin_strike=float(sh.mean()), lost_foothold=float(res["lost_foothold"][i].mean()),
-                diverged=int(res["diverged"][i].sum()), mean_mobility=float(np.mean(res["mean_mobility"][i])),
+                diverged=int(res["diverged"][i].sum()), terminated=int(res["terminated"][i].sum()),
+                mean_mobility=float(np.mean(res["mean_mobility"][i])),
                 failure_counts=reasons, per_height=curve,
                 largest_h_completed_90=_largest(curve, "completed", 0.90),
                 largest_h_clean_95=_largest(curve, "clean", 0.95))

@@ -1,0 +1,442 @@
+"""The reach map: how tall a step each crawl steps down, on the README's narrow scenario spread and on a wide one.
+
+    python -m experiments.reach_map --out DIR --impl warp --instances 1024                 # GPU: the full map
+    python -m experiments.reach_map --out DIR --impl jax --instances 1 --heights 0.16 --duration 2 \\
+        --variants default --spread narrow                                                    # CPU check
+
+For every *variant* (a crawl: :data:`VARIANTS`, ``--custom``), *spread* and height (default 14-30 cm in 2 cm
+steps) it runs ``--instances`` randomised step-downs of ``--duration`` seconds and reports
+
+* per height: completed and clean (``hyqjax.studies.stepdown_outcome``) with Wilson 95% intervals
+  (``statistics.success_curve``), the share of every failure reason, and the counts of ``diverged`` (simulator
+  blow-ups) and ``terminated`` (runs that fell and were ended at their failure tick) instances;
+* ``h90``: the tallest height with >= 90% completed, every height below it too (point estimates), and
+  ``h90_wilson``: the same with the Wilson lower bound >= 0.90 (``statistics.h95_wilson`` at 0.90);
+* ``h85_clean`` and ``h85_clean_wilson``: the same for >= 85% clean.
+
+Spreads (``--spread``): ``narrow`` is the README's (friction 0.7-1.0, payload 0-10 kg, start 0-4 cm before the
+edge, +-3 cm lateral, +-0.05 rad yaw); ``wide`` is the tuner's held-out one (friction 0.4-1.0, payload 0-15 kg,
+start 0-15 cm, +-5 cm lateral, +-0.1 rad yaw; ``hyqjax.studies.tune.evaluate.RANGES``). Every variant of a
+(spread, height) cell runs the same instances (common random numbers) drawn from ``--seed`` (4242 by default: no
+part of the tuner saw it; it trained on seeds 0-2 and was evaluated on 7777).
+
+Variants: ``paper_off`` (the no-reflex baseline), ``default`` (``CrawlParams.make()``), ``remedy`` (``hyqjax
+stepdown --remedy``: shin remedy, trunk at 80% of the feet plane), ``start`` (the tuner's start point: Table I and
+the shin remedy at 30%), ``tuned`` (the parameters a tuning study selected, from ``--tuned`` results.json and
+``--tuned-method``), and options to push the reach (``hyqjax.crawl.params``; defaults off): ``remedy_fwd_0.10``
+(the forward search saturating 10 cm ahead), ``remedy_lower_0.05`` (the trunk 5 cm lower while a step down is under
+way), ``adaptive`` (the shin remedy with the trunk at 30% of the feet plane, 80% while a step down is under way),
+``remedy_all`` (the three together). ``--custom NAME:field=value,...`` adds any ``CrawlParams.make`` setting.
+
+Runs in chunks of ``--chunk`` instances (one compiled program: the last chunk is padded), each written to
+``DIR/chunks/NNNNN.npz`` as it finishes; the same command resumes after a kill or a time limit (a directory of
+another configuration is refused). Writes ``DIR/reach_map.json`` and ``DIR/reach_map.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+HEIGHTS = tuple(round(0.14 + 0.02 * i, 2) for i in range(9))
+SPREADS = {
+    "narrow": dict(friction=(0.7, 1.0), payload=(0.0, 10.0), start_distance=(0.0, 0.04), lateral=(-0.03, 0.03),
+                   yaw=(-0.05, 0.05)),
+    "wide": dict(friction=(0.4, 1.0), payload=(0.0, 15.0), start_distance=(0.0, 0.15), lateral=(-0.05, 0.05),
+                 yaw=(-0.1, 0.1)),
+}
+REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
+#: name -> (CrawlParams.make overrides, description). ``tuned`` is built from a tuning study's results.json.
+VARIANTS = {
+    "paper_off": (dict(use_reflex=False), "reflex off (the no-reflex baseline)"),
+    "default": (dict(), "CrawlParams.make(): the reflex, trunk at 30% of the feet plane"),
+    "remedy": (REMEDY, "--remedy: shin remedy, trunk at 80% of the feet plane"),
+    "start": (dict(shin_remedy=True), "the tuner's start point: Table I, shin remedy, trunk at 30%"),
+    "tuned": (None, "the tuning study's selected parameters (--tuned, --tuned-method)"),
+    "remedy_fwd_0.10": (dict(REMEDY, search_forward_limit=0.10), "remedy, forward search saturating at 10 cm"),
+    "remedy_lower_0.05": (dict(REMEDY, step_down_lowering=0.05), "remedy, trunk 5 cm lower during a step down"),
+    "adaptive": (dict(shin_remedy=True, terrain_adaptation=0.3, terrain_adaptation_step=5.0 / 7.0),
+                 "shin remedy, trunk at 30% of the feet plane, 80% during a step down"),
+    "remedy_all": (dict(REMEDY, search_forward_limit=0.10, step_down_lowering=0.05),
+                   "remedy, saturating forward search and lower trunk during a step down"),
+}
+DEFAULT_VARIANTS = ("paper_off", "default", "remedy", "start", "tuned", "remedy_fwd_0.10", "remedy_lower_0.05",
+                    "adaptive", "remedy_all")
+DEFAULT_TUNED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "results",
+                             "tune_remedy_h100", "results.json")
+#: Levels of the reach: (key, outcome column, target rate).
+REACH_LEVELS = (("h90", "completed", 0.90), ("h85_clean", "clean", 0.85))
+
+
+class UsageError(Exception):
+    """A bad option: one line naming it and its allowed values."""
+
+
+def parse_custom(text: str) -> tuple[str, dict]:
+    """``NAME:field=value,...`` -> (NAME, overrides of ``CrawlParams.make``)."""
+    from hyqjax.crawl import controller as crawl
+
+    name, sep, body = text.partition(":")
+    if not sep or not name:
+        raise UsageError(f"--custom {text!r}: expected NAME:field=value,...")
+    fields = {f.name for f in dataclasses.fields(crawl.CrawlParams)} - {"gains", "reflex", "weight_qp"}
+    over = {}
+    for item in filter(None, body.split(",")):
+        k, eq, v = item.partition("=")
+        if not eq or k not in fields:
+            raise UsageError(f"--custom {name}: {item!r} is not field=value with a field of CrawlParams.make "
+                             f"({', '.join(sorted(fields))})")
+        over[k] = v if k == "foot_sequence" else (v.lower() in ("1", "true", "on") if k in ("use_reflex", "shin_remedy")
+                                                  else float(v))
+    return name, over
+
+
+def tuned_params(path: str, method: str):
+    """The ``CrawlParams`` a tuning study (``hyqjax tune``) selected: ``method``'s ``theta`` on the study's
+    ``ParamSpace`` and start point (``results.json``)."""
+    from hyqjax.crawl import controller as crawl
+    from hyqjax.studies.tune import space as tspace
+
+    try:
+        with open(path) as f:
+            res = json.load(f)
+    except (OSError, ValueError) as e:
+        raise UsageError(f"--tuned {path}: cannot read a tuning results.json ({e})") from None
+    if method not in res or "theta" not in res.get(method, {}):
+        found = [k for k, v in res.items() if isinstance(v, dict) and "theta" in v]
+        raise UsageError(f"--tuned-method {method!r}: not in {path} (methods: {', '.join(found)})")
+    cfg = res["config"]
+    base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)))
+    return tspace.ParamSpace.make(cfg["groups"]).concrete(np.asarray(res[method]["theta"], np.float64), base)
+
+
+def variant_params(names, custom: dict, tuned_path: str, tuned_method: str) -> dict:
+    """``CrawlParams`` of every variant (validated before anything compiles)."""
+    from hyqjax.core.params import ParameterError
+    from hyqjax.crawl import controller as crawl
+
+    out = {}
+    for name in names:
+        try:
+            if name == "tuned":
+                out[name] = tuned_params(tuned_path, tuned_method)
+            else:
+                out[name] = crawl.CrawlParams.make(**(custom[name] if name in custom else VARIANTS[name][0]))
+        except (ParameterError, ValueError, TypeError) as e:
+            raise UsageError(f"variant {name}: {e}") from None
+    return out
+
+
+def draws(spread: str, heights, instances: int, seed: int):
+    """Per (height, draw) the randomised inputs of ``spread`` (``stepdown.make_scenarios``' draws: every height gets
+    the same ``instances`` draws of ``seed``), as a table of numpy columns."""
+    from hyqjax.studies import stepdown
+
+    _, table = stepdown.make_scenarios(heights, [True], instances, seed, **SPREADS[spread])
+    return table
+
+
+def build_rows(variants, spreads, heights, instances: int, seed: int) -> dict[str, np.ndarray]:
+    """Every instance of the map in run order (variant-major within a spread), as numpy columns."""
+    cols: dict[str, list] = {}
+    for spread in spreads:
+        t = draws(spread, heights, instances, seed)
+        for v in variants:
+            n = len(t["height"])
+            for k, x in (("variant", np.full(n, v)), ("spread", np.full(n, spread)), *t.items()):
+                cols.setdefault(k, []).append(np.asarray(x))
+    return {k: np.concatenate(v) for k, v in cols.items()}
+
+
+def scenario_of(rows: dict, idx: np.ndarray, params: dict):
+    """The ``stepdown.Scenario`` of rows ``idx`` with each row's variant parameters (float32 leaves)."""
+    import jax
+    import jax.numpy as jnp
+
+    from hyqjax.sim import model as hmodel
+    from hyqjax.sim import rollout as sim
+    from hyqjax.studies import stepdown
+
+    b = len(idx)
+    terrain = hmodel.InstanceTerrain.make(rows["height"][idx], rows["friction"][idx], rows["payload_mass"][idx],
+                                          rows["payload_com"][idx])
+    names = list(params)
+    which = np.asarray([names.index(v) for v in rows["variant"][idx]])
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *[params[k] for k in names])
+    bparams = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[which], stacked)
+    bparams = jax.tree_util.tree_map(
+        lambda x: x.astype(jnp.float32) if jnp.issubdtype(x.dtype, jnp.floating) else x, bparams)
+    push = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), sim.Push.none())
+    return stepdown.Scenario(terrain=terrain, start_distance=jnp.asarray(rows["start_distance"][idx], jnp.float32),
+                             lateral_offset=jnp.asarray(rows["lateral_offset"][idx], jnp.float32),
+                             yaw=jnp.asarray(rows["yaw"][idx], jnp.float32), params=bparams, push=push)
+
+
+#: Largest automatic chunk (instances per compiled batch) on a GPU (MuJoCo Warp's closed loop peaks at about 65k on
+#: an H100, benchmarks/RESULTS.md) and on a CPU.
+MAX_CHUNK_GPU = 65536
+MAX_CHUNK_CPU = 32
+
+
+def balanced_chunk(n: int, largest: int) -> int:
+    """The smallest chunk that runs ``n`` instances in as few chunks of at most ``largest`` as possible (so the last
+    chunk's padding stays below one instance per chunk)."""
+    k = -(-n // largest)
+    return -(-n // k)
+
+
+#: Outcome columns a chunk file keeps.
+KEEP = ("completed", "clean", "diverged", "terminated", "terminated_tick", "diverged_tick", "feet_not_down",
+        "no_progress", "lost_foothold", "joint_past_range", "tilt", "trunk_strike", "shin_strike", "reflex_failure",
+        "contact_overflow", "peak_pitch", "peak_roll", "progress")
+
+
+def run_chunks(rows, params, cfg, chunk: int, out_dir: str, config_hash: str, log=print) -> dict[str, np.ndarray]:
+    """Run every row in chunks of ``chunk`` (the last one padded with copies of its first row); a chunk already in
+    ``out_dir/chunks`` with this configuration's hash is read instead. Returns the outcome columns of all rows."""
+    import jax
+
+    from hyqjax.io import atomic
+    from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown_outcome as so
+
+    n = len(rows["height"])
+    os.makedirs(os.path.join(out_dir, "chunks"), exist_ok=True)
+    ro = stepdown.make_stepdown_rollout(cfg)
+    parts = []
+    n_chunks = -(-n // chunk)
+    t_start = time.time()
+    for c in range(n_chunks):
+        path = os.path.join(out_dir, "chunks", f"{c:05d}.npz")
+        lo, hi = c * chunk, min(n, (c + 1) * chunk)
+        if os.path.exists(path):
+            try:
+                with np.load(path) as f:
+                    if str(f["config_hash"]) == config_hash and int(f["lo"]) == lo and int(f["hi"]) == hi:
+                        parts.append({k: f[k] for k in KEEP})
+                        continue
+            except (OSError, ValueError, KeyError):
+                pass
+            log(f"chunk {c}: {path} does not belong to this run or is damaged: recomputed")
+        idx = np.arange(lo, hi)
+        idx = np.concatenate([idx, np.full(chunk - len(idx), lo)])  # one program for every chunk
+        t0 = time.time()
+        out, _ = ro.run(scenario_of(rows, idx, params))
+        cols = so.to_columns(jax.block_until_ready(out))
+        part = {k: np.asarray(cols[k])[: hi - lo] for k in KEEP}
+        atomic.atomic_write(path, lambda f, part=part: np.savez(f, config_hash=config_hash, lo=lo, hi=hi, **part))
+        parts.append(part)
+        done = hi
+        log(f"chunk {c + 1}/{n_chunks}: {hi - lo} instances in {time.time() - t0:.1f} s "
+            f"({done}/{n} done, {time.time() - t_start:.0f} s)")
+    return {k: np.concatenate([p[k] for p in parts]) for k in KEEP}
+
+
+def reach(curve: list[dict], target: float) -> tuple[float | None, float | None]:
+    """(tallest height with rate >= target at it and every lower height, the same with the Wilson lower bound)."""
+    from hyqjax.studies import statistics
+
+    best = None
+    for c in sorted(curve, key=lambda c: c["height"]):
+        if not c["rate"] >= target:
+            break
+        best = c["height"]
+    return best, statistics.h95_wilson(curve, target)
+
+
+def summarise(rows: dict, out: dict, variants, spreads) -> list[dict]:
+    """One entry per (spread, variant): per-height curves of both levels, reasons, counts and the reach."""
+    from hyqjax.studies import statistics
+    from hyqjax.studies import stepdown_outcome as so
+
+    cells = []
+    for spread in spreads:
+        for v in variants:
+            m = (rows["spread"] == spread) & (rows["variant"] == v)
+            if not m.any():
+                continue
+            h = rows["height"][m]
+            curves = {lv: statistics.success_curve(h, out[lv][m]) for lv in ("completed", "clean")}
+            per_height = []
+            for cc, cl in zip(curves["completed"], curves["clean"]):
+                hm = m & (rows["height"] == cc["height"])
+                per_height.append(dict(
+                    height=cc["height"], n=cc["n"], completed=cc["successes"], completed_rate=cc["rate"],
+                    completed_ci95=cc["ci95"], clean=cl["successes"], clean_rate=cl["rate"], clean_ci95=cl["ci95"],
+                    diverged=int(out["diverged"][hm].sum()), terminated=int(out["terminated"][hm].sum()),
+                    reasons={k: float(out[k][hm].mean()) for k in so.FAILURE_REASONS}))
+            entry = dict(spread=spread, variant=v, n=int(m.sum()), diverged=int(out["diverged"][m].sum()),
+                         terminated=int(out["terminated"][m].sum()), per_height=per_height)
+            for key, level, target in REACH_LEVELS:
+                point, wilson = reach(curves[level], target)
+                entry[key], entry[f"{key}_wilson"] = point, wilson
+                at = next((c for c in per_height if c["height"] == point), None)
+                entry[f"{key}_ci95"] = None if at is None else at[f"{level}_ci95"]
+            cells.append(entry)
+    return cells
+
+
+def plot(cells, path: str) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    spreads = list(dict.fromkeys(c["spread"] for c in cells))
+    fig, axes = plt.subplots(len(spreads), 2, figsize=(13, 4.2 * len(spreads)), squeeze=False)
+    for r, spread in enumerate(spreads):
+        for col, (level, target) in enumerate((("completed", 0.90), ("clean", 0.85))):
+            ax = axes[r, col]
+            for c in (c for c in cells if c["spread"] == spread):
+                h = np.array([p["height"] for p in c["per_height"]]) * 100
+                y = np.array([p[f"{level}_rate"] for p in c["per_height"]])
+                lo = y - np.array([p[f"{level}_ci95"][0] for p in c["per_height"]])
+                hi = np.array([p[f"{level}_ci95"][1] for p in c["per_height"]]) - y
+                ax.errorbar(h, y, yerr=[lo, hi], marker="o", ms=3, capsize=2, label=c["variant"])
+            ax.axhline(target, color="k", lw=0.8, ls=":")
+            ax.axvline(24, color="tab:red", lw=0.8, ls="--")
+            n = min(p["n"] for c in cells for p in c["per_height"])
+            ax.set(xlabel="platform height [cm]", ylabel=f"{level} rate", ylim=(-0.02, 1.02),
+                   title=f"{spread} spread: {level} (95% Wilson, >= {n} per point; dashed: HyQ's 24 cm)")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/reach_map")
+    ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
+    ap.add_argument("--instances", type=int, default=1024, help="instances per (variant, spread, height) cell")
+    ap.add_argument("--heights", type=float, nargs="+", default=list(HEIGHTS), help="platform heights (m)")
+    ap.add_argument("--spread", nargs="+", default=["wide", "narrow"], help="wide | narrow (one or both)")
+    ap.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS),
+                    help=f"named variants ({', '.join(VARIANTS)}) and the names of --custom ones")
+    ap.add_argument("--custom", action="append", default=[], metavar="NAME:field=value,...",
+                    help="a variant of CrawlParams.make settings (repeatable)")
+    ap.add_argument("--tuned", default=DEFAULT_TUNED, help="a tuning study's results.json (variant 'tuned')")
+    ap.add_argument("--tuned-method", default="gradient", help="which of its methods (e.g. gradient)")
+    ap.add_argument("--seed", type=int, default=4242)
+    ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run")
+    ap.add_argument("--chunk", type=int, default=0,
+                    help="instances per compiled batch (0: as few chunks of at most 65536 on a GPU, 32 on a CPU)")
+    ap.add_argument("--no-terminate", action="store_true", help="run fallen instances to the end (no episode end)")
+    args = ap.parse_args(argv)
+    try:
+        config = check(args)
+    except UsageError as e:
+        print(f"reach_map: {e}", file=sys.stderr)
+        return 2
+    import jax
+
+    from hyqjax.io import atomic
+    from hyqjax.studies import stepdown
+
+    from hyqjax.sim import backend
+
+    params = config.pop("_params")
+    # A map resumes only on the same kind of device and implementation (float32 results depend on the layout).
+    config.update(device=jax.devices()[0].device_kind, impl_resolved=backend.resolve_impl(args.impl))
+    os.makedirs(args.out, exist_ok=True)
+    config_hash = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
+    cfg_path = os.path.join(args.out, "config.json")
+    if os.path.exists(cfg_path):
+        with open(cfg_path) as f:
+            old = json.load(f)
+        if old.get("config_hash") != config_hash:
+            print(f"reach_map: --out {args.out} holds a map of another configuration: use another --out",
+                  file=sys.stderr)
+            return 2
+    else:
+        atomic.write_json(cfg_path, dict(config=config, config_hash=config_hash))
+    gpu = jax.devices()[0].platform == "gpu"
+    rows = build_rows(args.variants, args.spread, args.heights, args.instances, args.seed)
+    n = len(rows["height"])
+    chunk = args.chunk or balanced_chunk(n, MAX_CHUNK_GPU if gpu else MAX_CHUNK_CPU)
+    cfg = stepdown.StepdownConfig(duration=args.duration, impl=args.impl, terminate=not args.no_terminate)
+    print(f"{n} instances x {args.duration:g} s in chunks of {min(chunk, n)} on {jax.devices()[0].device_kind} "
+          f"(impl {stepdown.setup(cfg).impl})", flush=True)
+    t0 = time.time()
+    out = run_chunks(rows, params, cfg, min(chunk, n), args.out, config_hash,
+                     log=lambda s: print(s, flush=True))
+    wall = time.time() - t0
+    cells = summarise(rows, out, args.variants, args.spread)
+    fig = plot(cells, os.path.join(args.out, "reach_map.png"))
+    atomic.write_json(os.path.join(args.out, "reach_map.json"), dict(
+        provenance=atomic.provenance(seed=args.seed), config=config, device=jax.devices()[0].device_kind,
+        impl=stepdown.setup(cfg).impl, n_instances=n, wall_s=wall, chunk=min(chunk, n),
+        physics_steps=int(n * round(args.duration / cfg.control_dt)), cells=cells, figure=os.path.basename(fig)))
+    np.savez_compressed(os.path.join(args.out, "reach_instances.npz"), **{k: np.asarray(v) for k, v in rows.items()},
+                        **{f"out_{k}": v for k, v in out.items()})
+    print(format_cells(cells))
+    print(f"wall {wall:.1f} s (compile included); {args.out}/reach_map.json, {fig}")
+    return 0
+
+
+def check(args) -> dict:
+    """Validate every option before anything compiles; returns the configuration (hashed for resuming)."""
+    from hyqjax.sim import model as hmodel
+
+    if args.impl not in ("auto", "jax", "warp"):
+        raise UsageError(f"--impl {args.impl!r}: must be one of auto, jax, warp")
+    if not 1 <= args.instances <= 1_000_000:
+        raise UsageError(f"--instances {args.instances}: must be in [1, 1000000]")
+    bad = [h for h in args.heights if not 0.0 <= h <= hmodel.MAX_PLATFORM_HEIGHT]
+    if bad:
+        raise UsageError(f"--heights {bad[0]}: must be in [0, {hmodel.MAX_PLATFORM_HEIGHT}] m")
+    bad = [s for s in args.spread if s not in SPREADS]
+    if bad:
+        raise UsageError(f"--spread {bad[0]!r}: must be one of {', '.join(SPREADS)}")
+    if not 0.1 <= args.duration <= 120.0:
+        raise UsageError(f"--duration {args.duration}: must be in [0.1, 120] s")
+    if args.chunk < 0:
+        raise UsageError(f"--chunk {args.chunk}: must be >= 0 (0: automatic)")
+    custom = dict(parse_custom(c) for c in args.custom)
+    unknown = [v for v in args.variants if v not in VARIANTS and v not in custom]
+    if unknown:
+        raise UsageError(f"--variants {unknown[0]!r}: not one of {', '.join(VARIANTS)} nor a --custom name")
+    if len(set(args.variants)) != len(args.variants):
+        raise UsageError("--variants: a variant is named twice")
+    params = variant_params(args.variants, custom, args.tuned, args.tuned_method)
+    described = {}
+    for v in args.variants:
+        p = params[v]
+        described[v] = {f.name: np.asarray(getattr(p, f.name)).tolist() for f in dataclasses.fields(p)
+                        if f.name not in ("gains", "reflex")}
+        described[v]["reflex"] = {f.name: np.asarray(getattr(p.reflex, f.name)).tolist()
+                                  for f in dataclasses.fields(p.reflex)}
+    return dict(impl=args.impl, instances=args.instances, heights=[float(h) for h in args.heights],
+                spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
+                seed=args.seed, duration=args.duration, terminate=not args.no_terminate,
+                tuned=os.path.abspath(args.tuned) if "tuned" in args.variants else None,
+                tuned_method=args.tuned_method if "tuned" in args.variants else None, custom=args.custom,
+                _params=params)
+
+
+def format_cells(cells) -> str:
+    lines = []
+    for c in cells:
+        def h(x):
+            return "-" if x is None else f"{100 * x:.0f} cm"
+        lines.append(f"{c['spread']:>6} {c['variant']:>18}: h90 {h(c['h90'])} (Wilson {h(c['h90_wilson'])}), "
+                     f"h85-clean {h(c['h85_clean'])} (Wilson {h(c['h85_clean_wilson'])}), "
+                     f"{c['terminated']} terminated, {c['diverged']} diverged of {c['n']}")
+        for p in c["per_height"]:
+            lines.append(f"{'':>27}{100 * p['height']:4.0f} cm  completed {p['completed_rate']:6.1%} "
+                         f"[{p['completed_ci95'][0]:.3f}, {p['completed_ci95'][1]:.3f}]  clean {p['clean_rate']:6.1%} "
+                         f"[{p['clean_ci95'][0]:.3f}, {p['clean_ci95'][1]:.3f}]  fell {p['terminated']}  "
+                         f"div {p['diverged']}")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

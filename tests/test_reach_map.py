@@ -1,0 +1,76 @@
+"""The reach map study (experiments/reach_map.py): options refused before compiling, the reach definitions, the tuned
+parameters loaded from a tuning study, and a tiny CPU run that writes, resumes and summarises its chunks."""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # the repository's experiments/
+from experiments import reach_map  # noqa: E402
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--spread", "medium"], "--spread 'medium'"),
+    (["--variants", "nope"], "--variants 'nope'"),
+    (["--custom", "x:terrain_adaptation=2", "--variants", "x"], "variant x"),
+    (["--custom", "x:no_such_field=1"], "no_such_field"),
+    (["--heights", "0.6"], "--heights 0.6"),
+    (["--instances", "0"], "--instances 0"),
+    (["--impl", "cuda"], "--impl 'cuda'"),
+    (["--variants", "tuned", "--tuned-method", "nope"], "--tuned-method 'nope'"),
+])
+def test_bad_options_are_one_line_and_exit_2_before_compiling(argv, needle, tmp_path, capsys):
+    assert reach_map.main(["--out", str(tmp_path / "m"), *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "\n" not in err, err
+    assert not os.path.exists(tmp_path / "m")
+
+
+def test_reach_is_the_tallest_height_passing_at_every_height_below():
+    from hyqjax.studies import statistics
+
+    h = np.repeat([0.14, 0.16, 0.18, 0.20], 100)
+    ok = np.concatenate([np.ones(100), np.r_[np.ones(95), np.zeros(5)], np.r_[np.ones(80), np.zeros(20)],
+                         np.ones(100)]).astype(bool)
+    curve = statistics.success_curve(h, ok)
+    point, wilson = reach_map.reach(curve, 0.90)
+    assert point == 0.16  # 18 cm fails (80%), so 20 cm (100%) does not count
+    assert wilson == 0.14  # 95/100 has a Wilson lower bound of 0.888 < 0.90
+
+
+def test_tuned_variant_is_the_study_selected_parameters():
+    p = reach_map.tuned_params(reach_map.DEFAULT_TUNED, "gradient")
+    with open(reach_map.DEFAULT_TUNED) as f:
+        want = json.load(f)["gradient"]["params"]
+    assert float(p.reflex.k_base) == pytest.approx(want["k_base"], rel=1e-5)
+    assert float(p.terrain_adaptation) == pytest.approx(want["terrain_adaptation"], rel=1e-5)
+    assert float(p.search_forward) == pytest.approx(want["search_forward"], rel=1e-5)
+    assert float(p.shin_remedy) == 1.0
+
+
+@pytest.mark.slow
+def test_tiny_cpu_map_writes_resumes_and_counts_every_instance(tmp_path):
+    out = tmp_path / "map"
+    argv = ["--out", str(out), "--impl", "jax", "--instances", "1", "--heights", "0.16", "0.24", "--duration", "0.6",
+            "--variants", "default", "remedy_all", "--spread", "narrow", "--chunk", "4"]
+    assert reach_map.main(argv) == 0
+    res = json.loads((out / "reach_map.json").read_text())
+    assert res["n_instances"] == 4 and (out / "reach_map.png").exists()
+    cells = {c["variant"]: c for c in res["cells"]}
+    assert set(cells) == {"default", "remedy_all"}
+    for c in cells.values():
+        assert [p["n"] for p in c["per_height"]] == [1, 1]
+        # 0.6 s: nobody has stepped down yet, nothing completed, nothing fell or diverged
+        assert c["h90"] is None and c["diverged"] == 0 and c["terminated"] == 0
+        assert all(p["reasons"]["feet_not_down"] == 1.0 for p in c["per_height"])
+    chunk = out / "chunks" / "00000.npz"
+    mtime = chunk.stat().st_mtime_ns
+    assert reach_map.main(argv) == 0  # resumed: the chunk is read, not recomputed
+    assert chunk.stat().st_mtime_ns == mtime
+    assert json.loads((out / "reach_map.json").read_text())["cells"] == res["cells"]
+    # another configuration in the same directory is refused
+    assert reach_map.main([*argv[:-2], "--chunk", "2", "--seed", "1"]) == 2
