@@ -318,7 +318,7 @@ class CBatchRunner:
         cs = jax.vmap(self.controller.init, in_axes=(self.params_axes, 0))(params, obs0)
         ms = jax.vmap(self.metrics.init)(view0)
         carry = sim.RolloutCarry(view0, cs, ms, tau0, jnp.zeros(b, bool), jnp.full(b, -1, jnp.int32),
-                                 jnp.zeros(b, jnp.int32))
+                                 jnp.zeros(b, jnp.int32), jnp.zeros(b, bool), jnp.full(b, -1, jnp.int32))
         return jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
 
     def _physics_callback(self, tau_frozen):
@@ -338,28 +338,34 @@ class CBatchRunner:
             cs_new, tau, info = ctrl.step(p, cs, obs)
             return obs, cs_new, jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT), info
 
-        def settle(v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k):
-            # The divergence rule of hyqjax.sim.rollout.rollout_advance, per instance.
+        def settle(v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k, term, term_tick):
+            # The divergence rule and the episode end of hyqjax.sim.rollout.rollout_advance, per instance.
             ok = sim._finite_tree((v_new.qpos, v_new.qvel, tau)) & (jnp.max(jnp.abs(v_new.qvel)) < cfg.max_speed)
-            newly = (~div) & (~ok)
-            div = div | ~ok
-            keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(div, b, a), new, old)  # noqa: E731
+            newly = (~div) & (~term) & (~ok)
+            div = div | newly
+            frozen = div | term
+            keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)  # noqa: E731
             v_new = keep(v_new, v)
             cs_new = keep(cs_new, cs)
-            tau = jnp.where(div, tau_prev, tau)
+            tau = jnp.where(frozen, tau_prev, tau)
             ms_new = keep(met.update(ms, v_new, obs, info), ms)
             div_tick = jnp.where(newly, k, div_tick)
+            if met.terminal is not None:  # static: the episode ends at the failure tick
+                ended = (~frozen) & jnp.asarray(met.terminal(ms_new), bool)
+                term = term | ended
+                term_tick = jnp.where(ended, k, term_tick)
             out = rec(v_new, obs, info) if rec is not None else None
-            return v_new, cs_new, ms_new, tau, div, div_tick, out
+            return v_new, cs_new, ms_new, tau, div, div_tick, term, term_tick, out
 
         def tick(c, _):
-            v, cs, ms, tau_prev, div, div_tick, k = c
+            v, cs, ms, tau_prev, div, div_tick, k, term, term_tick = c
             obs, cs_new, tau, info = jax.vmap(control, in_axes=(0, 0, 0, self.params_axes))(v, cs, tau_prev, params)
-            args = jnp.concatenate([tau, div[:, None].astype(tau.dtype)], axis=1)  # one input array: (B, nu + 1)
+            frozen = (div | term)[:, None].astype(tau.dtype)  # a frozen instance is not stepped
+            args = jnp.concatenate([tau, frozen], axis=1)  # one input array: (B, nu + 1)
             v_new = unpack(layout, io_callback(self._physics_callback, packed, args, ordered=True))
-            v_new, cs_new, ms_new, tau, div, div_tick, out = jax.vmap(settle)(
-                v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k)
-            return sim.RolloutCarry(v_new, cs_new, ms_new, tau, div, div_tick, k + 1), out
+            v_new, cs_new, ms_new, tau, div, div_tick, term, term_tick, out = jax.vmap(settle)(
+                v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k, term, term_tick)
+            return sim.RolloutCarry(v_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
 
         if rec is not None:
             def block(c, _):
