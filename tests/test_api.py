@@ -38,6 +38,7 @@ def test_examples_use_public_names_only():
         assert "from hyqjax." not in code and "hyqjax._" not in code
 
 
+@pytest.mark.slow
 def test_public_api_is_reexported_lazily():
     from conftest import run_python
 

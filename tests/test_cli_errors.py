@@ -462,6 +462,7 @@ LIGHT_REFUSALS = [["sweep", "--sed", "1"], ["sweep", "--chunk-size", "0"], ["tun
 SPEC_REFUSALS = [["sweep", "--grid", "height=0.6"], ["tune", "--groups", "k_base,spring"]]
 
 
+@pytest.mark.slow
 def test_usage_errors_refused_before_heavy_imports():
     from conftest import run_python
 

@@ -29,6 +29,7 @@ def test_joint_velocities_invert_the_foot_jacobian():
     np.testing.assert_allclose(np.asarray(kinematics.foot_velocities(q, qd)), np.asarray(xd), atol=2e-3)
 
 
+@pytest.mark.slow
 def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
     p = CrawlParams.make()
     st = jax.jit(crawl_state.crawl_init)(p, _obs())
@@ -145,6 +146,7 @@ def test_crawl_params_reject_bad_values_with_the_parameter_name():
         CrawlParams.make(deep_search=float("nan"))
 
 
+@pytest.mark.slow
 def test_crawl_step_is_jittable_and_differentiable_in_a_gain():
     from hyqjax.crawl import controller
 
@@ -273,6 +275,7 @@ def _around(name):
 FLAGS = ("use_reflex", "shin_remedy", "weight_qp")  # make() takes booleans for these
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(st.sampled_from(sorted(k for k in CRAWL_SPECS if k not in FLAGS)).flatmap(_around))
 def test_make_accepts_exactly_the_declared_range(case):

@@ -191,6 +191,7 @@ def test_leg_extension_matches_fk(rng, x64):
     np.testing.assert_allclose(ext, np.linalg.norm(feet - hfe, axis=-1), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_float32_close_to_float64(rng):
     qs = random_q(rng, N_SAMPLES)
     with jax.enable_x64(True):

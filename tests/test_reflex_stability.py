@@ -131,6 +131,7 @@ def test_accepted_parameters_stay_finite(data):
     assert bool(finite), (kw, dt)
 
 
+@pytest.mark.slow
 def test_dt_checked():
     x0 = jnp.asarray(X_STAND, jnp.float32)
     inputs = R.ReflexInputs.make(x0, 1)
@@ -182,6 +183,7 @@ def test_linearised_rates_real_and_bounded(x64):
         assert ev.real.max() > 0.6 * bound  # the bound is attained up to a stated margin
 
 
+@pytest.mark.slow
 def test_reflex_step_does_not_retrace():
     """A jitted reflex_step traces once: new values of the state, inputs, parameters and dt reuse it."""
     traces = []

@@ -10,6 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.studies.tune import kinematic, optimize
@@ -20,6 +21,7 @@ jax.monitoring.register_event_duration_secs_listener(
     lambda name, secs, **kw: COMPILES.append(name) if name == "/jax/core/compile/backend_compile_duration" else None)
 
 
+@pytest.mark.slow
 def test_tuner_step_traces_and_compiles_once(tmp_path, monkeypatch):
     traces = []
     batch_terms = kinematic.batch_terms

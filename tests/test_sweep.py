@@ -266,6 +266,7 @@ def test_cli_validation_before_compile(capsys):
     assert "6 instances" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_sensed_controller_delay_and_noise():
     """Latency hands the controller the observation of ``delay`` ticks ago; zero noise changes nothing."""
     inner = sim.Controller(lambda p, o: jnp.zeros(()), lambda p, s, o: (s, o.q, dict(seen=o.q[0])))

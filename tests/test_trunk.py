@@ -101,6 +101,7 @@ def test_qp_is_exact_when_the_cones_are_inactive():
     assert float(f[3].sum()) == 0.0
 
 
+@pytest.mark.slow
 def test_qp_forward_and_reverse_derivatives_match_finite_differences():
     rng = np.random.default_rng(2)
     r, st, force, torque, mu = _instance(rng)

@@ -47,6 +47,7 @@ def test_space_roundtrip_and_always_valid():
             assert ranges[c.name].in_range(np.asarray([c.lo + eps, c.hi - eps])).all(), c.name
 
 
+@pytest.mark.slow
 def test_kinematic_gradient_matches_central_differences(x64):
     sp = spmod.ParamSpace.make(("k_base", "damping", "mobility", "k_x", "delta", "k_kl"))
     sc = kinematic.make_scenarios(2, 5, depth=(0.02, 0.05), dtype=jnp.float64)
@@ -81,6 +82,7 @@ def kin_runs(tmp_path_factory):
     return f, th0, cfg, conf, full, part, r_full, r_res, sp
 
 
+@pytest.mark.slow
 def test_adam_lowers_loss_logs_and_counts_budget(kin_runs):
     _, _, _, _, full, _, r_full, _, _ = kin_runs
     log = optimize.read_log(full)
