@@ -146,7 +146,11 @@ def setup(cfg: StepdownConfig, differentiable: bool = False) -> StepdownSetup:
 @functools.lru_cache(maxsize=8)
 def _setup_cached(layout: hmodel.TerrainLayout, control_dt: float, impl: str, x64: bool) -> StepdownSetup:
     m = hmodel.load_model(layout, timestep=control_dt)
-    return StepdownSetup(m, backend.get(impl).put_model(m), hmodel.model_ids(m), impl)
+    # Concrete even when the first call comes from inside a trace (a jitted objective): the cache must never hold
+    # a tracer.
+    with jax.ensure_compile_time_eval():
+        mx = backend.get(impl).put_model(m)
+    return StepdownSetup(m, mx, hmodel.model_ids(m), impl)
 
 
 def start_qpos(stand_qpos, start_distance, lateral_offset, yaw, platform_height, xp=np):
