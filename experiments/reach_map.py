@@ -8,8 +8,9 @@ For every *variant* (a crawl: :data:`VARIANTS`, ``--custom``), *spread* and heig
 steps) it runs ``--instances`` randomised step-downs of ``--duration`` seconds and reports
 
 * per height: completed and clean (``hyqjax.studies.stepdown_outcome``) with Wilson 95% intervals
-  (``statistics.success_curve``), the share of every failure reason, and the counts of ``diverged`` (simulator
-  blow-ups) and ``terminated`` (runs that fell and were ended at their failure tick) instances;
+  (``statistics.success_curve``), the share of every failure reason, the counts of ``diverged`` (simulator
+  blow-ups) and ``terminated`` (runs that fell and were ended at their failure tick) instances, and
+  ``by_factor``: the outcome shares per third of the spread's range of start distance, friction and payload;
 * ``h90``: the tallest height with >= 90% completed, every height below it too (point estimates), and
   ``h90_wilson``: the same with the Wilson lower bound >= 0.90 (``statistics.h95_wilson`` at 0.90);
 * ``h85_clean`` and ``h85_clean_wilson``: the same for >= 85% clean.
@@ -250,8 +251,39 @@ def reach(curve: list[dict], target: float) -> tuple[float | None, float | None]
     return best, statistics.h95_wilson(curve, target)
 
 
+#: Scenario inputs whose share of each outcome is reported per third of the spread's range (``by_factor``), and the
+#: ``SPREADS`` key of each range.
+FACTORS = (("start_distance", "start_distance"), ("friction", "friction"), ("payload_mass", "payload"))
+#: Outcome columns reported per factor bin (as shares of the bin's runs).
+FACTOR_OUTCOMES = ("completed", "clean", "terminated", "lost_foothold", "joint_past_range", "tilt", "shin_strike")
+
+
+def factor_shares(rows: dict, out: dict, mask: np.ndarray, spread: str, bins: int = 3) -> dict[str, list[dict]]:
+    """Per factor of :data:`FACTORS`: the runs of ``mask`` split into ``bins`` equal parts of the spread's range of that
+    input (``[lo, hi)``, the last one closed), each with its range, its count ``n`` and the share of each of
+    :data:`FACTOR_OUTCOMES` (None for an empty part). Says how start distance, friction and payload contribute to a
+    cell's failures."""
+    res = {}
+    for col, key in FACTORS:
+        lo, hi = SPREADS[spread][key]
+        x = np.asarray(rows[col])
+        edges = np.linspace(lo, hi, bins + 1)
+        # the part of each run, compared in the inputs' own precision (float32 0.15 is above float64 0.15); no run
+        # is dropped
+        part = np.searchsorted(edges[1:-1].astype(x.dtype), x, side="right")
+        parts = []
+        for i in range(bins):
+            inside = mask & (part == i)
+            n = int(inside.sum())
+            parts.append(dict(range=[float(edges[i]), float(edges[i + 1])], n=n,
+                              **{k: (float(out[k][inside].mean()) if n else None) for k in FACTOR_OUTCOMES}))
+        res[col] = parts
+    return res
+
+
 def summarise(rows: dict, out: dict, variants, spreads) -> list[dict]:
-    """One entry per (spread, variant): per-height curves of both levels, reasons, counts and the reach."""
+    """One entry per (spread, variant): per-height curves of both levels, reasons, counts, the shares per third of
+    each scenario input's range (:func:`factor_shares`) and the reach."""
     from hyqjax.studies import statistics
     from hyqjax.studies import stepdown_outcome as so
 
@@ -270,7 +302,8 @@ def summarise(rows: dict, out: dict, variants, spreads) -> list[dict]:
                     height=cc["height"], n=cc["n"], completed=cc["successes"], completed_rate=cc["rate"],
                     completed_ci95=cc["ci95"], clean=cl["successes"], clean_rate=cl["rate"], clean_ci95=cl["ci95"],
                     diverged=int(out["diverged"][hm].sum()), terminated=int(out["terminated"][hm].sum()),
-                    reasons={k: float(out[k][hm].mean()) for k in so.FAILURE_REASONS}))
+                    reasons={k: float(out[k][hm].mean()) for k in so.FAILURE_REASONS},
+                    by_factor=factor_shares(rows, out, hm, spread)))
             entry = dict(spread=spread, variant=v, n=int(m.sum()), diverged=int(out["diverged"][m].sum()),
                          terminated=int(out["terminated"][m].sum()), per_height=per_height)
             for key, level, target in REACH_LEVELS:
@@ -303,7 +336,7 @@ def plot(cells, path: str) -> str:
             ax.axvline(24, color="tab:red", lw=0.8, ls="--")
             n = min(p["n"] for c in cells for p in c["per_height"])
             ax.set(xlabel="platform height [cm]", ylabel=f"{level} rate", ylim=(-0.02, 1.02),
-                   title=f"{spread} spread: {level} (95% Wilson, >= {n} per point; dashed: HyQ's 24 cm)")
+                   title=f"{spread}: {level} (Wilson 95%, n >= {n}; dashed: HyQ's 24 cm)")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
     fig.tight_layout()

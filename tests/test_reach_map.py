@@ -74,3 +74,39 @@ def test_tiny_cpu_map_writes_resumes_and_counts_every_instance(tmp_path):
     assert json.loads((out / "reach_map.json").read_text())["cells"] == res["cells"]
     # another configuration in the same directory is refused
     assert reach_map.main([*argv[:-2], "--chunk", "2", "--seed", "1"]) == 2
+
+
+def test_factor_shares_split_every_run_into_thirds_of_the_spread_range():
+    from hyqjax.studies import stepdown_outcome as so
+
+    rng = np.random.default_rng(0)
+    n = 600
+    lo, hi = reach_map.SPREADS["wide"]["start_distance"]
+    rows = dict(start_distance=np.r_[rng.uniform(lo, hi, n - 2), lo, hi].astype(np.float32),
+                friction=rng.uniform(0.4, 1.0, n).astype(np.float32),
+                payload_mass=rng.uniform(0.0, 15.0, n).astype(np.float32),
+                height=np.full(n, 0.24), spread=np.full(n, "wide"), variant=np.full(n, "remedy"))
+    # a crawl that completes exactly when it starts in the first 5 cm, and falls when friction is below 0.6
+    out = {k: np.zeros(n, bool) for k in (*so.FAILURE_REASONS, "terminated")}
+    out["completed"] = rows["start_distance"] < 0.05
+    out["clean"] = out["completed"] & (rows["payload_mass"] > 5.0)
+    out["terminated"] = out["tilt"] = rows["friction"] < 0.6
+    mask = np.ones(n, bool)
+    res = reach_map.factor_shares(rows, out, mask, "wide")
+    assert set(res) == {"start_distance", "friction", "payload_mass"}
+    for parts in res.values():
+        assert sum(p["n"] for p in parts) == n  # both ends of the range included, nothing dropped
+    sd = res["start_distance"]
+    assert np.allclose([p["range"] for p in sd], [[0.0, 0.05], [0.05, 0.10], [0.10, 0.15]])
+    assert [p["completed"] for p in sd] == [1.0, 0.0, 0.0]
+    assert [p["terminated"] for p in res["friction"]] == [1.0, 0.0, 0.0]
+    assert res["friction"][0]["tilt"] == 1.0
+    x = rows["payload_mass"]
+    want = [out["clean"][(x >= a) & (x < b)].mean() for a, b in ((0, 5), (5, 10))]
+    assert [p["clean"] for p in res["payload_mass"][:2]] == pytest.approx(want)
+    assert res["payload_mass"][0]["clean"] == 0.0
+    # an empty part is None, not a made-up share
+    empty = reach_map.factor_shares(rows, out, rows["start_distance"] < 0.05, "wide")["start_distance"]
+    assert empty[0]["n"] > 0 and empty[2]["n"] == 0 and empty[2]["completed"] is None
+    cells = reach_map.summarise(rows, out, ["remedy"], ["wide"])
+    assert cells[0]["per_height"][0]["by_factor"] == res
