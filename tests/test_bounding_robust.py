@@ -94,6 +94,41 @@ def test_stored_parameters_round_trip_and_bad_files(tmp_path):
         rb.params_from_values(dict(k_speed=-5.0))
 
 
+def test_shipped_robust_preset_is_the_measured_gradient_result():
+    """The ``robust`` preset holds the gradient's parameters of the H100 study (docs/results/bounding_robust_h100)
+    exactly, inside every declared range, and builds a controller that differs from the default only in the 22
+    optimised coordinates."""
+    import os
+
+    vals = rb.load_params("robust")
+    assert rb.load_params(rb.preset_path("robust")) == vals
+    measured = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "bounding_robust_h100",
+                            "params_gradient.json")
+    if os.path.exists(measured):  # a source checkout
+        assert rb.load_params(measured) == vals
+    assert set(vals) == {c[0] for c in rb.COORDS}
+    for name, _, lo, hi in rb.COORDS:
+        assert lo <= vals[name] <= hi, name
+    p = rb.preset_params("robust", speed=0.5, yaw_rate=0.3)
+    d = bp.default_params(speed=0.5, yaw_rate=0.3)
+    assert p.validate() is p
+    sp = rb.RobustSpace.make(d)
+    np.testing.assert_allclose(sp.values(sp.theta_of(vals), np), [vals[n] for n in sp.names], rtol=1e-12)
+    for n in sp.names:
+        assert rb.value_of(p, n) == pytest.approx(vals[n], rel=1e-6), n
+    # Everything else (cycle apex, stance reference, gait, command, other gains) is the default's: the preset is
+    # the default moved along the optimised coordinates only.
+    moved = sp.apply(jnp.asarray(sp.theta_of(vals), jnp.float32), d)
+    leaves_p, tree_p = jax.tree_util.tree_flatten(p)
+    leaves_m, tree_m = jax.tree_util.tree_flatten(moved)
+    assert tree_p == tree_m
+    for a, b in zip(leaves_p, leaves_m):
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=1e-5, atol=1e-6)
+    assert not np.allclose(np.asarray(p.amplitudes), np.asarray(d.amplitudes))
+    with pytest.raises(ValueError, match="preset"):
+        rb.preset_params("fastest")
+
+
 def test_training_and_heldout_draws_are_disjoint_and_in_their_boxes():
     d = rb.Draw(speed=(0.0, 1.0), yaw_rate=(-0.8, 0.8), friction=(0.5, 1.0), payload=(0.0, 10.0))
     a, b = d.commands(500, seed=0), d.commands(500, seed=7777)

@@ -127,6 +127,8 @@ CASES = [
     (["bound", "--out", "afile/sub"], "--out"),
     (["bound", "--duration", "nan"], "--duration"),
     (["bound", "--friction", "0.5"], "--friction"),
+    (["bound", "--params", "nosuch.json"], "--params"),
+    (["bound", "--params", "afile"], "--params"),
     # tune
     (["tune", "--seed", "-1"], "--seed"),
     (["tune", "--steps", "-1"], "--steps"),

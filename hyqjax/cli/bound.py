@@ -55,6 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--friction", type=float, nargs=2, default=(0.7, 1.0), metavar=("LO", "HI"),
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
+    p.add_argument("--params", metavar="FILE|robust", default=None,
+                   help="impulse amplitudes and gains from a file of hyqjax.bounding.robust.save_params, or the "
+                        "shipped set 'robust' (optimised over commands, friction and payload; docs/bounding.md); "
+                        "default: the paper's reference cycle with the default gains")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     from hyqjax.cli.common import add_impl_argument
     from hyqjax.sim.backend import MJX_IMPLS
@@ -99,6 +103,13 @@ def check_options(args) -> None:
     if lo > hi:
         raise ValueError(f"--friction LO HI must satisfy 0 < LO <= HI <= 5, got {lo} {hi}")
     check_out_free(args.out)
+    if args.params is not None:
+        from hyqjax.bounding import robust as rb
+
+        try:
+            rb.params_from_values(rb.load_params(args.params))
+        except ValueError as e:
+            raise ValueError(f"--params: {e}") from None
     from hyqjax.bounding import experiment as bx
 
     try:
@@ -131,10 +142,18 @@ def run(args) -> int:
         validate(args)
     configs = configurations(args)
     n = args.instances
+    values = None
+    if args.params is None:
+        make = bd.default_params
+    else:
+        from hyqjax.bounding import robust as rb
+
+        values = rb.load_params(args.params)
+        make = lambda **kw: rb.params_from_values(values, **kw)  # noqa: E731
     plist = []
     for _, kin, cf in configs:
-        plist += [bd.default_params(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
-                                    ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf)
+        plist += [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
+                       ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf)
                   for _ in range(n)]
     rand = bx.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
     batch = bx.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
@@ -162,6 +181,8 @@ def run(args) -> int:
                wall_time_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
                env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                batches=status.timings, groups=groups)
+    if values is not None:
+        out["params"] = dict(source=args.params, values=values)
     if args.ablation:
         out["contributions"] = bs.contributions(groups)
     os.makedirs(args.out, exist_ok=True)
