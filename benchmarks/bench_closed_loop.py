@@ -61,6 +61,7 @@ from hyqjax.io import atomic as hio
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as srunner
 from hyqjax.core import spatial
 from hyqjax.control import stand
 from hyqjax.studies import stepdown
@@ -96,9 +97,9 @@ def closed_loop_fn(scen, cfg: stepdown.StepdownConfig, mesh=None, metrics=None, 
     mb = hmodel.batch_model(mx, ids, scen.terrain)
     d0 = stepdown.initial_batch_data(st, mb, scen)  # under warp: terrain poses in the data
     metrics = metrics or stepdown.make_metrics(ids, cfg)
-    fn, args = sim.batch_rollout_fn(mb, ids, d0, crawl.crawl_controller(scfg.control_dt),
-                                    scen.params if params is None else params, scfg, metrics=metrics,
-                                    record=None, params_axes=0, mesh=mesh, push=scen.push)
+    fn, args = srunner.batch_rollout_fn(mb, ids, d0, crawl.crawl_controller(scfg.control_dt),
+                                        scen.params if params is None else params, scfg, metrics=metrics,
+                                        record=None, params_axes=0, mesh=mesh, push=scen.push)
     if mesh is None:
         args = jax.device_put(args, jax.devices()[0])  # committed: every call runs the one executable
     return fn, args
@@ -386,7 +387,7 @@ def bench_grad(batch: int, duration: float, fields: list[str], repeats: int, cfg
 def bench_scaling(per_device: int, steps: int, repeats: int, cfg) -> dict:
     n = jax.local_device_count()
     one = bench_closed(per_device, steps, repeats, cfg)
-    mesh = sim.batch_mesh()
+    mesh = srunner.batch_mesh()
     many = bench_closed(per_device * n, steps, repeats, cfg, mesh=mesh)
     r1 = per_device * steps / float(np.median(one["times_s"]))
     rn = per_device * n * steps / float(np.median(many["times_s"]))

@@ -11,7 +11,7 @@ Three things differ under MuJoCo Warp (measured in ``probe_warp.py``, see ``docs
 * mujoco_warp prints one line per instance and step when the solver uses all its iterations (routine
   with Newton 4 / 8); that warning is switched off, the overflow warnings are kept.
 
-The library does all three (``hyqjax.sim.backend.put_model``, ``hyqjax.sim.rollout.initial_data``); this
+The library does all three (``hyqjax.sim.impls.put_model``, ``hyqjax.sim.rollout.initial_data``); this
 module adapts them to the benchmarks' (model, batched model, qpos, impl) calls.
 """
 from __future__ import annotations
@@ -21,6 +21,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.sim import backend
+from hyqjax.sim import impls
 from hyqjax.sim import rollout as sim
 
 IMPLS = ("jax", "warp")
@@ -37,10 +38,10 @@ def warp_available() -> bool:
 
 def put_model(m: mujoco.MjModel, impl: str) -> mjx.Model:
     """``mjx.put_model(m, impl=impl)``; under warp without the iteration-limit printout
-    (``hyqjax.sim.backend.put_model``)."""
+    (``hyqjax.sim.impls.put_model``)."""
     if impl not in IMPLS:
         raise ValueError(f"impl must be one of {IMPLS}, got {impl!r}")
-    return backend.put_model(m, impl)
+    return impls.put_model(m, impl)
 
 
 def static_geoms(m: mujoco.MjModel) -> np.ndarray:
@@ -51,7 +52,7 @@ def static_geoms(m: mujoco.MjModel) -> np.ndarray:
 def batch_data(m: mujoco.MjModel, mx_batched: mjx.Model, qpos: np.ndarray, impl: str) -> mjx.Data:
     """Batched initial data at ``qpos`` (B, nq), zero velocity, on the per-instance terrain of ``mx_batched``
     (``hyqjax.sim.rollout.initial_data``: under warp made from ``m`` in a ``vmap``, with
-    ``backend.CONTACTS_PER_INSTANCE`` contacts per instance and the terrain poses written into ``geom_xpos``)."""
+    ``impls.CONTACTS_PER_INSTANCE`` contacts per instance and the terrain poses written into ``geom_xpos``)."""
     qpos = np.asarray(qpos)
     if impl == "warp":
         return sim.initial_data(mx_batched, qpos, qpos.shape[0], m=m)
@@ -63,4 +64,4 @@ def overflow_count(d: mjx.Data) -> int:
     flag = getattr(getattr(d, "_impl", None), "overflow", None)
     if flag is None:
         return 0
-    return int(np.sum((np.asarray(flag).reshape(-1) & backend.BUFFER_OVERFLOW_MASK) != 0))
+    return int(np.sum((np.asarray(flag).reshape(-1) & impls.BUFFER_OVERFLOW_MASK) != 0))

@@ -23,7 +23,7 @@ import numpy as np
 
 
 def grid(name, lo, hi, step, lim):
-    from hyqjax.bounding.experiment import SettingError
+    from hyqjax.bounding.batch import SettingError
 
     if not (np.isfinite([lo, hi, step]).all() and step > 0 and -lim <= lo <= hi <= lim):
         raise SettingError(name, f"--{name.replace('_', '-')} must be LO HI STEP with -{lim:g} <= LO <= HI <= "
@@ -60,7 +60,7 @@ def spec_of(args):
 
 
 def check_duration(d):
-    from hyqjax.bounding.experiment import SettingError
+    from hyqjax.bounding.batch import SettingError
 
     if abs(d / 0.4 - round(d / 0.4)) > 1e-6:
         raise SettingError("duration", f"--duration must be a multiple of the gait period 0.4 s, got {d:g}")

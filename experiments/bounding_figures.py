@@ -91,7 +91,7 @@ def gradient(args) -> dict:
 
 def eigen(args) -> dict:
     from hyqjax.bounding import cycle as bc
-    from hyqjax.bounding import experiment as bx
+    from hyqjax.bounding import batch as bbatch
     from hyqjax.bounding import params as bp
     from hyqjax.bounding import plots
     from hyqjax.bounding import stability as bst
@@ -102,7 +102,7 @@ def eigen(args) -> dict:
     configs = dict(none=bst.with_feedback(pf, False), stance=bst.with_feedback(pf, False, True), stance_apex=pf)
     t0 = time.time()
     p_out, a_all, b_all = jax.jit(jax.vmap(lambda q: bst.linearise(q, jnp.asarray(s), period=0.4)))(
-        bx.stack_params(list(configs.values())))
+        bbatch.stack_params(list(configs.values())))
     wall = time.time() - t0
     a_all, b_all, p_out = np.asarray(a_all), np.asarray(b_all), np.asarray(p_out)
     eigs = {k: np.linalg.eigvals(a) for k, a in zip(configs, a_all)}
@@ -128,17 +128,18 @@ def eigen(args) -> dict:
 
 def _closed_loop(args, groups_spec: list) -> tuple[dict, dict, dict]:
     """Run ``[(name, plist, make_batch kwargs)]`` as one compiled batch; per-group aggregates and instances."""
-    from hyqjax.bounding import experiment as bx
+    from hyqjax.bounding import batch as bbatch
+    from hyqjax.bounding import rollout as brollout
     from hyqjax.bounding import summary as bs
 
     batches, idx = [], {}
     for name, plist, kw in groups_spec:
         start = sum(len(b.apex0) for b in batches)
-        batches.append(bx.make_batch(plist, seed=args.seed, **kw))
+        batches.append(bbatch.make_batch(plist, seed=args.seed, **kw))
         idx[name] = list(range(start, start + len(plist)))
-    batch = bx.concat_batches(batches)
+    batch = bbatch.concat_batches(batches)
     t0 = time.time()
-    res, trace = bx.run(batch, duration=args.duration)
+    res, trace = brollout.run(batch, duration=args.duration)
     wall = time.time() - t0
     inst = bs.summarise(res, trace, batch).instances
     agg = {g: bs.aggregate([inst[i] for i in ii]) for g, ii in idx.items()}
@@ -201,15 +202,15 @@ def speed(args) -> dict:
 
 
 def robustness(args) -> dict:
-    from hyqjax.bounding import experiment as bx
+    from hyqjax.bounding import batch as bbatch
     from hyqjax.bounding import params as bp
     from hyqjax.bounding import plots
 
     n, p = args.instances, bp.default_params(speed=0.5)
     pushes = (0.0, 150.0, 300.0, 450.0)
     spec = [(f"push_{f:g}N", [p] * n, dict(push_force=f, push_time=3.0, push_duration=0.1)) for f in pushes]
-    spec += [("friction_0.4-0.5", [p] * n, dict(rand=bx.Randomisation(friction=(0.4, 0.5)))),
-             ("payload_10-15kg", [p] * n, dict(rand=bx.Randomisation(payload=(10.0, 15.0))))]
+    spec += [("friction_0.4-0.5", [p] * n, dict(rand=bbatch.Randomisation(friction=(0.4, 0.5)))),
+             ("payload_10-15kg", [p] * n, dict(rand=bbatch.Randomisation(payload=(10.0, 15.0))))]
     agg, run, _ = _closed_loop(args, spec)
     rob = list(agg)
     x10 = lambda g: None if agg[g]["speed_error_rms_mean"] is None else 10 * agg[g]["speed_error_rms_mean"]  # noqa
@@ -249,10 +250,10 @@ def main(argv=None) -> int:
     ap.add_argument("--suffix", default="", help="appended to the output names (e.g. _fast for a second turning run)")
     args = ap.parse_args(argv)
     try:
-        from hyqjax.bounding import experiment as bx
+        from hyqjax.bounding import batch as bbatch
 
-        bx.validate_run(speed=args.turn_speed, yaw_rate=args.turn_rate, instances=args.instances,
-                        duration=args.duration, seed=args.seed)
+        bbatch.validate_run(speed=args.turn_speed, yaw_rate=args.turn_rate, instances=args.instances,
+                            duration=args.duration, seed=args.seed)
         if not (1 <= args.guesses <= 4096 and 1 <= args.iterations <= 10000):
             raise ValueError("--guesses must be in [1, 4096] and --iterations in [1, 10000]")
         if not all(c.isalnum() or c in "._-" for c in args.suffix):

@@ -85,7 +85,7 @@ def check(args):
     """Every option checked before anything compiles (ValueError naming the option)."""
     from experiments import bounding_envelope as be
     from hyqjax.bounding import robust
-    from hyqjax.bounding.experiment import SettingError
+    from hyqjax.bounding.batch import SettingError
     from hyqjax.sim import backend
 
     args.cma_impl = args.cma_impl or args.impl

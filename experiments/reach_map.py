@@ -417,10 +417,14 @@ def main(argv=None) -> int:
 
 def check(args) -> dict:
     """Validate every option before anything compiles; returns the configuration (hashed for resuming)."""
+    from hyqjax.sim import backend
+    from hyqjax.sim import impls
     from hyqjax.sim import model as hmodel
 
-    if args.impl not in ("auto", "jax", "warp"):
-        raise UsageError(f"--impl {args.impl!r}: must be one of auto, jax, warp")
+    try:
+        backend.validate_impl(args.impl, impls.MJX_IMPLS)
+    except ValueError:
+        raise UsageError(f"--impl {args.impl!r}: must be one of auto, {', '.join(impls.MJX_IMPLS)}") from None
     if not 1 <= args.instances <= 1_000_000:
         raise UsageError(f"--instances {args.instances}: must be in [1, 1000000]")
     bad = [h for h in args.heights if not 0.0 <= h <= hmodel.MAX_PLATFORM_HEIGHT]

@@ -42,6 +42,7 @@ from hyqjax.crawl import controller as crawl
 from hyqjax.io import atomic as io
 from hyqjax.sim import contacts
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.statistics import wilson_interval
@@ -125,9 +126,9 @@ def build(instances: int, seed: int, variants) -> tuple[stepdown.Scenario, dict[
 
 def run(sc: stepdown.Scenario, cfg: stepdown.StepdownConfig):
     st = stepdown.setup(cfg)
-    runner = sim.make_batch_runner(st.ids, crawl.crawl_controller(cfg.control_dt), cfg.sim_config(),
-                                   make_metrics(st.ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None),
-                                   None, params_axes=0)
+    runner = srunner.make_batch_runner(st.ids, crawl.crawl_controller(cfg.control_dt), cfg.sim_config(),
+                                       make_metrics(st.ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None),
+                                       None, params_axes=0)
     from hyqjax.sim import model as hmodel
 
     mb = hmodel.batch_model(st.mx, st.ids, sc.terrain)

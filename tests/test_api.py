@@ -109,7 +109,7 @@ jax.monitoring.register_event_duration_secs_listener(
 
 def test_bounding_rollout_config_names_the_bad_setting():
     import hyqjax
-    from hyqjax.bounding.experiment import SettingError
+    from hyqjax.bounding.batch import SettingError
 
     for kwargs, name in ((dict(duration=0.0), "duration"), (dict(duration=float("nan")), "duration"),
                          (dict(duration=601.0), "duration"), (dict(control_dt=0.05), "control_dt"),

@@ -1,4 +1,4 @@
-"""Tests of the bounding gait (hyqjax.bounding: params, gait, controller, cycle, experiment, summary; cli/bound).
+"""Tests of the bounding gait (hyqjax.bounding: params, gait, controller, cycle, batch, rollout, summary; cli/bound).
 
 CPU-sized: three compiled programs (one batched forward-mode return map, one Levenberg-Marquardt step, one
 batched closed-loop rollout), about 5-8 minutes on 2 cores, most of it XLA compile time.
@@ -13,12 +13,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import controller as bctrl
 from hyqjax.bounding import cycle as bc
 from hyqjax.bounding import defaults as bdef
-from hyqjax.bounding import experiment as bx
 from hyqjax.bounding import gait as bgait
 from hyqjax.bounding import params as bd
+from hyqjax.bounding import rollout as brollout
 from hyqjax.bounding import summary as bs
 
 #: Periodicity tolerance of the stored cycle: scaled residual norm (Eq. C2 units: 1 = 1 cm, 0.01 rad,
@@ -83,20 +84,20 @@ def test_input_validation_names_the_parameter():
         (lambda: bd.BoundingGains.make(k_speed=-1.0), "k_speed"),
         (lambda: bd.BoundingGains.make(tau_est=0.0), "tau_est"),
         (lambda: bd.default_params(cycle_apex=[0.1, 0, 0, 0, 0]), "cycle_apex"),
-        (lambda: bx.Randomisation(friction=(0.0, 1.0)), "friction"),
-        (lambda: bx.make_batch([bd.default_params()] * 3, n_unique=2), "n_unique"),
-        (lambda: bx.make_batch([bd.default_params()], push_force=1e5), "push_force"),
+        (lambda: bbatch.Randomisation(friction=(0.0, 1.0)), "friction"),
+        (lambda: bbatch.make_batch([bd.default_params()] * 3, n_unique=2), "n_unique"),
+        (lambda: bbatch.make_batch([bd.default_params()], push_force=1e5), "push_force"),
         (lambda: bc.optimise_cycle(bd.default_params(), np.full((1, 8), np.nan)), "u0"),
         (lambda: bc.optimise_cycle(bd.default_params(), np.zeros((1, 8)), iterations=0), "iterations"),
         (lambda: bd.default_params().replace(mass=jnp.float32(-1.0)), "mass"),
         (lambda: bd.BoundingGains.make(k_unknown=1.0), "k_unknown"),
-        (lambda: bx.validate_run(speed=5.0), "speed"),
-        (lambda: bx.validate_run(instances=0), "instances"),
-        (lambda: bx.validate_run(friction=(2.0, 1.0)), "friction"),
-        (lambda: bx.validate_run(payload=(0.0, float("nan"))), "payload"),
-        (lambda: bx.validate_run(duration=1.3), "duration"),
-        (lambda: bx.validate_run(push=float("inf")), "push"),
-        (lambda: bx.validate_run(seed=-1), "seed"),
+        (lambda: bbatch.validate_run(speed=5.0), "speed"),
+        (lambda: bbatch.validate_run(instances=0), "instances"),
+        (lambda: bbatch.validate_run(friction=(2.0, 1.0)), "friction"),
+        (lambda: bbatch.validate_run(payload=(0.0, float("nan"))), "payload"),
+        (lambda: bbatch.validate_run(duration=1.3), "duration"),
+        (lambda: bbatch.validate_run(push=float("inf")), "push"),
+        (lambda: bbatch.validate_run(seed=-1), "seed"),
         (lambda: bc.gradient_check(bd.default_params(), np.zeros(8), indices=(9,)), "indices"),
         (lambda: bc.initial_guesses(bd.default_params(), 0), "n"),
     ]
@@ -108,7 +109,7 @@ def test_input_validation_names_the_parameter():
 @pytest.mark.slow
 def test_parameters_validate_batched_leaves_and_stay_differentiable():
     plist = [bd.default_params(speed=v) for v in (0.0, 0.5, 1.0)]
-    batch = bx.stack_params(plist)
+    batch = bbatch.stack_params(plist)
     assert batch.validate() is batch  # batched leaves are checked element-wise
     with pytest.raises(ValueError, match="k_speed"):  # one bad element of a batch is refused
         dataclasses.replace(batch.gains, k_speed=jnp.array([200.0, -1.0, 200.0]))
@@ -261,8 +262,8 @@ DURATION = 6.0
 @pytest.fixture(scope="module")
 def closed_loop():
     plist = [bd.default_params(**s) for s in SCENARIOS]
-    batch = bx.make_batch(plist, seed=3)
-    res, trace = bx.run(batch, duration=DURATION)
+    batch = bbatch.make_batch(plist, seed=3)
+    res, trace = brollout.run(batch, duration=DURATION)
     summary = bs.summarise(res, trace, batch)
     return res, trace, summary
 

@@ -68,8 +68,8 @@ def record(d, obs, info):
 def run_scenario(m, ids, mesh=None, duration=10.0) -> dict:
     """Run the scenario; returns numpy arrays."""
     mxb, d0, push, cfg = scenario(m, ids, duration)
-    res = sim.batch_rollout(mxb, ids, d0, stand.stand_controller, stand.StandParams.make(), cfg,
-                            metrics=height_metrics(), record=record, params_axes=None, mesh=mesh, push=push)
+    res = runner_mod.batch_rollout(mxb, ids, d0, stand.stand_controller, stand.StandParams.make(), cfg,
+                                   metrics=height_metrics(), record=record, params_axes=None, mesh=mesh, push=push)
     res = jax.block_until_ready(res)
     out = dict(qpos=res.data.qpos, qvel=res.data.qvel, qfrc_bias=res.data.qfrc_bias, diverged=res.diverged, diverged_tick=res.diverged_tick,
                max_dz=res.metrics["max_dz"], max_qvel=res.metrics["max_qvel"],
@@ -83,11 +83,11 @@ import numpy as np
 sys.path.insert(0, "tests")
 import hyqjax, jax
 from hyqjax.sim import model as hmodel
-from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner
 from test_sim import run_scenario
 assert jax.device_count() == 2, jax.devices()
 m = hmodel.load_model(); ids = hmodel.model_ids(m)
-mesh = sim.batch_mesh()
+mesh = runner.batch_mesh()
 outs = []
 for call in range(2):  # twice in a row: the second call must work too
     t = time.time()
@@ -291,7 +291,7 @@ def test_simconfig_derived_values():
     cfg = sim.SimConfig(control_dt=0.002, substeps=4, duration=1.0, record_every=10)
     assert cfg.physics_dt == pytest.approx(0.0005)
     assert cfg.n_ticks == 500
-    assert sim.pad_batch(5, 4) == 8 and sim.pad_batch(8, 4) == 8
+    assert runner_mod.pad_batch(5, 4) == 8 and runner_mod.pad_batch(8, 4) == 8
 
 
 # ---------------------------------------------------------------- sharding and the CPU traps
@@ -300,7 +300,7 @@ def test_simconfig_derived_values():
 @pytest.mark.slow
 def test_sharded_one_device_mesh_matches_unsharded(hyq, standing_run):
     m, ids = hyq
-    mesh = sim.batch_mesh(jax.local_devices()[:1])
+    mesh = runner_mod.batch_mesh(jax.local_devices()[:1])
     assert mesh.axis_names == ("batch",) and mesh.devices.size == 1
     r = run_scenario(m, ids, mesh=mesh)
     _assert_same_result(r, standing_run, atol=1e-6)
@@ -375,26 +375,26 @@ def test_warp_without_warp_lang_names_the_install_extra(monkeypatch):
 
 
 def test_warp_capacity_is_sized_from_batch_and_model(hyq):
-    from hyqjax.sim import backend
+    from hyqjax.sim import impls
 
     m, _ = hyq
     n_limited = int(m.jnt_limited.sum())
     assert n_limited == 12  # the leg joints; the free joint has no range
-    naconmax, njmax = backend.warp_capacity(n_limited, 4096)
-    assert naconmax == 4096 * backend.CONTACTS_PER_INSTANCE
+    naconmax, njmax = impls.warp_capacity(n_limited, 4096)
+    assert naconmax == 4096 * impls.CONTACTS_PER_INSTANCE
     # Every contact of an instance active (4 pyramid edges with condim 3) plus every joint limit.
-    assert njmax == 4 * backend.CONTACTS_PER_INSTANCE + 12
+    assert njmax == 4 * impls.CONTACTS_PER_INSTANCE + 12
     assert int(m.geom_condim[m.geom("lf_foot").id]) == 3
     with pytest.raises(ValueError, match="batch"):
-        backend.warp_capacity(n_limited, 0)
+        impls.warp_capacity(n_limited, 0)
 
 
 @pytest.mark.slow
 def test_a_derivative_through_warp_is_an_error_naming_impl():
-    from hyqjax.sim import backend
+    from hyqjax.sim import impls
 
     def f(x, impl):
-        return jnp.sum(backend.forbid_derivatives(x, impl) ** 2)
+        return jnp.sum(impls.forbid_derivatives(x, impl) ** 2)
 
     x = jnp.arange(3.0)
     assert float(f(x, "warp")) == pytest.approx(5.0)  # forward evaluation is fine
@@ -431,7 +431,7 @@ def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(hyq, standin
     call with new values (another push) reuses the compiled programs."""
     m, ids = hyq
     mxb, d0, push, cfg = scenario(m, ids)
-    runner = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
+    runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
     seen = []
     res = runner(mxb, d0, stand.StandParams.make(), push, progress=lambda done, total: seen.append((done, total)),
                  chunk_seconds=2.5)
@@ -457,13 +457,14 @@ def test_padded_batch_rows_equal_the_unpadded_ones(hyq):
     m, ids = hyq
     mxb, d0, push, cfg = scenario(m, ids, duration=2.5)
     params = stand.StandParams.make()
-    exact = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None,
-                                  buckets=False)
+    exact = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None,
+                                         buckets=False)
     full = exact(mxb, d0, params, push, chunk_seconds=2.5)
     three = jax.tree_util.tree_map(lambda x: x[:3], (d0, push))
     mx3 = jax.tree_util.tree_map(lambda ax, x: x if ax is None else x[:3], hmodel.model_in_axes(mxb), mxb,
                                  is_leaf=lambda x: x is None)
-    bucketed = sim.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
+    bucketed = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record,
+                                            params_axes=None)
     events = []
     with runner_mod.compile_listener(lambda e, info: events.append(e)):
         res = bucketed(mx3, three[0], params, three[1], chunk_seconds=2.5)
@@ -479,7 +480,7 @@ def test_padded_batch_rows_equal_the_unpadded_ones(hyq):
 
 def test_chunk_length_divides_the_run_and_the_trace_decimation():
     cfg = sim.SimConfig(duration=24.0, record_every=10)
-    runner = sim.make_batch_runner(None, stand.stand_controller, cfg, record=record)
+    runner = runner_mod.make_batch_runner(None, stand.stand_controller, cfg, record=record)
     assert runner.chunk_ticks(None) == 12000
     assert runner.chunk_ticks(1.0) == 500
     k = runner.chunk_ticks(0.37)

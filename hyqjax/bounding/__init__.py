@@ -11,9 +11,10 @@ Modules, one concept each:
   cycle       apex return map through MJX, Levenberg-Marquardt cycle optimisation (optimistix), gradient check
   stability   linearised return map, apex feedback matrix and design, the stance reference table
   defaults    the stored limit cycle (``default_cycle.json``)
-  experiment  batched randomised instances, device fall metrics, setting validation, ``run`` (NumPy traces)
+  batch       a batch of instances: per-instance parameters, randomisation (``make_batch``), setting validation
   rollout     ``make_bounding_rollout``: the closed loop of one instance as a pure JAX function (jit / vmap /
-              jacfwd) with a typed ``BoundingOutcome``, and the batch through the one compiled runner
+              jacfwd) with a typed ``BoundingOutcome``, and the batch through the one compiled runner; the device
+              fall metrics, the trace sample, ``run`` (NumPy traces)
   summary     per-instance ``InstanceResult`` and per-group tracking metrics, ablation contributions
   tracking    device tracking metrics (worst yaw error, filtered speed errors, fall margins), the robust cost,
               batched forward runs with them
@@ -32,7 +33,7 @@ from hyqjax.bounding.params import (
     Switches,
     default_params,
 )
-from hyqjax.bounding.experiment import Batch, Randomisation, make_batch
+from hyqjax.bounding.batch import Batch, Randomisation, make_batch
 from hyqjax.bounding.rollout import (
     BoundingOutcome,
     BoundingRollout,

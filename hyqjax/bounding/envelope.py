@@ -24,7 +24,7 @@ import dataclasses
 
 import numpy as np
 
-from hyqjax.bounding import experiment as bx
+from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import tracking
 from hyqjax.bounding.params import BoundingParams, default_params
 from hyqjax.studies import statistics
@@ -35,9 +35,9 @@ YAW_LIMIT_DEG = 4.0
 def _axis(name, v, lim):
     a = np.atleast_1d(np.asarray(v, np.float64))
     if a.ndim != 1 or a.size < 1 or not np.all(np.isfinite(a)) or np.any(np.abs(a) > lim + 1e-9):
-        raise bx.SettingError(name, f"{name} must be finite values in [-{lim:g}, {lim:g}], got {a.tolist()}")
+        raise bbatch.SettingError(name, f"{name} must be finite values in [-{lim:g}, {lim:g}], got {a.tolist()}")
     if np.any(np.diff(np.sort(a)) <= 0):
-        raise bx.SettingError(name, f"{name} values must be distinct, got {a.tolist()}")
+        raise bbatch.SettingError(name, f"{name} values must be distinct, got {a.tolist()}")
     return tuple(float(x) for x in np.sort(a))
 
 
@@ -62,14 +62,15 @@ class EnvelopeSpec:
         object.__setattr__(self, "lateral_speeds", _axis("lateral_speeds", self.lateral_speeds, 0.5))
         if isinstance(self.instances, bool) or not isinstance(self.instances, (int, np.integer)) or not (
                 1 <= self.instances <= 100000):
-            raise bx.SettingError("instances", f"instances must be an int in [1, 100000], got {self.instances!r}")
-        bx.Randomisation(friction=tuple(self.friction), payload=tuple(self.payload))
+            raise bbatch.SettingError("instances", f"instances must be an int in [1, 100000], got {self.instances!r}")
+        bbatch.Randomisation(friction=tuple(self.friction), payload=tuple(self.payload))
         if not (isinstance(self.seed, (int, np.integer)) and 0 <= self.seed < 2**32):
-            raise bx.SettingError("seed", f"seed must be an int in [0, 2^32), got {self.seed!r}")
-        if not (np.isfinite(self.duration) and 0.4 <= self.duration <= bx.MAX_DURATION):
-            raise bx.SettingError("duration", f"duration must be in [0.4, {bx.MAX_DURATION:g}] s, got {self.duration}")
+            raise bbatch.SettingError("seed", f"seed must be an int in [0, 2^32), got {self.seed!r}")
+        if not (np.isfinite(self.duration) and 0.4 <= self.duration <= bbatch.MAX_DURATION):
+            raise bbatch.SettingError("duration",
+                                      f"duration must be in [0.4, {bbatch.MAX_DURATION:g}] s, got {self.duration}")
         if not (np.isfinite(self.ramp_time) and 0 <= self.ramp_time <= 10):
-            raise bx.SettingError("ramp_time", f"ramp_time must be in [0, 10] s, got {self.ramp_time}")
+            raise bbatch.SettingError("ramp_time", f"ramp_time must be in [0, 10] s, got {self.ramp_time}")
 
     @property
     def commands(self) -> np.ndarray:
@@ -81,14 +82,14 @@ class EnvelopeSpec:
     def size(self) -> int:
         return len(self.commands) * self.instances
 
-    def batch(self, base: BoundingParams | None = None) -> bx.Batch:
+    def batch(self, base: BoundingParams | None = None) -> bbatch.Batch:
         """Every command x ``instances`` (command-major); the randomisation is drawn once for ``instances`` and
         repeated for every command (``make_batch``'s ``n_unique``)."""
         base = base or default_params()
         cmds = np.repeat(self.commands, self.instances, 0)
-        p = bx.command_params(base, cmds, self.ramp_time)
-        return bx.make_batch(p, seed=int(self.seed), n_unique=int(self.instances),
-                             rand=bx.Randomisation(friction=tuple(self.friction), payload=tuple(self.payload)))
+        p = bbatch.command_params(base, cmds, self.ramp_time)
+        return bbatch.make_batch(p, seed=int(self.seed), n_unique=int(self.instances),
+                                 rand=bbatch.Randomisation(friction=tuple(self.friction), payload=tuple(self.payload)))
 
     def to_dict(self) -> dict:
         return dict(dataclasses.asdict(self), friction=list(self.friction), payload=list(self.payload))

@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.bounding import cycle as bc
-from hyqjax.bounding import experiment as bx
+from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import tracking
 from hyqjax.bounding.params import BoundingGains, BoundingParams, default_params
 from hyqjax.core.params import param_ranges
@@ -150,7 +150,7 @@ def value_of(params: BoundingParams, name: str) -> float:
 @dataclasses.dataclass(frozen=True)
 class Draw:
     """A distribution of instances: commands uniform in the boxes ``speed``, ``yaw_rate``, ``lateral`` (lo, hi),
-    friction and payload uniform (:class:`hyqjax.bounding.experiment.Randomisation`), ``ramp_time`` s of ramp."""
+    friction and payload uniform (:class:`hyqjax.bounding.batch.Randomisation`), ``ramp_time`` s of ramp."""
 
     speed: tuple = (0.0, 1.0)
     yaw_rate: tuple = (-0.8, 0.8)
@@ -163,10 +163,11 @@ class Draw:
         for k, lim in (("speed", 1.5), ("yaw_rate", 1.5), ("lateral", 0.5)):
             lo, hi = (float(x) for x in getattr(self, k))
             if not (np.isfinite(lo) and np.isfinite(hi) and -lim <= lo <= hi <= lim):
-                raise bx.SettingError(k, f"{k} must be LO HI with -{lim:g} <= LO <= HI <= {lim:g}, got {lo:g} {hi:g}")
-        bx.Randomisation(friction=self.friction, payload=self.payload)
+                raise bbatch.SettingError(
+                    k, f"{k} must be LO HI with -{lim:g} <= LO <= HI <= {lim:g}, got {lo:g} {hi:g}")
+        bbatch.Randomisation(friction=self.friction, payload=self.payload)
         if not (0.0 <= self.ramp_time <= 10.0):
-            raise bx.SettingError("ramp_time", f"ramp_time must be in [0, 10] s, got {self.ramp_time}")
+            raise bbatch.SettingError("ramp_time", f"ramp_time must be in [0, 10] s, got {self.ramp_time}")
 
     def commands(self, n: int, seed: int) -> np.ndarray:
         """``(n, 3)`` commands (speed, yaw rate, lateral speed) from ``seed``."""
@@ -174,12 +175,12 @@ class Draw:
         return np.stack([rng.uniform(*self.speed, n), rng.uniform(*self.yaw_rate, n), rng.uniform(*self.lateral, n)],
                         -1)
 
-    def batch(self, n: int, seed: int, base: BoundingParams | None = None) -> bx.Batch:
+    def batch(self, n: int, seed: int, base: BoundingParams | None = None) -> bbatch.Batch:
         """``n`` instances of ``base`` (default controller) with commands, initial perturbations, friction and
         payload from ``seed``."""
         base = base or default_params()
-        p = bx.command_params(base, self.commands(n, seed), self.ramp_time)
-        return bx.make_batch(p, seed=seed, rand=bx.Randomisation(friction=self.friction, payload=self.payload))
+        p = bbatch.command_params(base, self.commands(n, seed), self.ramp_time)
+        return bbatch.make_batch(p, seed=seed, rand=bbatch.Randomisation(friction=self.friction, payload=self.payload))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -187,7 +188,7 @@ class Draw:
 # ----------------------------------------------------------------------------------------------
 
 
-def population_batch(space: RobustSpace, thetas, batch: bx.Batch) -> bx.Batch:
+def population_batch(space: RobustSpace, thetas, batch: bbatch.Batch) -> bbatch.Batch:
     """Every candidate of ``thetas`` (C, P) on every instance of ``batch`` (B): C x B instances, candidate-major."""
     thetas = jnp.asarray(thetas, jnp.float32)
     c, b = thetas.shape[0], int(np.shape(batch.apex0)[0])
@@ -199,7 +200,7 @@ def population_batch(space: RobustSpace, thetas, batch: bx.Batch) -> bx.Batch:
     return rest._replace(params=params)
 
 
-def population_cost(space: RobustSpace, thetas, batch: bx.Batch, duration: float, impl: str = "auto",
+def population_cost(space: RobustSpace, thetas, batch: bbatch.Batch, duration: float, impl: str = "auto",
                     spec: tracking.CostSpec = tracking.CostSpec(), max_batch: int = 16384) -> tuple[np.ndarray, dict]:
     """Mean cost over ``batch`` of every candidate of ``thetas`` (C, P) from forward runs (``impl``): ``(C,)``
     and the per-instance columns (C x B rows). A diverged instance's cost is its frozen state's (finite); its
@@ -271,7 +272,7 @@ def make_value_and_jac(space: RobustSpace, duration: float, spec: tracking.CostS
     return jax.jit(g)
 
 
-def instance_args(batch: bx.Batch) -> tuple:
+def instance_args(batch: bbatch.Batch) -> tuple:
     """``(params, terrain, apex0, roll0, yaw_rate0)`` of a batch as JAX arrays (the per-instance arguments of
     :func:`make_instance_cost`)."""
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731

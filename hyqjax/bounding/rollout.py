@@ -6,17 +6,22 @@ and float width):
 * ``rollout(params, terrain, apex0, push=None, roll=0.0, yaw_rate=0.0) -> (BoundingOutcome, mjx.Data)``
   simulates ONE instance from the apex state ``apex0`` (:func:`hyqjax.bounding.cycle.apex_data`) for
   ``cfg.duration`` s with :data:`hyqjax.bounding.controller.bounding_controller` on the instance's terrain
-  (:func:`hyqjax.sim.model.instance_model`), accumulating :func:`hyqjax.bounding.experiment.fall_metrics`. It
-  is pure JAX: ``jax.jit``, ``jax.vmap`` and (``impl="jax"``) ``jax.jacfwd`` reach every leaf of ``params``,
-  ``terrain``, ``apex0`` and ``push``; under ``impl="warp"`` a derivative is a ``ValueError``.
-* ``rollout.run(batch, progress=None)`` runs a :class:`hyqjax.bounding.experiment.Batch` through the one jitted
-  batch runner (:func:`hyqjax.sim.rollout.make_batch_runner`, compiled once per batch shape) and returns the
+  (:func:`hyqjax.sim.model.instance_model`), accumulating :func:`fall_metrics`. It is pure JAX: ``jax.jit``,
+  ``jax.vmap`` and (``impl="jax"``) ``jax.jacfwd`` reach every leaf of ``params``, ``terrain``, ``apex0`` and
+  ``push``; under ``impl="warp"`` a derivative is a ``ValueError``.
+* ``rollout.run(batch, progress=None)`` runs a :class:`hyqjax.bounding.batch.Batch` through the simulator's batch
+  runner (:func:`hyqjax.sim.runner.make_batch_runner` under MJX, compiled once per batch shape) and returns the
   outcomes (leading batch axis) and the :class:`hyqjax.sim.rollout.RolloutResult` (final state, fall metrics,
-  trace). :func:`hyqjax.bounding.experiment.run` is this with the trace as NumPy arrays.
+  trace). :func:`run` is this with the trace as NumPy arrays.
 
 The run starts at an apex (gait phase 0) and lasts a whole number of gait periods, so its final state is an
 apex again: :class:`BoundingOutcome` holds the final apex state (forward speed along the heading included), the
 final yaw and position, and the fall and divergence flags.
+
+The bound's device metrics (:class:`FallMetrics`: a fall is the trunk below ``FALL_HEIGHT`` or ``|roll|`` or
+``|pitch|`` above ``FALL_ANGLE``), its trace sample (:func:`record`) and its initial state
+(:func:`apex_initial_data`) live here with the outcome they make; the batch of instances they run on is
+:mod:`hyqjax.bounding.batch`'s.
 """
 from __future__ import annotations
 
@@ -30,21 +35,24 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
+from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import controller as bctrl
 from hyqjax.bounding import cycle as bc
-from hyqjax.bounding import experiment as bx
 from hyqjax.bounding.params import Apex, BoundingParams
+from hyqjax.bounding.state import BoundingInfo
 from hyqjax.core import robot
 from hyqjax.core import spatial
 from hyqjax.sim import backend
+from hyqjax.sim import impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as srunner
 
 #: Largest controller period (s) and trace decimation (ticks) of a :class:`BoundingRolloutConfig`.
 MAX_CONTROL_DT = 0.02
 MAX_RECORD_EVERY = 10_000
 #: The simulators bounding runs on (:mod:`hyqjax.sim.backend`): MJX (its initial apex state is MJX-JAX data).
-SUPPORTED_IMPLS = backend.MJX_IMPLS
+SUPPORTED_IMPLS = impls.MJX_IMPLS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,11 +76,11 @@ class BoundingRolloutConfig:
     def __post_init__(self):
         def need(ok, name, rule):
             if not ok:
-                raise bx.SettingError(name, f"{name} must be {rule}, got {getattr(self, name)!r}")
+                raise bbatch.SettingError(name, f"{name} must be {rule}, got {getattr(self, name)!r}")
 
         num = (int, float, np.integer, np.floating)
-        need(isinstance(self.duration, num) and np.isfinite(self.duration) and 0 < self.duration <= bx.MAX_DURATION,
-             "duration", f"in (0, {bx.MAX_DURATION:g}] s")
+        need(isinstance(self.duration, num) and np.isfinite(self.duration) and 0 < self.duration <= bbatch.MAX_DURATION,
+             "duration", f"in (0, {bbatch.MAX_DURATION:g}] s")
         dt_ok = isinstance(self.control_dt, num) and np.isfinite(self.control_dt)
         need(dt_ok and 0 < self.control_dt <= MAX_CONTROL_DT, "control_dt", f"in (0, {MAX_CONTROL_DT:g}] s")
         need(isinstance(self.record_every, (int, np.integer)) and 0 <= self.record_every <= MAX_RECORD_EVERY,
@@ -85,7 +93,7 @@ class BoundingRolloutConfig:
         try:
             backend.validate_impl(self.impl, SUPPORTED_IMPLS)
         except ValueError as e:
-            raise bx.SettingError("impl", str(e)) from None
+            raise bbatch.SettingError("impl", str(e)) from None
 
     def sim_config(self) -> sim.SimConfig:
         """The :class:`hyqjax.sim.rollout.SimConfig` of this config (one physics step per control tick)."""
@@ -94,21 +102,82 @@ class BoundingRolloutConfig:
 
     def check_period(self, period) -> None:
         """Check a gait period (s) against this config: a whole number of control ticks, dividing ``duration``,
-        and (with a trace) a multiple of ``record_every`` ticks; else :class:`hyqjax.bounding.experiment.SettingError`.
+        and (with a trace) a multiple of ``record_every`` ticks; else :class:`hyqjax.bounding.batch.SettingError`.
         ``period`` may hold one value per instance; they must agree."""
         p = np.asarray(period, np.float64).reshape(-1)
         if p.size == 0 or not np.allclose(p, p[0]):
-            raise bx.SettingError("period", "all instances must share the gait period")
+            raise bbatch.SettingError("period", "all instances must share the gait period")
         period = float(p[0])
         n_per = int(round(period / self.control_dt))
         off_grid = abs(n_per * self.control_dt - period) > 1e-6
         if n_per < 1 or off_grid or (self.record_every and n_per % self.record_every):
-            raise bx.SettingError("period", f"the gait period ({period:g} s) must be a multiple of record_every * "
-                                            f"control_dt ({max(self.record_every, 1)} x {self.control_dt:g} s)")
+            raise bbatch.SettingError("period", f"the gait period ({period:g} s) must be a multiple of record_every * "
+                                                f"control_dt ({max(self.record_every, 1)} x {self.control_dt:g} s)")
         n = self.duration / period
         if abs(n - round(n)) > 1e-6:
-            raise bx.SettingError("duration", f"duration must be a multiple of the gait period {period:g} s, "
-                                              f"got {self.duration:g}")
+            raise bbatch.SettingError("duration", f"duration must be a multiple of the gait period {period:g} s, "
+                                                  f"got {self.duration:g}")
+
+
+#: A fall (:class:`FallMetrics`): the trunk below ``FALL_HEIGHT`` (m), or ``|roll|`` or ``|pitch|`` above
+#: ``FALL_ANGLE`` (rad).
+FALL_HEIGHT = 0.35
+FALL_ANGLE = 0.7
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class FallMetrics:
+    """Device metrics of one instance (accumulated every tick on the ground truth).
+
+    Attributes:
+      fall_tick: tick of the first fall (-1: none).  low_trunk, roll, pitch: the first fall's cause (the trunk
+        below ``FALL_HEIGHT``; ``|roll|`` / ``|pitch|`` above ``FALL_ANGLE``; checked in that order, one is set).
+      ticks: ticks simulated.  min_z: lowest trunk height.  max_roll, max_pitch: largest ``|roll|``, ``|pitch|``.
+    """
+
+    fall_tick: jax.Array
+    low_trunk: jax.Array
+    roll: jax.Array
+    pitch: jax.Array
+    ticks: jax.Array
+    min_z: jax.Array
+    max_roll: jax.Array
+    max_pitch: jax.Array
+
+
+def fall_metrics() -> sim.Metrics:
+    """:class:`FallMetrics` as a :class:`hyqjax.sim.rollout.Metrics` pair."""
+
+    def init(d):
+        f = jnp.zeros((), bool)
+        return FallMetrics(fall_tick=jnp.array(-1), low_trunk=f, roll=f, pitch=f, ticks=jnp.array(0),
+                           min_z=d.qpos[robot.QPOS_BASE_POS][2], max_roll=jnp.zeros((), d.qpos.dtype),
+                           max_pitch=jnp.zeros((), d.qpos.dtype))
+
+    def update(ms: FallMetrics, d, obs, info):
+        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
+        z = d.qpos[robot.QPOS_BASE_POS][2]
+        low = z < FALL_HEIGHT
+        roll = ~low & (jnp.abs(rpy[0]) > FALL_ANGLE)
+        pitch = ~low & ~roll & (jnp.abs(rpy[1]) > FALL_ANGLE)
+        new = (ms.fall_tick < 0) & (low | roll | pitch)
+        return FallMetrics(fall_tick=jnp.where(new, ms.ticks, ms.fall_tick), low_trunk=ms.low_trunk | (new & low),
+                           roll=ms.roll | (new & roll), pitch=ms.pitch | (new & pitch), ticks=ms.ticks + 1,
+                           min_z=jnp.minimum(ms.min_z, z), max_roll=jnp.maximum(ms.max_roll, jnp.abs(rpy[0])),
+                           max_pitch=jnp.maximum(ms.max_pitch, jnp.abs(rpy[1])))
+
+    return sim.Metrics(init, update)
+
+
+def record(d, obs, info: BoundingInfo) -> dict:
+    """One trace sample: ground truth (trunk pose and twist, apex state, full ``qpos`` for replay, foot forces)
+    and what the controller commanded / estimated."""
+    rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
+    return dict(t=d.time, pos=d.qpos[robot.QPOS_BASE_POS], vel=d.qvel[robot.QVEL_BASE_LIN], rpy=rpy,
+                omega=d.qvel[robot.QVEL_BASE_ANG], apex=bc.data_apex(d).array(), yaw_des=info.yaw_des,
+                v_des=info.v_des, yaw_rate_des=info.yaw_rate_des, est_vel_h=info.vel_h, est_z=info.est_pos[2],
+                roll_des=info.roll_des, qpos=d.qpos, foot_force=obs.foot_force)
 
 
 @jax.tree_util.register_dataclass
@@ -117,7 +186,7 @@ class BoundingOutcome:
     """What one bounding run ended with (leaves without a batch axis for one instance, with one for a batch).
 
     Attributes:
-      fell: the trunk fell (:class:`hyqjax.bounding.experiment.FallMetrics`) at some tick.
+      fell: the trunk fell (:class:`FallMetrics`) at some tick.
       fall_tick: tick of the first fall (-1: none); the fall time is ``(fall_tick + 1) * control_dt``.
       low_trunk, roll, pitch: the first fall's cause (trunk below ``FALL_HEIGHT``; ``|roll|`` or ``|pitch|``
         above ``FALL_ANGLE``); at most one is set.
@@ -156,9 +225,8 @@ class BoundingOutcome:
 
 
 def outcome(res: sim.RolloutResult) -> BoundingOutcome:
-    """The :class:`BoundingOutcome` of ONE instance's rollout result (metrics :func:`experiment.fall_metrics`;
-    pure JAX)."""
-    ms: bx.FallMetrics = res.metrics
+    """The :class:`BoundingOutcome` of ONE instance's rollout result (metrics :func:`fall_metrics`; pure JAX)."""
+    ms: FallMetrics = res.metrics
     d = res.data
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
     return BoundingOutcome(fell=ms.fall_tick >= 0, fall_tick=ms.fall_tick, low_trunk=ms.low_trunk, roll=ms.roll,
@@ -192,6 +260,11 @@ class BoundingSetup:
     ids: hmodel.ModelIds
     impl: str
 
+    @property
+    def backend(self):
+        """The simulator's backend object (:func:`hyqjax.sim.backend.get`)."""
+        return backend.get(self.impl)
+
 
 def setup(control_dt: float, impl: str) -> BoundingSetup:
     """The :class:`BoundingSetup` for timestep ``control_dt`` and ``impl`` (cached per resolved ``impl`` and JAX's
@@ -206,16 +279,16 @@ def _setup_cached(control_dt: float, impl: str, x64: bool) -> BoundingSetup:
     m, mx, ids = bc.model() if control_dt == 0.002 else bc.model(control_dt)
     with jax.ensure_compile_time_eval():
         if mx.qpos0.dtype != jnp.dtype(jnp.float64 if x64 else jnp.float32):  # bc.model is cached across widths
-            mx = backend.put_model(m, "jax")
+            mx = backend.get("jax").put_model(m)
         sim_backend = backend.get(impl)
         return BoundingSetup(m, mx, mx if sim_backend.supports_gradients else sim_backend.put_model(m), ids, impl)
 
 
-def instance_args(batch: bx.Batch) -> tuple:
+def instance_args(batch: bbatch.Batch) -> tuple:
     """``(params, terrain, apex0, push, roll, yaw_rate)`` of a batch, each with a leading batch axis: the
     positional arguments of ``BoundingRollout.__call__``, so ``jax.vmap(rollout)(*instance_args(batch))`` runs
     the batch instance by instance."""
-    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731  (what experiment.initial_data feeds apex_data)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731  (what apex_initial_data feeds apex_data)
     return batch.params, batch.terrain, f32(batch.apex0), batch.push, f32(batch.roll0), f32(batch.yaw_rate0)
 
 
@@ -231,16 +304,16 @@ class BoundingRollout:
         self.cfg = cfg
         self.setup = setup(cfg.control_dt, cfg.impl)
         self.sim_config = cfg.sim_config()
-        self.metrics = bx.fall_metrics()
+        self.metrics = fall_metrics()
         self._runners: dict = {}
         self._outcomes = jax.jit(jax.vmap(outcome))
 
     def initial_data(self, mx1: mjx.Model, params: BoundingParams, apex0, roll=0.0, yaw_rate=0.0) -> mjx.Data:
         """ONE instance's data in the air at apex state ``apex0`` (:func:`hyqjax.bounding.cycle.apex_data` on the
-        JAX model; under Warp put into Warp data of ``mx1`` as :func:`hyqjax.bounding.experiment.initial_data`)."""
+        JAX model; put into the simulator's data of ``mx1`` by the backend, as :meth:`run` does)."""
         st = self.setup
         d = bc.apex_data(st.mx_jax, st.m, params, apex0, roll=roll, yaw_rate=yaw_rate)
-        return backend.get(st.impl).from_jax_data(mx1, d, st.m)
+        return st.backend.from_jax_data(mx1, d, st.m)
 
     def __call__(self, params: BoundingParams, terrain: hmodel.InstanceTerrain, apex0, push: sim.Push | None = None,
                  roll=0.0, yaw_rate=0.0) -> tuple[BoundingOutcome, mjx.Data]:
@@ -249,34 +322,35 @@ class BoundingRollout:
         st = self.setup
         if not isinstance(params.gait.period, jax.core.Tracer):
             self.cfg.check_period(params.gait.period)
-        params, terrain, apex0, push, roll, yaw_rate = backend.forbid_derivatives(
-            (params, terrain, apex0, push, roll, yaw_rate), st.impl)
+        params, terrain, apex0, push, roll, yaw_rate = st.backend.forbid_derivatives(
+            (params, terrain, apex0, push, roll, yaw_rate))
         mx1 = hmodel.instance_model(st.mx, st.ids, terrain)
         d0 = self.initial_data(mx1, params, apex0, roll, yaw_rate)
         cfg = dataclasses.replace(self.sim_config, record_every=0)
         res = sim.rollout(mx1, st.ids, d0, bctrl.bounding_controller, params, cfg, self.metrics, None, push)
         return outcome(res), res.data
 
-    def runner(self, mesh=None) -> sim.BatchRunner:
-        """The batch runner: :func:`hyqjax.bounding.experiment.runner` of this config without a mesh (shared with
-        it), one kept per mesh otherwise."""
+    def runner(self, mesh=None) -> srunner.BatchRunner:
+        """The batch runner: :func:`batch_runner` of this config without a mesh (shared with it), one kept per mesh
+        otherwise."""
         if mesh is None:
-            return bx.runner(self.sim_config, self.setup.impl)
+            return batch_runner(self.sim_config, self.setup.impl)
         key = (tuple(mesh.devices.flat), mesh.axis_names)
         if key not in self._runners:
-            self._runners[key] = sim.make_batch_runner(self.setup.ids, bctrl.bounding_controller, self.sim_config,
-                                                       self.metrics, bx.record, params_axes=0, mesh=mesh)
+            self._runners[key] = self.setup.backend.make_runner(self.setup.ids, bctrl.bounding_controller,
+                                                                self.sim_config, self.metrics, record, params_axes=0,
+                                                                mesh=mesh)
         return self._runners[key]
 
-    def run(self, batch: bx.Batch, progress: Callable[[float, float], None] | None = None, mesh=None,
+    def run(self, batch: bbatch.Batch, progress: Callable[[float, float], None] | None = None, mesh=None,
             chunk_seconds: float | None = None) -> tuple[BoundingOutcome, sim.RolloutResult]:
         """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, :class:`FallMetrics`,
-        trace of :func:`hyqjax.bounding.experiment.record` when ``cfg.record_every``). ``progress(done_s, total_s)``
+        trace of :func:`record` when ``cfg.record_every``). ``progress(done_s, total_s)``
         is called between chunks of simulated time (every second unless ``chunk_seconds``)."""
         self.cfg.check_period(batch.params.gait.period)
         st = self.setup
-        mb = hmodel.batch_model(st.mx, st.ids, batch.terrain)
-        d0 = bx.initial_data(batch, st.m, st.mx_jax, mb)
+        mb = st.backend.batch_model(st.mx, st.ids, batch.terrain)
+        d0 = st.backend.from_jax_data(mb, apex_initial_data(batch, st.m, st.mx_jax), st.m)
         res = self.runner(mesh)(mb, d0, batch.params, batch.push, progress=progress, chunk_seconds=chunk_seconds)
         return self._outcomes(res._replace(trace=None)), res
 
@@ -290,3 +364,43 @@ def make_bounding_rollout(cfg: BoundingRolloutConfig = BoundingRolloutConfig()) 
 @functools.lru_cache(maxsize=8)
 def _rollout_cached(cfg: BoundingRolloutConfig, x64: bool) -> BoundingRollout:
     return BoundingRollout(cfg)
+
+
+def apex_initial_data(batch: bbatch.Batch, m: mujoco.MjModel, mx: mjx.Model) -> mjx.Data:
+    """Batched MJX-JAX data at each instance's initial apex state (:func:`hyqjax.bounding.cycle.apex_data` on the
+    JAX model ``mx``); the backend's ``from_jax_data`` puts it into the data of the simulator that runs the batch."""
+    def one(p, s, roll, yr):
+        return bc.apex_data(mx, m, p, s, roll=roll, yaw_rate=yr)
+
+    f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
+    return jax.vmap(one)(batch.params, f32(batch.apex0), f32(batch.roll0), f32(batch.yaw_rate0))
+
+
+def batch_runner(cfg: sim.SimConfig, impl: str = "jax"):
+    """The batch runner of the bound for a static configuration and resolved MJX implementation (the backend's
+    :func:`hyqjax.sim.runner.make_batch_runner`, built once per ``(cfg, impl)``, since a runner fixes the batched
+    model's structure, and compiled once per batch shape): ``runner(mx_batched, d0, params, push, progress=None,
+    chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of :func:`record`
+    (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
+    return _batch_runner(cfg, impl)
+
+
+@functools.lru_cache(maxsize=8)
+def _batch_runner(cfg: sim.SimConfig, impl: str):
+    _, _, ids = bc.model()
+    return backend.get(impl).make_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
+
+
+def run(batch: bbatch.Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,
+        impl: str = "jax"):
+    """Simulate the batch; returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)`` (simulated
+    seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax | warp``
+    (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``).
+
+    The batch goes through ``make_bounding_rollout(BoundingRolloutConfig(duration, control_dt, record_every,
+    impl)).run(batch)`` (which also returns typed outcomes): the settings are checked there
+    (:class:`hyqjax.bounding.batch.SettingError`; ``duration`` a whole number of gait periods, the period a multiple
+    of ``record_every * control_dt``)."""
+    cfg = BoundingRolloutConfig(duration=duration, control_dt=control_dt, record_every=record_every, impl=impl)
+    _, res = make_bounding_rollout(cfg).run(batch, progress=progress)
+    return res, jax.tree_util.tree_map(np.asarray, res.trace)

@@ -9,7 +9,7 @@
 * **side slip**: ``|mean lateral speed|`` in the heading frame over the settled cycles (outward drift in a turn);
 * **periodicity residual**: ``||W (s_{k+1} - s_k)||`` of consecutive apex states (Eq. C2's scaling),
   median over the settled cycles;
-* **failures**: a fall (:class:`hyqjax.bounding.experiment.FallMetrics`) or a diverged simulation
+* **failures**: a fall (:class:`hyqjax.bounding.rollout.FallMetrics`) or a diverged simulation
   (non-finite state / speed limit), whichever came first, as boolean fields of :class:`InstanceResult`
   with the time; failed instances are counted, never dropped, and left out of the tracking errors.
 """
@@ -20,7 +20,7 @@ import dataclasses
 import numpy as np
 
 from hyqjax.bounding import cycle as bc
-from hyqjax.bounding.experiment import Batch
+from hyqjax.bounding.batch import Batch
 
 #: The failure reasons, the boolean fields of :class:`InstanceResult` (at most one is set).
 FAIL_REASONS = ("fell_low_trunk", "fell_roll", "fell_pitch", "diverged")

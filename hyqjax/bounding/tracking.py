@@ -12,8 +12,8 @@ Per control tick ``k`` (``dt`` = 2 ms), with ``psi`` the trunk's yaw, ``psi^d`` 
 * apex height: at every apex (the controller's ``new_cycle`` event) ``(z - z^*)^2``;
 * fall margins, ``sp_s(x) = s softplus(x / s)`` a smooth ``max(x, 0)``:
   ``M_k = sp(z_0 - z)^2 + sp(|phi| - phi_0)^2 + sp(|theta| - theta_0)^2`` (trunk height, roll, pitch), margins well
-  inside the fall thresholds of :mod:`hyqjax.bounding.experiment` (0.35 m, 0.7 rad);
-* falls (:class:`hyqjax.bounding.experiment.FallMetrics`).
+  inside the fall thresholds of :mod:`hyqjax.bounding.rollout` (0.35 m, 0.7 rad);
+* falls (:class:`hyqjax.bounding.rollout.FallMetrics`).
 
 The cost terms accumulate only while the instance has not fallen (a robot on the ground tells nothing about
 the gains). The cost of one instance (:func:`cost_terms`, :func:`total_cost`; bars are means over the ticks
@@ -37,10 +37,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.bounding import experiment as bx
+from hyqjax.bounding import batch as bbatch
+from hyqjax.bounding import rollout as brollout
 from hyqjax.core import robot
 from hyqjax.core import spatial
 from hyqjax.sim import model as hmodel
+from hyqjax.sim import backend
 from hyqjax.sim import rollout as sim
 
 DEG = math.pi / 180.0
@@ -90,7 +92,7 @@ class TrackingMetrics:
     """Device accumulators of one instance (see the module docstring).
 
     Attributes:
-      fall: :class:`hyqjax.bounding.experiment.FallMetrics`.
+      fall: :class:`hyqjax.bounding.rollout.FallMetrics`.
       max_yaw_err: largest ``|e|`` (rad) before a fall.
       eps: (2,) filtered forward / lateral speed error (m/s).
       settled_v: (2,) sum of ``v_f``, ``v_l`` over the settled ticks before a fall.  settled_n: their count.
@@ -98,7 +100,7 @@ class TrackingMetrics:
         over those ticks.  apex_n, sum_apex2: apex events and their squared height errors.
     """
 
-    fall: bx.FallMetrics
+    fall: brollout.FallMetrics
     max_yaw_err: jax.Array
     eps: jax.Array
     settled_v: jax.Array
@@ -119,7 +121,7 @@ def _sp(x, s):
 def tracking_metrics(spec: CostSpec = CostSpec(), control_dt: float = 0.002) -> sim.Metrics:
     """:class:`TrackingMetrics` as a :class:`hyqjax.sim.rollout.Metrics` pair (pure JAX; runs under both MJX
     implementations: it reads only ``qpos``, ``qvel`` and the controller's info)."""
-    fm = bx.fall_metrics()
+    fm = brollout.fall_metrics()
     gain = control_dt / spec.period
 
     def init(d):
@@ -216,15 +218,15 @@ def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str):
     from hyqjax.bounding import cycle as bc
 
     _, _, ids = bc.model()
-    return sim.make_batch_runner(ids, bctrl.bounding_controller, sim_cfg, tracking_metrics(spec, sim_cfg.control_dt),
-                                 None)
+    return backend.get(impl).make_runner(ids, bctrl.bounding_controller, sim_cfg,
+                                         tracking_metrics(spec, sim_cfg.control_dt), None)
 
 
 _INITIAL: dict = {}
 
 
 def _initial_data(st):
-    """Jitted :func:`hyqjax.bounding.experiment.initial_data` of the JAX model of setup ``st`` (every instance in
+    """Jitted :func:`hyqjax.bounding.rollout.apex_initial_data` of the JAX model of setup ``st`` (every instance in
     the air at its apex state; one compile per batch shape instead of an op-by-op ``vmap`` per call)."""
     from hyqjax.bounding import cycle as bc
 
@@ -234,13 +236,13 @@ def _initial_data(st):
     return _INITIAL[id(st)][1]
 
 
-def take(batch: bx.Batch, idx) -> bx.Batch:
+def take(batch: bbatch.Batch, idx) -> bbatch.Batch:
     """The instances ``idx`` of a batch (NumPy fancy indexing on every leaf)."""
     idx = np.asarray(idx)
     return jax.tree_util.tree_map(lambda x: x[idx] if isinstance(x, np.ndarray) else jnp.asarray(x)[idx], batch)
 
 
-def run_batch(batch: bx.Batch, duration: float, impl: str = "auto", spec: CostSpec = CostSpec(),
+def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: CostSpec = CostSpec(),
               max_batch: int = 16384, control_dt: float = 0.002, progress=None) -> dict[str, np.ndarray]:
     """Simulate every instance of ``batch`` for ``duration`` s (a whole number of gait periods) with
     :func:`tracking_metrics` and return NumPy columns: :func:`columns`, the cost :math:`L` (``cost``) and its
@@ -250,8 +252,6 @@ def run_batch(batch: bx.Batch, duration: float, impl: str = "auto", spec: CostSp
     program serves every chunk; the padding is dropped). ``impl``: MJX implementation (``auto | jax | warp``).
     ``progress(done, total)`` is called after every chunk with the instances done.
     """
-    from hyqjax.bounding import rollout as brollout
-
     cfg = brollout.BoundingRolloutConfig(duration=duration, control_dt=control_dt, impl=impl)
     cfg.check_period(batch.params.gait.period)
     if not (isinstance(max_batch, int) and max_batch >= 1):
@@ -265,11 +265,9 @@ def run_batch(batch: bx.Batch, duration: float, impl: str = "auto", spec: CostSp
         idx = np.arange(start, min(start + size, n))
         pad = np.concatenate([idx, np.full(size - idx.size, idx[0])])
         b = take(batch, pad)
-        mb = hmodel.batch_model(st.mx, st.ids, b.terrain)
+        mb = st.backend.batch_model(st.mx, st.ids, b.terrain)
         d0 = _initial_data(st)(b.params, *(jnp.asarray(x, jnp.float32) for x in (b.apex0, b.roll0, b.yaw_rate0)))
-        if st.impl == "warp":  # as experiment.initial_data: the JAX state put into Warp data of the batch
-            dw = sim.initial_data(mb, d0.qpos, size, m=st.m)
-            d0 = dw.replace(qvel=d0.qvel.astype(dw.qvel.dtype))
+        d0 = st.backend.from_jax_data(mb, d0, st.m)  # the JAX state as the simulator's data of the batch
         res = run(mb, d0, b.params, b.push)
         ms = jax.tree_util.tree_map(np.asarray, res.metrics)
         cols = columns(ms, res.diverged, res.diverged_tick, control_dt)

@@ -30,7 +30,6 @@ import sys
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 import hyqjax  # noqa: E402
-import hyqjax.cli as _commands  # noqa: E402
 from hyqjax.cli.common import USAGE_EXIT, UsageError, enable_compilation_cache  # noqa: E402
 from hyqjax.io.cache import StderrFilter  # noqa: E402
 
@@ -43,8 +42,10 @@ class Parser(argparse.ArgumentParser):
 
 
 def _command_modules():
+    """The command modules beside this file (the package's directory, found without importing the package that
+    imports this module)."""
     mods = []
-    for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda i: i.name):
+    for info in sorted(pkgutil.iter_modules([os.path.dirname(os.path.abspath(__file__))]), key=lambda i: i.name):
         if info.name.startswith("_") or info.name in ("app", "common"):
             continue
         mod = importlib.import_module(f"hyqjax.cli.{info.name}")

@@ -76,7 +76,7 @@ def validate(args) -> None:
 
 
 def check_options(args) -> None:
-    """Every option checked, here and by ``bounding.experiment.validate_run``, before anything is compiled;
+    """Every option checked, here and by ``bounding.batch.validate_run``, before anything is compiled;
     raises ValueError naming the option and its allowed range."""
     from hyqjax.cli.common import check_impl, check_out_free, check_range
     from hyqjax.sim.backend import MJX_IMPLS
@@ -110,14 +110,14 @@ def check_options(args) -> None:
             rb.params_from_values(rb.load_params(args.params))
         except ValueError as e:
             raise ValueError(f"--params: {e}") from None
-    from hyqjax.bounding import experiment as bx
+    from hyqjax.bounding import batch as bbatch
 
     try:
-        bx.validate_run(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
-                        ramp_time=args.ramp_time, instances=args.instances, duration=args.duration,
-                        friction=tuple(args.friction), payload=(0.0, args.payload), push=args.push,
-                        push_time=args.push_time, push_duration=args.push_duration, seed=args.seed)
-    except bx.SettingError as e:
+        bbatch.validate_run(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
+                            ramp_time=args.ramp_time, instances=args.instances, duration=args.duration,
+                            friction=tuple(args.friction), payload=(0.0, args.payload), push=args.push,
+                            push_time=args.push_time, push_duration=args.push_duration, seed=args.seed)
+    except bbatch.SettingError as e:
         opt = "--" + e.name.replace("_", "-")
         raise ValueError(str(e).replace(e.name, opt, 1) if str(e).startswith(e.name) else f"{opt}: {e}") from None
 
@@ -132,8 +132,9 @@ def configurations(args) -> list[tuple[str, bool, bool]]:
 
 
 def run(args) -> int:
-    from hyqjax.bounding import experiment as bx
+    from hyqjax.bounding import batch as bbatch
     from hyqjax.bounding import params as bd
+    from hyqjax.bounding import rollout as brollout
     from hyqjax.bounding import summary as bs
     from hyqjax.cli.common import user_options
     from hyqjax.io import atomic as io
@@ -155,16 +156,16 @@ def run(args) -> int:
         plist += [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
                        ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf)
                   for _ in range(n)]
-    rand = bx.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
-    batch = bx.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
-                          push_duration=args.push_duration, n_unique=n)
+    rand = bbatch.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
+    batch = bbatch.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
+                              push_duration=args.push_duration, n_unique=n)
     from hyqjax.cli.common import sim_progress
 
     print(f"hyqjax bound: {len(plist)} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
           f"{int(round(args.duration / 0.002))} ticks", flush=True)
     t0 = time.time()
     with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
-        res, trace = bx.run(batch, duration=args.duration, progress=progress, impl=args.impl)
+        res, trace = brollout.run(batch, duration=args.duration, progress=progress, impl=args.impl)
     wall = time.time() - t0
     status = progress.status
     summary = bs.summarise(res, trace, batch)

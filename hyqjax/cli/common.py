@@ -248,13 +248,8 @@ def add_impl_argument(p, supported: tuple[str, ...] | None = None) -> None:
     from hyqjax.sim import backend
 
     supported = backend.ALL_IMPLS if supported is None else supported
-    helps = dict(warp="'warp' (MuJoCo Warp, several times faster on a CUDA GPU, forward only; pip install "
-                      "'hyqjax[warp]')", jax="'jax' (MJX in pure JAX, differentiable)",
-                 c="'c' (C MuJoCo on all CPU cores, the controller in JAX; forward only)")
-    auto = ("'auto' (warp when a CUDA GPU and warp-lang are present, else c without an accelerator, else jax)"
-            if "c" in supported else "'auto' (warp when a CUDA GPU and warp-lang are present, else jax)")
     p.add_argument("--impl", choices=["auto", *supported], default="auto",
-                   help="simulator: " + ", ".join(helps[k] for k in supported) + ", " + auto)
+                   help="simulator: " + backend.describe(supported))
 
 
 def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | None = None) -> None:
@@ -265,8 +260,7 @@ def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | N
     supported = backend.ALL_IMPLS if supported is None else supported
     try:
         backend.validate_impl(impl, supported)
-        if impl != "auto":
-            backend.check_available(impl)
+        backend.check_available(impl)
     except ValueError as e:
         msg = str(e).replace("impl must be", f"{option} must be").replace("impl='warp' needs", f"{option} warp needs")
         raise UsageError(msg.replace("(or choose impl='jax')", f"(or use {option} jax)")) from None

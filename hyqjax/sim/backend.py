@@ -5,8 +5,8 @@ implementation that the rest of hyqjax talks to (:func:`get`).
 * ``warp``: MuJoCo Warp kernels called from JAX (``mjx.put_model(m, impl="warp")``), several times faster
   on a GPU, forward only. Needs ``warp-lang`` (``pip install "hyqjax[warp]"``). Its contacts live in one
   buffer of ``naconmax`` contacts shared by all worlds of a batch and at most ``njmax`` constraint rows per
-  world; :func:`warp_capacity` sizes both from the batch and the model, and a full buffer is reported per
-  run (:func:`hyqjax.sim.contacts.overflow`), never silent.
+  world; :func:`hyqjax.sim.impls.warp_capacity` sizes both from the batch and the model, and a full buffer is
+  reported per run (:func:`hyqjax.sim.contacts.overflow`), never silent.
 * ``c``: C MuJoCo in float64, one ``MjData`` per instance stepped on all CPU cores, the controller in JAX
   (:mod:`hyqjax.sim.cpu_backend`). Forward only, batches only, no compile of the physics: on a CPU it runs the
   step-down several times faster than MJX-JAX. Tasks that run on it list it in their supported implementations
@@ -17,9 +17,15 @@ implementation that the rest of hyqjax talks to (:func:`get`).
 
 :func:`get` returns the backend object of a resolved ``impl``: ``put_model``, ``batch_model``, ``initial_data``,
 ``make_runner``, ``forbid_derivatives``, ``supports_gradients`` and ``one_instance_error`` (why a one-instance
-rollout outside a batch is refused, or ``None``). Code above ``hyqjax.sim`` asks these, never compares ``impl``
-names. Asking for a derivative through a forward-only backend raises a ``ValueError`` naming ``impl``
-(:func:`forbid_derivatives`), instead of silently falling back.
+rollout outside a batch is refused, or ``None``); the MJX backends also ``from_jax_data`` (MJX-JAX data as this
+implementation's). Code above ``hyqjax.sim`` asks these (and :func:`describe` for a help text of the choices),
+never compares ``impl`` names. Asking for a derivative through a forward-only backend raises a ``ValueError``
+naming ``impl`` (:func:`hyqjax.sim.impls.forbid_derivatives`), instead of silently falling back.
+
+The names of the implementations, which pass derivatives, and MJX's model under each are
+:mod:`hyqjax.sim.impls`'s, the module below every other of :mod:`hyqjax.sim`; this one sits above the backend
+objects it hands out (:mod:`hyqjax.sim.mjx_backend`, :mod:`hyqjax.sim.cpu_backend`), so nothing they import
+imports it.
 
 This module imports no JAX or MuJoCo at import time (``import hyqjax`` stays light), and warp is imported
 only when ``warp`` is chosen. :func:`install_lazy_mjx_import` defers MJX itself (and the MuJoCo Warp it
@@ -35,25 +41,12 @@ import importlib.util
 import io
 import sys
 
-IMPLS = ("auto", "jax", "warp", "c")
-#: The MJX implementations (every task runs on both).
-MJX_IMPLS = ("jax", "warp")
-#: Every simulator (what the step-down supports).
-ALL_IMPLS = ("jax", "warp", "c")
-#: Why a forward-only implementation refuses a derivative.
-_NOT_DIFFERENTIABLE = {"warp": "MuJoCo Warp is forward only", "c": "C MuJoCo runs outside JAX"}
-#: Contacts per instance that the Warp contact buffer holds: each foot on two terrain geoms at once
-#: (a platform edge and the ground: 8), up to about 18 with shins and trunk down (benchmarks/probe_warp.py),
-#: with margin. A run needing more is flagged (contact_overflow), never silent.
-CONTACTS_PER_INSTANCE = 24
-#: mujoco_warp's overflow bits that mean a buffer was full (contacts or constraint rows dropped); the
-#: higher bits (ITERATIONS, LS_ITERATIONS, ...) only say that the solver used all its iterations.
-BUFFER_OVERFLOW_MASK = (1 << 9) - 1
-#: Overflow bits that mujoco_warp should not print every step: the solver's iteration limits (bits 9, 10),
-#: routine with hyqjax's Newton 4 / 8 settings.
-_QUIET_OVERFLOW = 0xFFF & ~((1 << 9) | (1 << 10))
-#: Constraint rows per contact of a pyramidal friction cone with condim 3: 2 (condim - 1).
-ROWS_PER_CONTACT = 4
+from hyqjax.sim.impls import ALL_IMPLS, IMPLS, MJX_IMPLS
+
+#: What each implementation is, in a phrase (the command line's ``--impl`` help).
+DESCRIPTIONS = dict(warp="MuJoCo Warp, several times faster on a CUDA GPU, forward only; pip install 'hyqjax[warp]'",
+                    jax="MJX in pure JAX, differentiable",
+                    c="C MuJoCo on all CPU cores, the controller in JAX; forward only")
 
 
 def validate_impl(impl: str, supported: tuple[str, ...] = ALL_IMPLS) -> str:
@@ -106,8 +99,16 @@ def resolve_impl(impl: str, supported: tuple[str, ...] = MJX_IMPLS, differentiab
     return impl
 
 
+def describe(supported: tuple[str, ...] = ALL_IMPLS) -> str:
+    """The choices of a task supporting ``supported``, each in a phrase, ``auto``'s rule (:func:`resolve_impl`) last."""
+    auto = "warp when a CUDA GPU and warp-lang are present, else " + (
+        "c without an accelerator, else jax" if "c" in supported else "jax")
+    return ", ".join(f"'{k}' ({DESCRIPTIONS[k]})" for k in supported) + f", 'auto' ({auto})"
+
+
 def check_available(impl: str) -> None:
-    """A ``ValueError`` when ``impl`` needs a package that is not installed (warp-lang for ``warp``)."""
+    """A ``ValueError`` when ``impl`` needs a package that is not installed (warp-lang for ``warp``); ``auto``
+    always passes (it picks among what is installed)."""
     validate_impl(impl)
     if impl == "warp" and not warp_installed():
         raise ValueError("impl='warp' needs warp-lang, which is not installed: pip install \"hyqjax[warp]\" "
@@ -119,7 +120,8 @@ _BACKENDS: dict = {}
 
 def get(impl: str):
     """The backend object of a resolved ``impl`` (``jax``, ``warp`` or ``c``; :func:`resolve_impl`), one per
-    implementation: :class:`hyqjax.sim.mjx_backend.MJXBackend` or :class:`hyqjax.sim.cpu_backend.CBackend`."""
+    implementation: :class:`hyqjax.sim.mjx_backend.MJXBackend` or :class:`hyqjax.sim.cpu_backend.CBackend` (imported
+    here on first use: they import the rollout and runner, which import :mod:`hyqjax.sim.impls`, never this module)."""
     if impl not in ALL_IMPLS:
         raise ValueError(f"get needs a resolved impl ({', '.join(ALL_IMPLS)}), got {impl!r}; see resolve_impl")
     if impl not in _BACKENDS:
@@ -132,53 +134,6 @@ def get(impl: str):
 
             _BACKENDS[impl] = MJXBackend(impl)
     return _BACKENDS[impl]
-
-
-def warp_capacity(njnt_limited: int, batch: int, contacts_per_instance: int = CONTACTS_PER_INSTANCE) -> tuple[int, int]:
-    """``(naconmax, njmax)`` for a Warp batch: ``naconmax = batch * contacts_per_instance`` contacts shared by
-    all worlds; ``njmax = ROWS_PER_CONTACT * contacts_per_instance + njnt_limited`` rows per world (every
-    contact plus every joint-limit row active at once)."""
-    if batch < 1:
-        raise ValueError(f"batch must be >= 1, got {batch}")
-    if contacts_per_instance < 1:
-        raise ValueError(f"contacts_per_instance must be >= 1, got {contacts_per_instance}")
-    return batch * contacts_per_instance, ROWS_PER_CONTACT * contacts_per_instance + njnt_limited
-
-
-def put_model(m, impl: str):
-    """``mjx.put_model(m, impl=...)`` for a resolved ``impl`` (``"jax"`` or ``"warp"``)."""
-    from mujoco import mjx
-
-    if impl not in ("jax", "warp"):
-        raise ValueError(f"put_model needs a resolved impl ('jax' or 'warp'), got {impl!r}; see resolve_impl")
-    mx = mjx.put_model(m, impl=impl)
-    if impl == "warp":  # keep the buffer-overflow warnings, drop the per-step iteration-limit printout
-        mx = mx.replace(opt=mx.opt.replace(_impl=mx.opt._impl.replace(warn_overflow=_QUIET_OVERFLOW)))
-    return mx
-
-
-def supports_gradients(impl: str) -> bool:
-    return impl not in _NOT_DIFFERENTIABLE
-
-
-def forbid_derivatives(tree, impl: str):
-    """Identity on ``tree``; under a forward-only ``impl`` (``warp``, ``c``) a derivative (``jax.jvp``,
-    ``jacfwd``, ``grad``) through it raises ``ValueError`` naming ``impl``."""
-    if supports_gradients(impl):
-        return tree
-    import jax
-
-    why = _NOT_DIFFERENTIABLE[impl]
-
-    @jax.custom_jvp
-    def guard(x):
-        return x
-
-    @guard.defjvp
-    def _jvp(primals, tangents):
-        raise ValueError(f"impl='{impl}' is not differentiable ({why}); use impl='jax' for gradients")
-
-    return guard(tree)
 
 
 _WARP_MISSING = ("Failed to import warp: No module named 'warp'",
@@ -256,11 +211,3 @@ def install_lazy_mjx_import() -> None:
     sys.meta_path.insert(0, _LazyMJXFinder())
 
 
-def model_impl(mx) -> str:
-    """The MJX implementation (``"jax"`` or ``"warp"``) of an ``mjx.Model``."""
-    return "warp" if is_warp_model(mx) else "jax"
-
-
-def is_warp_model(mx) -> bool:
-    """``mx`` is an ``mjx.Model`` of the Warp implementation."""
-    return str(getattr(mx, "impl", "")).lower().endswith("warp")

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import robot
+from hyqjax.sim.impls import BUFFER_OVERFLOW_MASK
 
 if TYPE_CHECKING:  # imported where used (a sweep's option checks load no MuJoCo)
     import mujoco
@@ -158,10 +159,8 @@ def foot_clearance(ci: ContactIds, d) -> jax.Array:
 def overflow(d) -> jax.Array:
     """True where MJX's Warp implementation dropped contacts or constraints because a buffer (``naconmax``
     contacts, ``njmax`` rows, broad/narrow phase) was full: the buffer bits of mujoco_warp's overflow flags
-    (:data:`hyqjax.sim.backend.BUFFER_OVERFLOW_MASK`; the solver's iteration-limit bits are not failures).
+    (:data:`hyqjax.sim.impls.BUFFER_OVERFLOW_MASK`; the solver's iteration-limit bits are not failures).
     Always False under the JAX implementation (static contact slots)."""
-    from hyqjax.sim.backend import BUFFER_OVERFLOW_MASK
-
     impl = getattr(d, "_impl", None)
     flag = getattr(impl, "overflow", None)
     if flag is None:

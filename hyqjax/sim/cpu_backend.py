@@ -48,6 +48,7 @@ from jax.experimental import io_callback
 
 from hyqjax.core import robot
 from hyqjax.core.types import Controller, Metrics, Push
+from hyqjax.sim import impls as _impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
 
@@ -450,6 +451,4 @@ class CBackend:
         return CBatchRunner(ids, controller, cfg, metrics, record, params_axes)
 
     def forbid_derivatives(self, tree):
-        from hyqjax.sim import backend
-
-        return backend.forbid_derivatives(tree, self.name)
+        return _impls.forbid_derivatives(tree, self.name)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from hyqjax.sim import backend as _impls
+from hyqjax.sim import impls as _impls
 
 
 class MJXBackend:

@@ -18,8 +18,8 @@ torques. Ground truth (``mjx.Data``) stays available to metrics, never to contro
 :class:`Observation`, :class:`Controller`, :class:`Metrics` and :class:`Push` are defined in
 :mod:`hyqjax.core.types` (no MJX import, so a controller does not load MJX) and re-exported here.
 
-Batches run through :mod:`hyqjax.sim.runner` (``vmap`` + ``jit`` + sharding + chunked progress), whose
-names are also reachable from this module.
+Batches run through :mod:`hyqjax.sim.runner` (``vmap`` + ``jit`` + sharding + chunked progress), which
+builds on this module.
 
 An instance whose state becomes non-finite or whose speed exceeds ``SimConfig.max_speed`` is
 *diverged*: its state is frozen at the last finite tick and the flag is returned, so a sweep
@@ -42,7 +42,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.core.types import Observation, Controller, Metrics, Push  # noqa: F401
-from hyqjax.sim import backend
+from hyqjax.sim import impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
 from hyqjax.core import robot
@@ -100,7 +100,7 @@ def observe(ids: hmodel.ModelIds, d: mjx.Data, tau: jax.Array, mx: mjx.Model | N
     the equation of motion, ``M qdd = qfrc_smooth + qfrc_constraint``); without ``mx``, ``g = qfrc_bias``.
     """
     gen = d.qfrc_bias
-    if mx is not None and backend.is_warp_model(mx):
+    if mx is not None and impls.is_warp_model(mx):
         # M qacc = qfrc_smooth + qfrc_constraint (the equation of motion of the last step; mujoco_warp's
         # mass matrix is not in the layout mjx.mul_m reads). External forces act on the free joint only.
         gen = gen + d.qfrc_smooth + d.qfrc_constraint
@@ -259,21 +259,21 @@ def rollout(mx: mjx.Model, ids: hmodel.ModelIds, d0: mjx.Data, controller: Contr
 
 
 def initial_data(mx: mjx.Model, qpos: jax.Array, batch: int | None = None, m: mujoco.MjModel | None = None,
-                 contacts_per_instance: int = backend.CONTACTS_PER_INSTANCE) -> mjx.Data:
+                 contacts_per_instance: int = impls.CONTACTS_PER_INSTANCE) -> mjx.Data:
     """MJX data at ``qpos`` with zero velocity. With ``batch``, ``qpos`` is ``(batch, nq)`` (or broadcast)
     and every field gets a leading batch axis.
 
     Under MJX's Warp implementation (``mx`` from ``put_model(m, impl="warp")``, ``m`` required) the data is
     made from ``m`` inside a ``vmap`` (one world per instance) with the contact buffer sized for the batch
-    (:func:`hyqjax.sim.backend.warp_capacity`), and the terrain geoms' world positions are written from
+    (:func:`hyqjax.sim.impls.warp_capacity`), and the terrain geoms' world positions are written from
     ``mx.geom_pos`` (per instance after :func:`hyqjax.sim.model.batch_model`): mujoco_warp computes the pose
     of geoms welded to the world once, in ``make_data``, never from the model again.
     """
-    if backend.is_warp_model(mx):
+    if impls.is_warp_model(mx):
         if m is None:
             raise ValueError("initial_data under impl='warp' needs the MuJoCo model m (mujoco.MjModel)")
         b = batch or 1
-        naconmax, njmax = backend.warp_capacity(int(np.sum(m.jnt_limited)), b, contacts_per_instance)
+        naconmax, njmax = impls.warp_capacity(int(np.sum(m.jnt_limited)), b, contacts_per_instance)
         qpos = jnp.broadcast_to(jnp.asarray(qpos, jnp.float32), (b, m.nq))
         d = jax.vmap(lambda q: mjx.make_data(m, impl="warp", naconmax=naconmax, njmax=njmax).replace(qpos=q))(qpos)
         static = np.array([g for g in range(m.ngeom) if m.body_weldid[m.geom_bodyid[g]] == 0], int)
@@ -287,15 +287,3 @@ def initial_data(mx: mjx.Model, qpos: jax.Array, batch: int | None = None, m: mu
     qpos = jnp.broadcast_to(jnp.asarray(qpos, d.qpos.dtype), (batch, d.qpos.shape[0]))
     db = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), d)
     return db.replace(qpos=qpos)
-
-
-_RUNNER_NAMES = ("BatchRunner", "Progress", "make_batch_runner", "batch_rollout", "batch_rollout_fn", "batch_mesh",
-                 "pad_batch")
-
-
-def __getattr__(name):  # the batch runner lives in hyqjax.sim.runner (it imports this module)
-    if name in _RUNNER_NAMES:
-        from hyqjax.sim import runner
-
-        return getattr(runner, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

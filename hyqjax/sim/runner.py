@@ -1,7 +1,7 @@
 """The batch runner: ``vmap`` of :func:`hyqjax.sim.rollout.rollout` over instances, jitted once per static
 setup, sharded over a 1-D device mesh (axis ``"batch"``), run in chunks of simulated time with a progress
 callback. The one jit + sharding runner of hyqjax: the step-down, the sweeps, bounding and the benchmarks
-all run batches through :func:`make_batch_runner` (also reachable as ``hyqjax.sim.rollout.make_batch_runner``).
+all run batches through :func:`make_batch_runner` (``hyqjax.make_batch_runner``).
 
 Compile phase. The runner compiles ahead of time (``jit(...).lower(...).compile()``), once per batch shape,
 so compiling and simulating are timed apart (:attr:`BatchRunner.last_timing`) and announced to the
@@ -28,7 +28,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from mujoco import mjx
 
-from hyqjax.sim import backend
+from hyqjax.sim import impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim.rollout import (Controller, Metrics, Push, RolloutResult, SimConfig, no_metrics, rollout_advance,
                                 rollout_init, rollout_result)
@@ -157,7 +157,7 @@ class BatchRunner:
     def plan(self, n: int, mx_batched: mjx.Model | None = None) -> BatchPlan:
         """The :class:`BatchPlan` of a batch of ``n`` (one pass of ``n`` without buckets or under MuJoCo Warp)."""
         devices = list(self.mesh.devices.flat) if self.mesh is not None else jax.devices()[:1]
-        if not self.buckets or (mx_batched is not None and backend.is_warp_model(mx_batched)):
+        if not self.buckets or (mx_batched is not None and impls.is_warp_model(mx_batched)):
             return BatchPlan(int(n), int(n), 1)
         return batch_plan(n, devices[0].platform, len(devices))
 

@@ -9,7 +9,7 @@ Entry points:
   ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)`` for ONE instance, pure JAX on MJX-JAX (``jax.jit``,
   ``jax.vmap``, ``jax.jacfwd`` reach every parameter), and ``rollout.run(scenario)`` for a batch through the
   simulator's batch runner (``cfg.impl``, :mod:`hyqjax.sim.backend`: MJX's jitted, sharded, chunked runner
-  :func:`hyqjax.sim.rollout.make_batch_runner`, or C MuJoCo's :class:`hyqjax.sim.cpu_backend.CBatchRunner`).
+  :func:`hyqjax.sim.runner.make_batch_runner`, or C MuJoCo's :class:`hyqjax.sim.cpu_backend.CBatchRunner`).
 * :func:`run_batch`: the same batch as NumPy columns (a thin layer on ``rollout.run``), and
   :func:`hyqjax.studies.stepdown_table.summarize` for the paper's table.
 

@@ -10,7 +10,8 @@ The package, one concept per module:
 * :mod:`~hyqjax.studies.sweep.store`: the locked, verified Parquet store and its manifest;
   :mod:`~hyqjax.studies.sweep.chunkfile`: a chunk file and its content checksum;
   :mod:`~hyqjax.studies.sweep.verify`: a reader's check of a whole sweep directory (``hyqjax verify``);
-  :mod:`~hyqjax.studies.sweep.legacy`: stores of the first format (read as they are, converted on request);
+  :mod:`~hyqjax.studies.sweep.legacy`: stores of the first format (read as they are);
+  :mod:`~hyqjax.studies.sweep.convert`: their conversion to the current format, on request;
 * :mod:`~hyqjax.studies.sweep.outcomes`, :mod:`~hyqjax.studies.sweep.summary`,
   :mod:`~hyqjax.studies.sweep.plots`: failures with reasons, Wilson maps, largest safe height, figures.
 
@@ -20,17 +21,17 @@ loads JAX's parameter declarations, the runner MJX).
 from __future__ import annotations
 
 _PUBLIC = {
-    "convert_v1": "legacy",
+    "convert_v1": "convert",
     "CRITICAL_METRICS": "outcomes", "count_outcomes": "outcomes",
     "plot_height_curves": "plots", "plot_maps": "plots",
-    "LocalExecutor": "runner", "compute_chunk": "runner", "default_chunk_size": "runner", "device_layout": "runner",
-    "run_rows": "runner", "run_sweep": "runner",
+    "LocalExecutor": "runner", "compute_chunk": "runner", "device_layout": "runner", "run_rows": "runner",
+    "run_sweep": "runner",
     "SensedParams": "scenario", "SensedState": "scenario", "SensorParams": "scenario", "build_scenario": "scenario",
     "sensed_controller": "scenario",
     "AXES": "spec", "Axis": "spec", "SpecError": "spec", "SweepSpec": "spec", "load_spec": "spec",
     "load_spec_dict": "spec",
     "SCHEMA": "store", "StoreBusy": "store", "StoreCorrupt": "store", "StoreMismatch": "store", "SweepStore": "store",
-    "open_store": "store",
+    "default_chunk_size": "store", "open_store": "store",
     "CHECKSUM": "chunkfile", "ChunkDamaged": "chunkfile", "parquet_to_rows": "chunkfile", "rows_to_parquet": "chunkfile",
     "StoreCheck": "verify", "verify_store": "verify",
     "format_summary": "summary", "logistic_h95": "summary", "summarize_sweep": "summary", "write_outputs": "summary",

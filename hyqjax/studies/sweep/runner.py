@@ -2,7 +2,7 @@
 
 :func:`run_rows` simulates the input rows of one chunk: padded to the chunk size and to a multiple of
 the device count (repeating the last row) so every chunk runs the same compiled program, sharded over
-the devices along the ``batch`` axis of :func:`hyqjax.sim.rollout.batch_mesh`. :func:`run_sweep` runs
+the devices along the ``batch`` axis of :func:`hyqjax.sim.runner.batch_mesh`. :func:`run_sweep` runs
 (or resumes) a sweep into its store (:mod:`hyqjax.studies.sweep.store`): it takes the store's lock,
 hands the chunks still to do to an executor (:class:`LocalExecutor` here; Ray in
 :mod:`hyqjax.studies.sweep.cluster`) and writes each finished chunk, in the driver, under the lock.
@@ -17,19 +17,12 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
-from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies.sweep.outcomes import count_outcomes
 from hyqjax.studies.sweep.scenario import SensedParams, build_scenario, sensed_controller
 from hyqjax.studies.sweep.spec import SweepSpec
-from hyqjax.studies.sweep.store import SweepStore
-
-
-def default_chunk_size(devices=None) -> int:
-    """Instances per chunk: 32 per CPU device, 4096 per accelerator."""
-    devices = jax.local_devices() if devices is None else devices
-    per = 32 if devices[0].platform == "cpu" else 4096
-    return per * len(devices)
+from hyqjax.studies.sweep.store import SweepStore, default_chunk_size
 
 
 def device_layout(devices=None, impl: str = "jax") -> dict:
@@ -53,7 +46,7 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
     ctrl = crawl.crawl_controller(cfg.control_dt)
     if sensed:
         ctrl = sensed_controller(ctrl, max_delay)
-    mesh = sim.batch_mesh(list(devices)) if len(devices) > 1 else None
+    mesh = srunner.batch_mesh(list(devices)) if len(devices) > 1 else None
     # buckets=False: a chunk is the sweep's own fixed batch shape (its chunk size, part of the store's layout).
     run = st.backend.make_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
                                  buckets=False)
@@ -70,7 +63,7 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
     same compiled programs."""
     devices = tuple(jax.local_devices() if devices is None else devices)
     n = rows["index"].shape[0]
-    pad_to = sim.pad_batch(max(pad_to, n), len(devices))
+    pad_to = srunner.pad_batch(max(pad_to, n), len(devices))
     padded = {k: np.concatenate([v, np.repeat(v[-1:], pad_to - n, 0)], 0) for k, v in rows.items()}
     scenario, sensor = build_scenario(padded, spec)
     cfg = dataclasses.replace(spec.stepdown_config(), impl=impl)
@@ -169,4 +162,4 @@ def run_sweep(spec: SweepSpec, out_dir: str, chunk_size: int | None = None, max_
     return store
 
 
-__all__ = ["LocalExecutor", "compute_chunk", "default_chunk_size", "device_layout", "run_rows", "run_sweep"]
+__all__ = ["LocalExecutor", "compute_chunk", "device_layout", "run_rows", "run_sweep"]

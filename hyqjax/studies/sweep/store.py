@@ -51,10 +51,11 @@ from hyqjax.io.lock import Busy, DirLock
 from hyqjax.studies.sweep import legacy
 from hyqjax.studies.sweep.chunkfile import (CHECKSUM, META_KEY, ChunkDamaged, chunk_size_of, parquet_to_rows,
                                             rows_to_parquet)
+from hyqjax.studies.sweep.legacy import OLD_SCHEMAS
 from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
-SCHEMA = legacy.SCHEMA
-OLD_SCHEMAS = legacy.OLD_SCHEMAS
+#: The schema this hyqjax writes (Parquet chunks with content checksums); older ones: :data:`OLD_SCHEMAS`.
+SCHEMA = "hyqjax.sweep/2"
 MANIFEST = "manifest.json"
 DAMAGED_DIR = "damaged"
 
@@ -76,6 +77,16 @@ def _now() -> str:
 
 def sha256_bytes(b: bytes) -> str:
     return hashlib.sha256(b).hexdigest()
+
+
+def default_chunk_size(devices=None) -> int:
+    """Instances per chunk of a new store when none is given: 32 per CPU device, 4096 per accelerator
+    (``devices``: default JAX's local devices)."""
+    import jax
+
+    devices = jax.local_devices() if devices is None else devices
+    per = 32 if devices[0].platform == "cpu" else 4096
+    return per * len(devices)
 
 
 class SweepStore:
@@ -150,8 +161,6 @@ class SweepStore:
 
     # ---------------------------------------------------------------- manifest
     def _new_manifest(self, chunk_size, layout) -> dict:
-        from hyqjax.studies.sweep.runner import default_chunk_size
-
         cs = int(chunk_size or self._requested["default_chunk_size"] or default_chunk_size())
         return dict(schema=SCHEMA, spec_hash=self.spec.spec_hash, spec=self.spec.to_dict(),
                     n_instances=self.spec.n_instances, chunk_size=cs, n_chunks=-(-self.spec.n_instances // cs),
@@ -171,8 +180,10 @@ class SweepStore:
                                f"again to rebuild it from the chunk files, or remove {self.dir}") from None
 
     def _check(self, man: dict, chunk_size, layout) -> None:
-        if man.get("schema") in OLD_SCHEMAS:
-            legacy.check_v1(self, man)  # same spec (else StoreMismatch); read as is, never resumed
+        if man.get("schema") in OLD_SCHEMAS:  # same spec, read as is, never resumed
+            why = legacy.v1_refusal(self.dir, man, self.spec.spec_hash, self._writer)
+            if why:
+                raise StoreMismatch(why)
             return
         if man.get("schema") != SCHEMA:
             raise StoreMismatch(f"{self.path} has schema {man.get('schema')!r}, expected {SCHEMA!r}")
@@ -483,6 +494,6 @@ def open_store(out_dir: str) -> SweepStore:
     return SweepStore(out_dir, None)
 
 
-__all__ = ["CHECKSUM", "ChunkDamaged", "DAMAGED_DIR", "MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt", "StoreMismatch", "SweepStore", "open_store",
-           "parquet_to_rows", "rows_to_parquet"]
+__all__ = ["CHECKSUM", "ChunkDamaged", "DAMAGED_DIR", "MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt",
+           "StoreMismatch", "SweepStore", "default_chunk_size", "open_store", "parquet_to_rows", "rows_to_parquet"]
 

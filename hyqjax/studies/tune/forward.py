@@ -30,6 +30,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.tune.schedule import Parameterisation
@@ -81,8 +82,8 @@ class SuccessEvaluator:
         self.setup = stepdown.setup(self.cfg)
         st = self.setup
         self.ticks = self.cfg.sim_config().n_ticks
-        self.runner = sim.make_batch_runner(st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(),
-                                            stepdown.make_metrics(st.ids, self.cfg), None, params_axes=0)
+        self.runner = srunner.make_batch_runner(st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(),
+                                                stepdown.make_metrics(st.ids, self.cfg), None, params_axes=0)
         cfg = self.cfg
         self._outcome = jax.jit(jax.vmap(lambda r: so.outcome(r, st.ids, cfg.max_tilt, cfg.min_progress)))
         self.completed_weight = float(completed_weight)

@@ -1,39 +1,24 @@
-"""Batched bounding experiments: per-instance randomisation, one compiled rollout, device fall metrics.
+"""A batch of bounding instances: per-instance parameters, randomisation, and the checks of a batch's settings.
 
-Every instance of a batch carries its own :class:`hyqjax.bounding.params.BoundingParams` (command,
-switches), terrain (friction, payload) and :class:`hyqjax.sim.rollout.Push`, so in-place, forward,
-turning and the four ablation combinations share ONE compiled ``sim.batch_rollout``. The device
-accumulates :class:`FallMetrics` (a fall: trunk below ``FALL_HEIGHT``, ``|roll|`` or ``|pitch|`` above
-``FALL_ANGLE``) and records a trace (:func:`record`); :mod:`hyqjax.bounding.summary` turns both into
-tracking metrics per instance.
+Every instance of a :class:`Batch` carries its own :class:`hyqjax.bounding.params.BoundingParams` (command,
+switches), terrain (friction, payload), initial apex state, roll and yaw rate and :class:`hyqjax.core.types.Push`,
+so in-place, forward, turning and the four ablation combinations share ONE compiled batch runner
+(:mod:`hyqjax.bounding.rollout` runs a batch). :func:`make_batch` draws the randomisation
+(:class:`Randomisation`) from a seed; :func:`validate_run` checks every setting of a batched bound before
+anything compiles, a bad one a :class:`SettingError` naming it and its allowed range.
 """
 from __future__ import annotations
 
 import dataclasses
-import functools
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.bounding import controller as bctrl
-from hyqjax.bounding import cycle as bc
-from hyqjax.bounding.params import BoundingCommand, BoundingParams, default_params
-from hyqjax.bounding.state import BoundingInfo
-from hyqjax.core import robot
-from hyqjax.core import spatial
-from hyqjax.sim import backend
+from hyqjax.bounding.params import BoundingCommand, BoundingParams
+from hyqjax.core.types import Push
 from hyqjax.sim import model as hmodel
-from hyqjax.sim import rollout as sim
-
-FALL_HEIGHT = 0.35
-FALL_ANGLE = 0.7
-
-
-def _dc(cls):
-    return jax.tree_util.register_dataclass(dataclasses.dataclass(frozen=True)(cls))
-
 
 #: Limits of a batch's settings (one definition, used by :class:`Randomisation`, :func:`make_batch` and
 #: :func:`validate_run`).
@@ -141,7 +126,7 @@ class Batch(NamedTuple):
     apex0: np.ndarray  # (B, 5) initial apex states
     roll0: np.ndarray
     yaw_rate0: np.ndarray
-    push: sim.Push
+    push: Push
 
 
 def stack_params(plist: list[BoundingParams]) -> BoundingParams:
@@ -203,7 +188,7 @@ def make_batch(plist: list[BoundingParams] | BoundingParams, seed: int = 0, rand
     check_push(pf, push_time, push_duration, force_name="push_force")
     sign = np.where(np.arange(b) % nu % 2 == 0, 1.0, -1.0)
     force = np.stack([np.zeros(b), sign * pf, np.zeros(b)], 1)
-    push = sim.Push(jnp.asarray(force, jnp.float32), jnp.full(b, push_time, jnp.float32),
+    push = Push(jnp.asarray(force, jnp.float32), jnp.full(b, push_time, jnp.float32),
                     jnp.full(b, push_duration, jnp.float32))
     # The estimator starts at the nominal apex (it does not know the perturbation).
     return Batch(params, terrain, apex0, roll0, yr0, push)
@@ -217,103 +202,3 @@ def concat_batches(batches: list[Batch]) -> Batch:
     push = jax.tree_util.tree_map(cat, *[b.push for b in batches])
     return Batch(params, terrain, np.concatenate([b.apex0 for b in batches]),
                  np.concatenate([b.roll0 for b in batches]), np.concatenate([b.yaw_rate0 for b in batches]), push)
-
-
-@_dc
-class FallMetrics:
-    """Device metrics of one instance (accumulated every tick on the ground truth).
-
-    Attributes:
-      fall_tick: tick of the first fall (-1: none).  low_trunk, roll, pitch: the first fall's cause (the trunk
-        below ``FALL_HEIGHT``; ``|roll|`` / ``|pitch|`` above ``FALL_ANGLE``; checked in that order, one is set).
-      ticks: ticks simulated.  min_z: lowest trunk height.  max_roll, max_pitch: largest ``|roll|``, ``|pitch|``.
-    """
-
-    fall_tick: jax.Array
-    low_trunk: jax.Array
-    roll: jax.Array
-    pitch: jax.Array
-    ticks: jax.Array
-    min_z: jax.Array
-    max_roll: jax.Array
-    max_pitch: jax.Array
-
-
-def fall_metrics() -> sim.Metrics:
-    """:class:`FallMetrics` as a :class:`hyqjax.sim.rollout.Metrics` pair."""
-
-    def init(d):
-        f = jnp.zeros((), bool)
-        return FallMetrics(fall_tick=jnp.array(-1), low_trunk=f, roll=f, pitch=f, ticks=jnp.array(0),
-                           min_z=d.qpos[robot.QPOS_BASE_POS][2], max_roll=jnp.zeros((), d.qpos.dtype),
-                           max_pitch=jnp.zeros((), d.qpos.dtype))
-
-    def update(ms: FallMetrics, d, obs, info):
-        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
-        z = d.qpos[robot.QPOS_BASE_POS][2]
-        low = z < FALL_HEIGHT
-        roll = ~low & (jnp.abs(rpy[0]) > FALL_ANGLE)
-        pitch = ~low & ~roll & (jnp.abs(rpy[1]) > FALL_ANGLE)
-        new = (ms.fall_tick < 0) & (low | roll | pitch)
-        return FallMetrics(fall_tick=jnp.where(new, ms.ticks, ms.fall_tick), low_trunk=ms.low_trunk | (new & low),
-                           roll=ms.roll | (new & roll), pitch=ms.pitch | (new & pitch), ticks=ms.ticks + 1,
-                           min_z=jnp.minimum(ms.min_z, z), max_roll=jnp.maximum(ms.max_roll, jnp.abs(rpy[0])),
-                           max_pitch=jnp.maximum(ms.max_pitch, jnp.abs(rpy[1])))
-
-    return sim.Metrics(init, update)
-
-
-def record(d, obs, info: BoundingInfo) -> dict:
-    """One trace sample: ground truth (trunk pose and twist, apex state, full ``qpos`` for replay, foot forces)
-    and what the controller commanded / estimated."""
-    rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
-    return dict(t=d.time, pos=d.qpos[robot.QPOS_BASE_POS], vel=d.qvel[robot.QVEL_BASE_LIN], rpy=rpy,
-                omega=d.qvel[robot.QVEL_BASE_ANG], apex=bc.data_apex(d).array(), yaw_des=info.yaw_des,
-                v_des=info.v_des, yaw_rate_des=info.yaw_rate_des, est_vel_h=info.vel_h, est_z=info.est_pos[2],
-                roll_des=info.roll_des, qpos=d.qpos, foot_force=obs.foot_force)
-
-
-def initial_data(batch: Batch, m, mx, mx_batched=None) -> "jax.Array":
-    """Batched MJX data at each instance's initial apex state (:func:`hyqjax.bounding.cycle.apex_data`). Under
-    MuJoCo Warp (``mx_batched`` a batched Warp model) the state is computed with the JAX model ``mx`` and put
-    into Warp data made by :func:`hyqjax.sim.rollout.initial_data`."""
-    def one(p, s, roll, yr):
-        return bc.apex_data(mx, m, p, s, roll=roll, yaw_rate=yr)
-
-    d = jax.vmap(one)(batch.params, jnp.asarray(batch.apex0, jnp.float32), jnp.asarray(batch.roll0, jnp.float32),
-                      jnp.asarray(batch.yaw_rate0, jnp.float32))
-    if mx_batched is None:
-        return d
-    return backend.get(backend.model_impl(mx_batched)).from_jax_data(mx_batched, d, m)
-
-
-def runner(cfg: sim.SimConfig, impl: str = "jax"):
-    """The batch runner of the bound for a static configuration and resolved MJX implementation
-    (:func:`hyqjax.sim.rollout.make_batch_runner`, built once per ``(cfg, impl)``, since a runner fixes the batched
-    model's structure, and compiled once per batch shape): ``runner(mx_batched, d0, params, push, progress=None,
-    chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of :func:`record`
-    (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
-    return _runner(cfg, impl)
-
-
-@functools.lru_cache(maxsize=8)
-def _runner(cfg: sim.SimConfig, impl: str):
-    _, _, ids = bc.model()
-    return sim.make_batch_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
-
-
-def run(batch: Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,
-        impl: str = "jax"):
-    """Simulate the batch; returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)`` (simulated
-    seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax | warp``
-    (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``).
-
-    The batch goes through ``make_bounding_rollout(BoundingRolloutConfig(duration, control_dt, record_every,
-    impl)).run(batch)`` (:mod:`hyqjax.bounding.rollout`, which also returns typed outcomes): the settings are
-    checked there (:class:`SettingError`; ``duration`` a whole number of gait periods, the period a multiple of
-    ``record_every * control_dt``)."""
-    from hyqjax.bounding.rollout import BoundingRolloutConfig, make_bounding_rollout
-
-    cfg = BoundingRolloutConfig(duration=duration, control_dt=control_dt, record_every=record_every, impl=impl)
-    _, res = make_bounding_rollout(cfg).run(batch, progress=progress)
-    return res, jax.tree_util.tree_map(np.asarray, res.trace)
