@@ -282,3 +282,46 @@ def test_c_and_mjx_step_down_outcomes_agree():
     for k in ("completed", "clean", *FAILURE_REASONS):
         np.testing.assert_array_equal(cols["c"][k], cols["jax"][k], err_msg=k)
     assert cols["c"]["completed"].any() and not cols["c"]["completed"].all()  # both kinds of outcome occur
+
+
+@pytest.mark.slow
+def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
+    """Five step-down instances in the bucket of 8 give the outcomes, final state, metrics and traces of the same
+    five in a batch of exactly 5 (the padded rows never stepped, dropped from the result); a batch of 6 then runs
+    in the same bucket without tracing or compiling again (counted by the runner's compile listener and its trace
+    counter, not by wall time)."""
+    from hyqjax.sim import runner as rn
+    from hyqjax.studies import stepdown
+
+    cfg = stepdown.StepdownConfig(duration=0.6, record_every=10, impl="c")
+    ro = stepdown.make_stepdown_rollout(cfg)
+    six, _ = stepdown.make_scenarios([0.16, 0.21, 0.24], [False, True], 1, seed=3)
+    five = jax.tree_util.tree_map(lambda x: x[:5], six)
+    st = ro.setup
+    exact = st.backend.make_runner(st.ids, ro.controller, ro.sim_config, ro.metrics, ro.record, buckets=False)
+    bucketed = ro.runner()
+
+    def run(runner, sc):
+        mb, d0 = stepdown.batch_inputs(st, sc)
+        res = runner(mb, d0, sc.params, sc.push, chunk_seconds=0.2)
+        return jax.tree_util.tree_map(np.asarray, (ro._outcomes(res._replace(trace=None)), res))
+
+    want = run(exact, five)
+    assert exact.last_timing["batch"] == 5
+    events = []
+    with rn.compile_listener(lambda e, info: events.append(e)):
+        got = run(bucketed, five)
+        assert bucketed.last_timing["batch"] == 8 and bucketed.last_timing["instances"] == 5
+        assert events.count("compile") == 2  # the initial carry and the chunk program (compiled or cache-loaded)
+        traced, n_events = bucketed.n_compiles, len(events)
+        got6 = run(bucketed, six)
+    assert bucketed.last_timing["batch"] == 8 and bucketed.last_timing["instances"] == 6
+    assert bucketed.n_compiles == traced and events[n_events:] == ["done"]  # no start, compile or end
+    assert bucketed.last_timing["compile_s"] == 0.0
+    g, w = jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)
+    assert len(g) == len(w)
+    for a, b in zip(g, w):
+        assert a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(jax.tree_util.tree_leaves(got6), g):  # the five shared instances, again in a batch of 6
+        np.testing.assert_array_equal(a[:5], b)
