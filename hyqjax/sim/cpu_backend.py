@@ -113,7 +113,7 @@ class CPhysics:
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
     ``frozen``, and returns the batch's :class:`hyqjax.sim.observe.DataView` packed in ONE array ``(B, width)`` of
-    ``dtype`` (one host-callback output instead of eight: each costs about 12 us a tick); :meth:`unpack` (pure JAX,
+    ``dtype`` (one output of the host call instead of eight: as an ``io_callback`` output each cost about 12 us a tick); :meth:`unpack` (pure JAX,
     static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
     ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and ``qfrc_gen = qfrc_bias + M qacc``
     (``mj_mulM``), the fields of the view in that order.
