@@ -66,9 +66,10 @@ class BatchPlan(NamedTuple):
 
 
 #: The smallest batch bucket of a runner whose physics runs outside the compiled program (the C MuJoCo backend,
-#: :func:`host_physics_plan`). Its padded rows cost controller and metrics compute, never physics: per control
-#: tick of the step-down on 2 CPU cores (benchmarks/RESULTS.md, "Batch buckets of the C MuJoCo backend") 18 real
-#: rows in a bucket of 32 run at the rate of ... (measured below); 8 keeps the smallest runs in one bucket.
+#: :func:`host_physics_plan`). Padded rows cost controller and metrics compute, never physics: on 2 CPU cores the
+#: step-down's 18 instances in a bucket of 32 (the worst padding of ``--instances`` 3 to 5) ran at 0.8 of the
+#: exact batch's env-steps/s, 30 in 32 at no measurable cost (benchmarks/RESULTS.md, bench_c_buckets); 8 puts
+#: every batch of up to 8 instances in one bucket.
 HOST_PHYSICS_MIN_BUCKET = 8
 
 
