@@ -126,7 +126,8 @@ def main(argv=None) -> int:
     for r in runs:
         cpu = r["cpu_to_simulating_s"]
         print(f"--instances {r['instances_per_cell']} ({r['batch']} instances, {r['impl']}): simulating after "
-              f"{r['to_simulating_s']:.1f} s ({'?' if cpu is None else f'{cpu:.1f}'} s of CPU; compile phase {r['compile_s']:.1f} s, of which tracing "
+              f"{r['to_simulating_s']:.1f} s ({'?' if cpu is None else f'{cpu:.1f}'} s of CPU; compile phase "
+              f"{r['compile_s']:.1f} s, of which tracing "
               f"{r['trace_s'] or 0:.1f} s; programs compiled {r['compiled']}, from the cache {r['from_cache']}), "
               f"wall {r['wall_s']:.1f} s, load {r['load_average_1min_at_start']}, "
               f"batches {[(b['batch'], b['passes']) for b in r['batches'] or []]}")

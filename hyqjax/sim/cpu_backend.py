@@ -113,8 +113,8 @@ class CPhysics:
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
     ``frozen``, and returns the batch's :class:`hyqjax.sim.observe.DataView` packed in ONE array ``(B, width)`` of
-    ``dtype`` (one output of the host call instead of eight: as an ``io_callback`` output each cost about 12 us a tick); :meth:`unpack` (pure JAX,
-    static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
+    ``dtype`` (one output of the host call instead of eight: as ``io_callback`` outputs each cost about 12 us a
+    tick); :meth:`unpack` (pure JAX, static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
     ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and ``qfrc_gen = qfrc_bias + M qacc``
     (``mj_mulM``), the fields of the view in that order.
     """
@@ -406,6 +406,8 @@ class CBatchRunner(hrunner.AheadOfTime):
         self._new_timing(plan)
         handle = next(_next_handle)
         _ACTIVE[handle] = phys
+        host_call.discard_pending(PHYSICS_TARGET)
+        carry = None
         try:
             with _warnings_to_log():
                 view0 = unpack(phys.layout, jnp.asarray(phys.packed()[rows]))
@@ -427,6 +429,9 @@ class CBatchRunner(hrunner.AheadOfTime):
                 self.last_timing["simulate_s"] = time.perf_counter() - t_sim
         finally:
             self._compile_t0 = None
+            if carry is not None:  # a call that failed on the host waits for the chunks it dispatched
+                with contextlib.suppress(Exception):
+                    jax.block_until_ready(carry)
             _ACTIVE.pop(handle, None)
             phys.close()
         hrunner._notify("done", **self.last_timing)

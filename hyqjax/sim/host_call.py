@@ -142,3 +142,8 @@ def raise_pending(name: str) -> None:
     err = _ERRORS.pop(name, None)
     if err is not None:
         raise err
+
+
+def discard_pending(name: str) -> None:
+    """Forget an exception of target ``name`` left unraised (by a call that failed for another reason)."""
+    _ERRORS.pop(name, None)
