@@ -189,7 +189,9 @@ def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsy
     with common.compile_status("stepdown") as status:
         for listener in list(rn._LISTENERS):
             listener("start", dict(batch=8))
-            listener("end", dict(batch=8, seconds=12.5))
+            listener("compile", dict(program="init"))
+            listener("compiled", dict(program="init", from_cache=False))
+            listener("end", dict(batch=8, seconds=12.5, from_cache=False))
             listener("done", dict(compile_s=12.5, simulate_s=2.0, batch=8, passes=1, instances=6))
     err = capsys.readouterr().err
     assert rn.COMPILE_LABEL == "compiling (first run of this shape; cached afterwards)"
@@ -197,6 +199,42 @@ def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsy
     text = status.throughput_text(6, 1000)
     assert text.startswith("simulating 2.0 s: 3,000 env-steps/s of 6 instances; compile 12.5 s besides")
     assert "2 padded rows not counted" in text
+
+
+def test_a_program_from_the_persistent_cache_is_not_called_a_compile(capsys):
+    """A compile phase whose programs all came from the persistent compilation cache (the runner's "compiled" events
+    say ``from_cache``) never shows the compiling label; its one line says the program was loaded."""
+    with common.compile_status("stepdown") as status:
+        for listener in list(rn._LISTENERS):
+            listener("start", dict(batch=32))
+            for program in ("init", "advance"):
+                listener("compile", dict(program=program))
+                listener("compiled", dict(program=program, from_cache=True))
+            listener("end", dict(batch=32, seconds=1.5, from_cache=True))
+    err = capsys.readouterr().err
+    assert rn.COMPILE_LABEL not in err and "compiled in" not in err
+    assert "stepdown: " + common.PREPARE_LABEL in err
+    assert "stepdown: compiled program loaded from the cache in 1.5 s" in err
+    assert status.compile_s == 1.5 and not status.compiling
+
+
+def test_a_slow_compile_request_is_shown_as_compiling(capsys):
+    """A compile request still unanswered after COMPILE_AFTER_S (no cache hit: XLA is compiling) switches the line
+    to the compiling label while it runs."""
+    import time
+
+    with common.compile_status("sweep") as status:
+        listener = status
+        listener("start", dict(batch=8))
+        listener("compile", dict(program="advance"))
+        deadline = time.time() + 10 * common.COMPILE_AFTER_S
+        while not status.compiling and time.time() < deadline:
+            time.sleep(0.05)
+        assert status.compiling
+        listener("compiled", dict(program="advance", from_cache=False))
+        listener("end", dict(batch=8, seconds=3.0, from_cache=False))
+    err = capsys.readouterr().err
+    assert "sweep: " + rn.COMPILE_LABEL in err and "compiled in 3.0 s" in err
 
 
 # ---------------------------------------------------------------- batch buckets
@@ -212,6 +250,22 @@ def test_batch_buckets_keep_one_shape_across_instance_counts():
     assert plan(3, n_devices=2) == rn.BatchPlan(3, 4, 1)
     assert plan(10200, "gpu") == rn.BatchPlan(10200, 10200, 1)  # accelerators: one pass at the batch's size
     assert plan(10201, "gpu", 2) == rn.BatchPlan(10201, 10202, 1)
+    with pytest.raises(ValueError, match="at least one instance"):
+        plan(0)
+
+
+def test_c_mujoco_buckets_one_shape_for_the_step_down_at_3_4_and_5_instances():
+    """The C MuJoCo backend's bucket rule (hyqjax.sim.runner.host_physics_plan): one pass of the next power of two,
+    at least HOST_PHYSICS_MIN_BUCKET; the default step-down (3 heights x 2 reflex settings) at --instances 3, 4 and 5
+    (18, 24, 30 instances) is one compiled shape, and no batch is padded to more than twice its size."""
+    plan = rn.host_physics_plan
+    low = rn.HOST_PHYSICS_MIN_BUCKET
+    assert {plan(6 * k).size for k in (3, 4, 5)} == {32}
+    assert [plan(n).size for n in (1, 2, low, low + 1, 32, 33, 1000)] == [low, low, low, 2 * low, 32, 64, 1024]
+    for n in range(1, 300):
+        p = plan(n)
+        assert p.passes == 1 and p.size >= max(n, low) and (p.size & (p.size - 1)) == 0
+        assert p.size < 2 * max(n, low)
     with pytest.raises(ValueError, match="at least one instance"):
         plan(0)
 

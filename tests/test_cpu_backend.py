@@ -8,6 +8,10 @@ tests/test_stepdown.py's 24 s fixture, which itself now runs on C MuJoCo (``impl
 """
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import jax
 import mujoco
 import numpy as np
@@ -98,6 +102,99 @@ def test_physics_batch_steps_and_packs_the_view(hyq):
         phys.close()
 
 
+def test_padded_rows_are_never_stepped_and_copy_the_last_real_row(hyq):
+    """The host call of a batch padded to a bucket (CPhysics.step_padded): the real rows are stepped exactly as an
+    unpadded batch (torques of the padded rows, NaN here, never reach C MuJoCo), the padded rows are a copy of the
+    last real row, and the physics holds the real instances only."""
+    m, ids = hyq
+    models = cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2]))
+    q0 = np.broadcast_to(hmodel.standing_qpos(m), (3, m.nq))
+    padded = cb.CPhysics(models, q0, ids.trunk_body, threads=2)
+    exact = cb.CPhysics(cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2])), q0, ids.trunk_body,
+                        threads=2)
+    try:
+        assert padded.b == len(padded.datas) == 3
+        rng = np.random.default_rng(0)
+        out = np.empty((8, padded.width), np.float32)
+        for _ in range(10):
+            tau = rng.normal(0.0, 20.0, (3, 12))
+            frozen = np.array([False, True, False])
+            rows = np.full((8, 13), np.nan, np.float32)  # padded rows: garbage the physics must not read
+            rows[:3, :12], rows[:3, 12] = tau, frozen
+            padded.step_padded(rows, out)
+            want = exact.step(tau.astype(np.float32), frozen)
+        np.testing.assert_array_equal(out[:3], want)
+        np.testing.assert_array_equal(out[3:], np.broadcast_to(out[2], (5, padded.width)))
+        assert np.isfinite(out).all()
+    finally:
+        padded.close()
+        exact.close()
+
+
+def test_host_call_runs_python_in_a_jitted_scan_and_reports_its_errors():
+    """hyqjax.sim.host_call: a Python function as an FFI target inside a jitted scan (results written in place,
+    called once per tick, in order); an exception in it fills the results with NaN and is raised afterwards."""
+    import jax.numpy as jnp
+
+    from hyqjax.sim import host_call
+
+    calls = []
+
+    def target(args, results):
+        (k, x), (y,) = args, results
+        calls.append(float(x[0, 0]))
+        if int(k) < 0:
+            raise RuntimeError("negative k")
+        y[...] = 2.0 * x + int(k)
+
+    host_call.register("hyqjax_test_double", target)
+    shape = jax.ShapeDtypeStruct((2, 3), jnp.float32)
+
+    @jax.jit
+    def run(k, x):
+        return jax.lax.scan(lambda c, _: (host_call.call("hyqjax_test_double", shape, k, c) * 0.5, None), x, None,
+                            length=4)[0]
+
+    x0 = jnp.ones((2, 3), jnp.float32)
+    np.testing.assert_allclose(np.asarray(run(jnp.int32(1), x0)), 3.0)  # x -> x + 1/2, four times
+    assert calls == [1.0, 1.5, 2.0, 2.5]
+    host_call.raise_pending("hyqjax_test_double")  # nothing pending
+    y = np.asarray(run(jnp.int32(-1), x0))
+    assert np.isnan(y).all()
+    with pytest.raises(RuntimeError, match="negative k"):
+        host_call.raise_pending("hyqjax_test_double")
+
+
+_CACHED_HOST_CALL = """
+import sys, jax, jax.numpy as jnp
+jax.config.update("jax_compilation_cache_dir", sys.argv[1])
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+from hyqjax.sim import host_call, runner
+host_call.register("hyqjax_test_add", lambda a, r: r[0].__setitem__(Ellipsis, a[0] + 1.0))
+f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (host_call.call("hyqjax_test_add", jax.ShapeDtypeStruct((3,),
+    jnp.float32), c) * 2.0, None), x, None, length=3)[0])
+exe, from_cache = runner.compile_lowered(f.lower(jnp.zeros(3, jnp.float32)))
+print(from_cache, float(exe(jnp.zeros(3, jnp.float32))[0]))
+"""
+
+
+@pytest.mark.slow
+def test_a_program_with_a_host_call_is_loaded_from_the_persistent_cache(tmp_path):
+    """Unlike an io_callback's, a program calling a host_call target goes to JAX's persistent compilation cache: a
+    second process loads it (runner.compile_lowered says so) and it computes the same ((0+1)2+1)2+1)2 = 14."""
+    script = tmp_path / "cached.py"
+    script.write_text(_CACHED_HOST_CALL)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, PYTHONPATH=root)
+    outs = [subprocess.run([sys.executable, str(script), str(tmp_path / "cache")], capture_output=True, text=True,
+                           env=env, timeout=300) for _ in range(2)]
+    for r in outs:
+        assert r.returncode == 0, r.stderr[-2000:]
+    assert outs[0].stdout.split() == ["False", "14.0"]
+    assert outs[1].stdout.split() == ["True", "14.0"]
+
+
 def test_observation_reads_the_weight_on_the_feet(hyq):
     """The foot forces the controller sees (sim/observe.py, from C MuJoCo's qfrc_bias + M qacc) carry HyQ's weight
     when it stands still: their vertical components sum to m g within 5% (measured: 3.6% high; the estimate
@@ -185,3 +282,46 @@ def test_c_and_mjx_step_down_outcomes_agree():
     for k in ("completed", "clean", *FAILURE_REASONS):
         np.testing.assert_array_equal(cols["c"][k], cols["jax"][k], err_msg=k)
     assert cols["c"]["completed"].any() and not cols["c"]["completed"].all()  # both kinds of outcome occur
+
+
+@pytest.mark.slow
+def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
+    """Five step-down instances in the bucket of 8 give the outcomes, final state, metrics and traces of the same
+    five in a batch of exactly 5 (the padded rows never stepped, dropped from the result); a batch of 6 then runs
+    in the same bucket without tracing or compiling again (counted by the runner's compile listener and its trace
+    counter, not by wall time)."""
+    from hyqjax.sim import runner as rn
+    from hyqjax.studies import stepdown
+
+    cfg = stepdown.StepdownConfig(duration=0.6, record_every=10, impl="c")
+    ro = stepdown.make_stepdown_rollout(cfg)
+    six, _ = stepdown.make_scenarios([0.16, 0.21, 0.24], [False, True], 1, seed=3)
+    five = jax.tree_util.tree_map(lambda x: x[:5], six)
+    st = ro.setup
+    exact = st.backend.make_runner(st.ids, ro.controller, ro.sim_config, ro.metrics, ro.record, buckets=False)
+    bucketed = ro.runner()
+
+    def run(runner, sc):
+        mb, d0 = stepdown.batch_inputs(st, sc)
+        res = runner(mb, d0, sc.params, sc.push, chunk_seconds=0.2)
+        return jax.tree_util.tree_map(np.asarray, (ro._outcomes(res._replace(trace=None)), res))
+
+    want = run(exact, five)
+    assert exact.last_timing["batch"] == 5
+    events = []
+    with rn.compile_listener(lambda e, info: events.append(e)):
+        got = run(bucketed, five)
+        assert bucketed.last_timing["batch"] == 8 and bucketed.last_timing["instances"] == 5
+        assert events.count("compile") == 2  # the initial carry and the chunk program (compiled or cache-loaded)
+        traced, n_events = bucketed.n_compiles, len(events)
+        got6 = run(bucketed, six)
+    assert bucketed.last_timing["batch"] == 8 and bucketed.last_timing["instances"] == 6
+    assert bucketed.n_compiles == traced and events[n_events:] == ["done"]  # no start, compile or end
+    assert bucketed.last_timing["compile_s"] == 0.0
+    g, w = jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)
+    assert len(g) == len(w)
+    for a, b in zip(g, w):
+        assert a.shape == b.shape
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(jax.tree_util.tree_leaves(got6), g):  # the five shared instances, again in a batch of 6
+        np.testing.assert_array_equal(a[:5], b)

@@ -97,16 +97,31 @@ def use_help_formatter(p: argparse.ArgumentParser) -> None:
     p.formatter_class = HelpFormatter
 
 
-def _compile_line(prefix: str):
+def _compile_line(prefix: str, label: str | None = None):
     from hyqjax.sim.runner import COMPILE_LABEL
-    return f"{prefix}: {COMPILE_LABEL}" if prefix else COMPILE_LABEL
+
+    label = COMPILE_LABEL if label is None else label
+    return f"{prefix}: {label}" if prefix else label
+
+
+#: Label of the part of a compile phase before XLA compiles: tracing and lowering the programs (every new process
+#: pays it; the persistent cache holds compiled programs, not traces), or loading them from the cache.
+PREPARE_LABEL = "preparing the simulation program"
+#: Seconds an XLA compile request may take before the line says "compiling": a program loaded from the
+#: persistent cache returns well within it (tens of milliseconds), a real compile takes seconds to minutes.
+COMPILE_AFTER_S = 0.5
 
 
 class CompileStatus:
-    """Listens to the batch runners (:func:`hyqjax.sim.runner.compile_listener`): while a runner compiles, a line
-    ``PREFIX: compiling (first run of this shape; cached afterwards) 0:42`` counts the elapsed time on stderr;
-    afterwards one line says how long it took. Sums ``compile_s`` and ``simulate_s`` over the runs it saw, so
-    a command prints its throughput without the compile."""
+    """Listens to the batch runners (:func:`hyqjax.sim.runner.compile_listener`) and shows their compile phase on
+    stderr with its elapsed time: ``PREFIX: preparing the simulation program 0:01`` while the programs are traced
+    (and loaded from the persistent compilation cache), ``PREFIX: compiling (first run of this shape; cached
+    afterwards) 0:42`` once XLA compiles (a compile request not answered from the cache within
+    :data:`COMPILE_AFTER_S`, or answered by a compile). Afterwards one line says how long it took: "compiled in
+    ... s (first run of this batch shape; cached afterwards)", or "compiled program loaded from the cache in ... s"
+    when no program needed a compile. A program compiled earlier in the same process shows nothing. Sums
+    ``compile_s`` and ``simulate_s`` over the runs it saw, so a command prints its throughput without the
+    compile."""
 
     def __init__(self, prefix: str = "", disable: bool = False, on_end=None):
         self.prefix, self.disable, self.on_end = prefix, disable, on_end
@@ -116,37 +131,60 @@ class CompileStatus:
         self._bar = None
         self._stop = threading.Event()
         self._thread = None
+        self._request_t0: float | None = None  # an XLA compile request in flight since
+        self.compiling = False  # this phase compiles (a request went past COMPILE_AFTER_S or compiled)
 
     def __call__(self, event: str, info: dict) -> None:
         if event == "start":
+            self.compiling = False
+            self._request_t0 = None
             self._open()
+        elif event == "compile":
+            import time
+
+            self._request_t0 = time.perf_counter()
+        elif event == "compiled":
+            self._request_t0 = None
+            if not info.get("from_cache", False):
+                self._show_compiling()
         elif event == "end":
+            self._request_t0 = None
             self.compile_s += info["seconds"]
             self.compiles += 1
-            self._close(info["seconds"])
+            self._close(info["seconds"], bool(info.get("from_cache", False)))
             if self.on_end is not None:
                 self.on_end()
         elif event == "done":
             self.simulate_s += info["simulate_s"]
             self.timings.append(dict(info))
 
+    def _show_compiling(self) -> None:
+        self.compiling = True
+        if self._bar is not None:
+            self._bar.set_description_str(_compile_line(self.prefix), refresh=True)
+
     def _open(self) -> None:
         if self.disable:
             return
+        import time
+
         from tqdm import tqdm
 
-        self._bar = tqdm(total=None, desc=_compile_line(self.prefix), bar_format="{desc} {elapsed}", leave=False,
-                         dynamic_ncols=True)
+        self._bar = tqdm(total=None, desc=_compile_line(self.prefix, PREPARE_LABEL), bar_format="{desc} {elapsed}",
+                         leave=False, dynamic_ncols=True)
         self._stop.clear()
 
         def tick():
-            while not self._stop.wait(0.5):
+            while not self._stop.wait(0.25):
+                t0 = self._request_t0
+                if not self.compiling and t0 is not None and time.perf_counter() - t0 >= COMPILE_AFTER_S:
+                    self._show_compiling()
                 self._bar.refresh()
 
         self._thread = threading.Thread(target=tick, daemon=True)
         self._thread.start()
 
-    def _close(self, seconds: float) -> None:
+    def _close(self, seconds: float, from_cache: bool) -> None:
         if self._bar is None:
             return
         self._stop.set()
@@ -155,8 +193,12 @@ class CompileStatus:
         self._bar = None
         from tqdm import tqdm
 
-        tqdm.write(f"{self.prefix + ': ' if self.prefix else ''}compiled in {seconds:.1f} s (first run of this "
-                   f"batch shape; cached afterwards)", file=sys.stderr)
+        head = self.prefix + ": " if self.prefix else ""
+        if from_cache:
+            tqdm.write(f"{head}compiled program loaded from the cache in {seconds:.1f} s", file=sys.stderr)
+        else:
+            tqdm.write(f"{head}compiled in {seconds:.1f} s (first run of this batch shape; cached afterwards)",
+                       file=sys.stderr)
 
     def close(self) -> None:
         if self._bar is not None:

@@ -100,7 +100,6 @@ def run(args) -> int:
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
     from hyqjax.studies import stepdown
-    from hyqjax.studies import stepdown_figures
 
     if not getattr(args, "options_checked", False):
         validate(args)
@@ -127,6 +126,8 @@ def run(args) -> int:
     print(stepdown.format_table(rows))
     print(f"{status.throughput_text(n, n_ticks)}; wall {wall:.1f} s in all")
     os.makedirs(args.out, exist_ok=True)
+    from hyqjax.studies import stepdown_figures  # matplotlib, imported once the simulation is done
+
     figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
     config = user_options(args)

@@ -7,16 +7,23 @@ compile. This backend runs the closed loop as ONE jitted ``lax.scan`` over contr
 1. the controller (``jax.vmap`` over instances of ``controller.step``) computes the joint torques of the whole
    batch from the :class:`hyqjax.core.types.Observation` of every instance (:func:`hyqjax.sim.observe.observation`,
    the same definition as under MJX);
-2. a host callback (``jax.experimental.io_callback``, ordered) hands the torques to :class:`CPhysics`, which
-   holds one ``mujoco.MjData`` per instance in float64 and steps them with ``mujoco.mj_step`` on a thread pool
-   (MuJoCo releases the GIL while it steps), and returns the data the metrics read as a
-   :class:`hyqjax.sim.observe.DataView` (float32 unless ``jax_enable_x64``);
+2. a host call (:mod:`hyqjax.sim.host_call`: an XLA FFI target that is a Python function) hands the torques to
+   :class:`CPhysics`, which holds one ``mujoco.MjData`` per instance in float64 and steps them with
+   ``mujoco.mj_step`` on a thread pool (MuJoCo releases the GIL while it steps), and returns the data the metrics
+   read as a :class:`hyqjax.sim.observe.DataView` (float32 unless ``jax_enable_x64``);
 3. divergence, metrics and traces follow the rules of :func:`hyqjax.sim.rollout.rollout_advance`: an instance
    whose state is non-finite or faster than ``SimConfig.max_speed`` is frozen at its last finite tick (its
    ``MjData`` is no longer stepped), its controller state and metrics stop, and ``diverged_tick`` records when.
 
-The controller and metrics are compiled once per batch shape and chunk length (seconds, not the minutes of an
-MJX compile); the physics is never compiled. Per-instance terrain, friction and payload live in one
+The controller and metrics are compiled once per batch bucket and chunk length (seconds, not the minutes of an
+MJX compile); the physics is never compiled. The controller batch is padded to a bucket
+(:func:`hyqjax.sim.runner.host_physics_plan`: the next power of two, at least 8), so another instance count in
+the same bucket reuses the compiled program: the padded rows repeat the last instance's observation,
+parameters and controller state, are never stepped in C MuJoCo (the host call copies the last real row's data
+into them) and are dropped from the result. The chunk length depends on the simulated time alone. Because the
+physics is an FFI target named by a string (not an ``io_callback``, whose program JAX never caches), the
+compiled program goes to the persistent compilation cache, and a new process with a batch in the same bucket
+loads it instead of compiling. Per-instance terrain, friction and payload live in one
 ``mujoco.MjModel`` per instance (:func:`batch_models`), written by the same function that writes them into a
 batched ``mjx.Model`` (:func:`hyqjax.sim.model.instance_model`), evaluated in float64. The midphase (bounding
 volume hierarchy of the static terrain, computed when the model is compiled) is switched off so that a
@@ -44,13 +51,14 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from jax.experimental import io_callback
 
 from hyqjax.core import robot
 from hyqjax.core.types import Controller, Metrics, Push
+from hyqjax.sim import host_call
 from hyqjax.sim import impls as _impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
+from hyqjax.sim import runner as hrunner
 
 log = logging.getLogger(__name__)
 
@@ -106,8 +114,8 @@ class CPhysics:
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
     ``frozen``, and returns the batch's :class:`hyqjax.sim.observe.DataView` packed in ONE array ``(B, width)`` of
-    ``dtype`` (one host-callback output instead of eight: each costs about 12 us a tick); :meth:`unpack` (pure JAX,
-    static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
+    ``dtype`` (one output of the host call instead of eight: as ``io_callback`` outputs each cost about 12 us a
+    tick); :meth:`unpack` (pure JAX, static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
     ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and ``qfrc_gen = qfrc_bias + M qacc``
     (``mj_mulM``), the fields of the view in that order.
     """
@@ -180,8 +188,9 @@ class CPhysics:
             bias_out[i] = bias
             mul_m(m, d, row[gen], qacc)
 
-    def step(self, tau, frozen) -> np.ndarray:
-        """Step the instances not ``frozen`` ``(B,)`` with joint torques ``tau`` ``(B, nu)``; the packed view."""
+    def step(self, tau, frozen, out: np.ndarray | None = None) -> np.ndarray:
+        """Step the instances not ``frozen`` ``(B,)`` with joint torques ``tau`` ``(B, nu)``; the packed view (written
+        into ``out`` when given)."""
         tau = np.asarray(tau, np.float64)
         frozen = np.asarray(frozen, bool)
         if self._pool is None or len(self._slices) == 1:
@@ -191,14 +200,32 @@ class CPhysics:
             self._run(*self._slices[0], tau, frozen)
             for f in futs:
                 f.result()
-        return self.packed()
+        if out is None:
+            return self.packed()
+        self.pack_into(out)
+        return out
 
     def packed(self) -> np.ndarray:
         """The batch's current view, packed ``(B, width)`` in ``dtype`` (``qfrc_gen`` with the bias forces added)."""
-        out = self._buf.astype(self.dtype)
-        lo, hi = self._cols["qfrc_gen"]
-        out[:, lo:hi] += self._bias.astype(self.dtype)
+        out = np.empty((self.b, self.width), self.dtype)
+        self.pack_into(out)
         return out
+
+    def pack_into(self, out: np.ndarray) -> None:
+        """:meth:`packed` written into ``out`` ``(B, width)``."""
+        out[...] = self._buf
+        lo, hi = self._cols["qfrc_gen"]
+        out[:, lo:hi] += self._bias.astype(out.dtype)
+
+    def step_padded(self, tau_frozen: np.ndarray, out: np.ndarray) -> None:
+        """The host call of a padded batch: ``tau_frozen`` ``(P, nu + 1)`` (torques, then 1 for a frozen instance)
+        of ``P >= B`` rows, of which the first ``B`` are this batch's instances; steps those (:meth:`step`) and
+        writes the packed view of all ``P`` rows into ``out``, the rows past ``B`` a copy of row ``B - 1`` (padded
+        rows are never stepped)."""
+        b = self.b
+        tau_frozen = np.asarray(tau_frozen)
+        self.step(tau_frozen[:b, :-1], tau_frozen[:b, -1] > 0.5, out=out[:b])
+        out[b:] = out[b - 1]
 
     def unpack(self, flat: jax.Array) -> hobs.DataView:
         """The :class:`hyqjax.sim.observe.DataView` of a packed batch ``(B, width)`` (JAX or NumPy)."""
@@ -249,64 +276,52 @@ class CInitialData:
         return int(self.qpos.shape[0])
 
 
-class CBatchRunner:
+#: Name of the FFI target that steps the C MuJoCo batches (:mod:`hyqjax.sim.host_call`).
+PHYSICS_TARGET = "hyqjax_c_mujoco_step"
+#: The batches being simulated, by the handle their compiled program passes to the physics target.
+_ACTIVE: dict[int, CPhysics] = {}
+_next_handle = iter(range(1, 2**31 - 1))
+
+
+def _physics_target(args: list[np.ndarray], results: list[np.ndarray]) -> None:
+    handle, tau_frozen = args
+    _ACTIVE[int(handle)].step_padded(tau_frozen, results[0])
+
+
+class CBatchRunner(hrunner.AheadOfTime):
     """The closed loop of a batch on C MuJoCo (module docstring); the counterpart of
     :class:`hyqjax.sim.runner.BatchRunner` with the same call and result.
 
     ``runner(models, d0, params, push, progress=..., chunk_seconds=...)`` with ``models`` from
     :func:`batch_models` and ``d0`` a :class:`CInitialData`; returns a :class:`hyqjax.sim.rollout.RolloutResult`
-    whose ``data`` is the final :class:`hyqjax.sim.observe.DataView`. The controller and metrics are jitted once
-    per batch shape and chunk length and reused by later calls.
+    whose ``data`` is the final :class:`hyqjax.sim.observe.DataView`. With ``buckets`` (the default) the controller
+    batch is padded to :func:`hyqjax.sim.runner.host_physics_plan`'s bucket, so the controller and metrics are
+    compiled once per bucket and chunk length and reused by later calls (and, through the persistent compilation
+    cache, by later processes). :attr:`last_timing` as :class:`hyqjax.sim.runner.BatchRunner`'s.
     """
 
     def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg, metrics: Metrics | None = None,
-                 record=None, params_axes: Any = 0, threads: int | None = None):
+                 record=None, params_axes: Any = 0, threads: int | None = None, buckets: bool = True):
         from hyqjax.sim import rollout as sim
 
         self.ids, self.controller, self.cfg = ids, controller, cfg
         self.metrics = metrics if metrics is not None else sim.no_metrics()
         self.record = record if cfg.record_every else None
-        self.params_axes, self.threads = params_axes, threads
+        self.params_axes, self.threads, self.buckets = params_axes, threads, buckets
         self.n_compiles = 0
-        self._phys: CPhysics | None = None
+        self._layout: dict | None = None
+        self._width = 0
         self._init = jax.jit(self._init_fn, compiler_options=COMPILER_OPTIONS)
-        self._advance = jax.jit(self._advance_fn, static_argnums=2, compiler_options=COMPILER_OPTIONS)
+        self._advance = jax.jit(self._advance_fn, static_argnums=3, compiler_options=COMPILER_OPTIONS)
         self._executables: dict = {}
-        self._compile_t0: float | None = None
+        self._reset_compile_phase()
         self.last_timing: dict = {}
+        host_call.register(PHYSICS_TARGET, _physics_target)
 
-    def _executable(self, name: str, fn, args: tuple, static: tuple = ()):
-        """The compiled ``fn`` for the shapes of ``args``, compiled ahead of time on first use; the compile phase is
-        announced to :func:`hyqjax.sim.runner.compile_listener` and timed apart from the simulation, as
-        :class:`hyqjax.sim.runner.BatchRunner` does."""
-        from hyqjax.sim import runner
-
-        key = (name, static, runner._signature(args))
-        exe = self._executables.get(key)
-        if exe is None:
-            if self._compile_t0 is None:
-                self._compile_t0 = time.perf_counter()
-                runner._notify("start", batch=None)
-            t0 = time.perf_counter()
-            lowered = fn.lower(*args, *static)
-            self.last_timing["trace_s"] += time.perf_counter() - t0
-            exe = self._executables[key] = lowered.compile()
-        return exe
-
-    def _end_compile_phase(self, batch: int) -> None:
-        from hyqjax.sim import runner
-
-        if self._compile_t0 is not None:
-            dt = time.perf_counter() - self._compile_t0
-            self._compile_t0 = None
-            self.last_timing["compile_s"] += dt
-            runner._notify("end", batch=batch, seconds=dt)
-
-    def chunk_ticks(self, chunk_seconds: float | None) -> int:
-        """Ticks per chunk (:meth:`hyqjax.sim.runner.BatchRunner.chunk_ticks`)."""
-        from hyqjax.sim import runner
-
-        return runner.BatchRunner.chunk_ticks(self, chunk_seconds)
+    def plan(self, n: int) -> hrunner.BatchPlan:
+        """The :class:`hyqjax.sim.runner.BatchPlan` of a batch of ``n`` (one pass; padded to a bucket unless
+        ``buckets`` is off)."""
+        return hrunner.host_physics_plan(n) if self.buckets else hrunner.BatchPlan(int(n), int(n), 1)
 
     # ------------------------------------------------------------------ the jitted programs
     def _init_fn(self, view0: hobs.DataView, params):
@@ -322,18 +337,13 @@ class CBatchRunner:
                                  jnp.zeros(b, jnp.int32), jnp.zeros(b, bool), jnp.full(b, -1, jnp.int32))
         return jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
 
-    def _physics_callback(self, tau_frozen):
-        tau_frozen = np.asarray(tau_frozen)
-        return self._phys.step(tau_frozen[:, :-1], tau_frozen[:, -1] > 0.5)
-
-    def _advance_fn(self, carry, params, n_ticks: int):
+    def _advance_fn(self, carry, params, handle, n_ticks: int):
         from hyqjax.sim import rollout as sim
 
         self.n_compiles += 1
         ids, ctrl, cfg, met, rec = self.ids, self.controller, self.cfg, self.metrics, self.record
-        layout = self._phys.layout
-        packed = jax.ShapeDtypeStruct((carry.data.qpos.shape[0], self._phys.width), carry.data.qpos.dtype)
-
+        layout = self._layout
+        packed = jax.ShapeDtypeStruct((carry.data.qpos.shape[0], self._width), carry.data.qpos.dtype)
         def control(v, cs, tau_prev, p):
             obs = hobs.observe_view(ids, v, tau_prev)
             cs_new, tau, info = ctrl.step(p, cs, obs)
@@ -363,7 +373,7 @@ class CBatchRunner:
             obs, cs_new, tau, info = jax.vmap(control, in_axes=(0, 0, 0, self.params_axes))(v, cs, tau_prev, params)
             frozen = (div | term)[:, None].astype(tau.dtype)  # a frozen instance is not stepped
             args = jnp.concatenate([tau, frozen], axis=1)  # one input array: (B, nu + 1)
-            v_new = unpack(layout, io_callback(self._physics_callback, packed, args, ordered=True))
+            v_new = unpack(layout, host_call.call(PHYSICS_TARGET, packed, handle, args))
             v_new, cs_new, ms_new, tau, div, div_tick, term, term_tick, out = jax.vmap(settle)(
                 v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k, term, term_tick)
             return sim.RolloutCarry(v_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
@@ -386,41 +396,54 @@ class CBatchRunner:
         if progress is not None and chunk_seconds is None:
             chunk_seconds = 1.0
         k = self.chunk_ticks(chunk_seconds)
+        n = len(models)
+        plan = self.plan(n)
+        rows = np.minimum(np.arange(plan.size), n - 1)  # the padded rows repeat the last instance
         dtype = np.dtype(jnp.result_type(float))
         phys = CPhysics(models, d0.qpos, self.ids.trunk_body, self.cfg.substeps, push, self.threads, dtype)
-        self._phys = phys
-        n, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
-        n_inst = len(models)
-        self._compile_t0 = None
-        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=n_inst, passes=1, instances=n_inst)
+        self._layout, self._width = phys.layout, phys.width
+        params = hrunner._rows(params, self.params_axes, rows)
+        n_ticks, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
+        self._new_timing(plan)
+        handle = next(_next_handle)
+        _ACTIVE[handle] = phys
+        host_call.discard_pending(PHYSICS_TARGET)
+        carry = None
         try:
             with _warnings_to_log():
-                view0 = phys.unpack(jnp.asarray(phys.packed()))
-                init = self._executable("init", self._init, (view0, params))
+                view0 = unpack(phys.layout, jnp.asarray(phys.packed()[rows]))
+                init = self._executable("init", self._init, (view0, params), batch=plan.size)
                 carry = init(view0, params)
-                advance = self._executable("advance", self._advance, (carry, params), (k,))
-                self._end_compile_phase(n_inst)
+                h = jnp.int32(handle)
+                advance = self._executable("advance", self._advance, (carry, params, h), (k,), batch=plan.size)
+                self._end_compile_phase(plan.size)
                 t_sim = time.perf_counter()
-                for done in range(0, n, k):
-                    carry, tr = advance(carry, params)
+                for done in range(0, n_ticks, k):
+                    carry, tr = advance(carry, params, h)
                     traces.append(tr)
                     if progress is not None:
                         jax.block_until_ready(carry.tick)
-                        progress((done + k) * dt, n * dt)
+                        host_call.raise_pending(PHYSICS_TARGET)
+                        progress((done + k) * dt, n_ticks * dt)
                 jax.block_until_ready(carry)
+                host_call.raise_pending(PHYSICS_TARGET)
                 self.last_timing["simulate_s"] = time.perf_counter() - t_sim
         finally:
             self._compile_t0 = None
+            if carry is not None:  # a call that failed on the host waits for the chunks it dispatched
+                with contextlib.suppress(Exception):
+                    jax.block_until_ready(carry)
+            _ACTIVE.pop(handle, None)
             phys.close()
-            self._phys = None
-        from hyqjax.sim import runner
-
-        runner._notify("done", **self.last_timing)
+        hrunner._notify("done", **self.last_timing)
         trace = None
         if self.record is not None:
             trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
                 lambda *xs: jnp.concatenate(xs, axis=1), *traces)
-        return sim.rollout_result(carry, trace)
+        res = sim.rollout_result(carry, trace)
+        if plan.size == n:
+            return res
+        return jax.tree_util.tree_map(lambda x: x[:n], res)  # the padded rows dropped
 
 
 class CBackend:
@@ -447,8 +470,9 @@ class CBackend:
 
     def make_runner(self, ids, controller, cfg, metrics=None, record=None, params_axes: Any = 0, mesh=None,
                     buckets: bool = True):
-        """The C batch runner; ``mesh`` and ``buckets`` are MJX's (one thread pool, every batch at its own size)."""
-        return CBatchRunner(ids, controller, cfg, metrics, record, params_axes)
+        """The C batch runner (``mesh`` is ignored: one thread pool); ``buckets``: pad the controller batch to
+        :func:`hyqjax.sim.runner.host_physics_plan`'s bucket (False: every batch at its own size)."""
+        return CBatchRunner(ids, controller, cfg, metrics, record, params_axes, buckets=buckets)
 
     def forbid_derivatives(self, tree):
         return _impls.forbid_derivatives(tree, self.name)

@@ -14,11 +14,18 @@ dropped from the result, so they are never seen or counted. One compiled program
 5 to any number of instances, and changing the instance count does not compile again. Every instance is
 independent under ``vmap``, so its result does not depend on the bucket (a test checks it row for row). On
 accelerators (and under MuJoCo Warp, whose contact buffers are sized for the whole batch) a batch runs at its
-own size in one pass.
+own size in one pass. The C MuJoCo backend, whose physics runs outside the compiled program, pads its controller
+batch to one bucket (:func:`host_physics_plan`: the next power of two, at least ``HOST_PHYSICS_MIN_BUCKET``);
+its padded rows are never stepped.
+
+Both runners compile through :class:`AheadOfTime`, which also tells a program loaded from JAX's persistent
+compilation cache from one XLA compiled (``jax.monitoring``'s cache-hit event), so the command line says
+"compiling" only for a real compile.
 """
 from __future__ import annotations
 
 import contextlib
+import threading
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -58,6 +65,30 @@ class BatchPlan(NamedTuple):
         return self.passes * self.size - self.n
 
 
+#: The smallest batch bucket of a runner whose physics runs outside the compiled program (the C MuJoCo backend,
+#: :func:`host_physics_plan`). Padded rows cost controller and metrics compute, never physics: on 2 CPU cores the
+#: step-down's 18 instances in a bucket of 32 (the worst padding of ``--instances`` 3 to 5) ran at 0.8 of the
+#: exact batch's env-steps/s, 30 in 32 at no measurable cost (benchmarks/RESULTS.md, bench_c_buckets); 8 puts
+#: every batch of up to 8 instances in one bucket.
+HOST_PHYSICS_MIN_BUCKET = 8
+
+
+def bucket(n: int, minimum: int = 1) -> int:
+    """The batch bucket of ``n`` instances: the smallest power of two ``>= max(n, minimum)``."""
+    return 1 << max(max(int(n), int(minimum)) - 1, 0).bit_length()
+
+
+def host_physics_plan(n: int) -> BatchPlan:
+    """The bucket of a batch of ``n`` whose physics runs outside the compiled program (the C MuJoCo backend): one
+    pass of :func:`bucket` ``(n, HOST_PHYSICS_MIN_BUCKET)`` rows. The padded rows repeat the last instance in the
+    controller and metrics only (its observation, parameters and controller state); the physics steps the ``n``
+    real instances alone, and the padded rows are dropped from the result. One pass, whatever ``n``: the
+    physics of every real row runs in parallel each tick, and padding more than doubles no batch."""
+    if not (isinstance(n, (int, np.integer)) and n >= 1):
+        raise ValueError(f"a batch needs at least one instance, got {n}")
+    return BatchPlan(int(n), bucket(n, HOST_PHYSICS_MIN_BUCKET), 1)
+
+
 def batch_plan(n: int, platform: str = "cpu", n_devices: int = 1, pass_size: int | None = None) -> BatchPlan:
     """The bucket of a batch of ``n`` instances on ``n_devices`` devices of ``platform``.
 
@@ -73,8 +104,7 @@ def batch_plan(n: int, platform: str = "cpu", n_devices: int = 1, pass_size: int
     big = pad_batch(pass_size or CPU_PASS * nd, nd)
     if n > big:
         return BatchPlan(n, big, -(-n // big))
-    size = 1 << max(n - 1, 0).bit_length()
-    return BatchPlan(n, min(pad_batch(size, nd), big), 1)
+    return BatchPlan(n, min(pad_batch(bucket(n), nd), big), 1)
 
 
 _LISTENERS: list = []
@@ -82,9 +112,12 @@ _LISTENERS: list = []
 
 @contextlib.contextmanager
 def compile_listener(listener: Callable[[str, dict], None]):
-    """While the context is open, every :class:`BatchRunner` that compiles calls ``listener(event, info)``:
-    ``("start", {"batch": size})`` before its first compile of a call and ``("end", {"batch": size, "seconds": s})``
-    once its programs are compiled (a program loaded from the persistent compilation cache counts too), and
+    """While the context is open, every batch runner that compiles calls ``listener(event, info)``:
+    ``("start", {"batch": size})`` before it traces its first program of a call (a program already compiled in this
+    process is neither traced nor announced); ``("compile", {"program": name})`` before XLA compiles a traced
+    program or loads it from the persistent compilation cache, and ``("compiled", {"program": name, "from_cache":
+    bool})`` after; ``("end", {"batch": size, "seconds": s, "from_cache": bool})`` once its programs are ready
+    (``from_cache``: every program of the phase was loaded from the persistent cache, none compiled); and
     ``("done", last_timing)`` after every run (:attr:`BatchRunner.last_timing`)."""
     _LISTENERS.append(listener)
     try:
@@ -96,6 +129,86 @@ def compile_listener(listener: Callable[[str, dict], None]):
 def _notify(event: str, **info) -> None:
     for fn in list(_LISTENERS):
         fn(event, info)
+
+
+_cache_hits = threading.local()
+_monitoring_installed = False
+
+
+def _count_cache_hit(event: str, **_) -> None:
+    if event == "/jax/compilation_cache/cache_hits":  # fired in the thread that asked for the program
+        _cache_hits.n = getattr(_cache_hits, "n", 0) + 1
+
+
+def compile_lowered(lowered) -> tuple[Any, bool]:
+    """``(executable, from_cache)``: ``lowered.compile()``, and whether JAX loaded the program from its persistent
+    compilation cache instead of compiling it (``jax.monitoring``'s ``/jax/compilation_cache/cache_hits`` event,
+    fired in this thread while it compiles)."""
+    global _monitoring_installed
+    if not _monitoring_installed:
+        jax.monitoring.register_event_listener(_count_cache_hit)
+        _monitoring_installed = True
+    before = getattr(_cache_hits, "n", 0)
+    exe = lowered.compile()
+    return exe, getattr(_cache_hits, "n", 0) > before
+
+
+class AheadOfTime:
+    """The compile phase of a batch runner: programs compiled ahead of time (``jit(...).lower(...).compile()``),
+    once per shape, kept in ``_executables``; the phase announced to :func:`compile_listener` and timed into
+    ``last_timing`` (``compile_s``, ``trace_s``; ``compiled`` and ``from_cache``: programs XLA compiled and
+    programs loaded from the persistent cache). Shared by :class:`BatchRunner` and the C MuJoCo backend's runner."""
+
+    def _reset_compile_phase(self) -> None:
+        self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
+        self._phase_compiled = 0
+
+    def _executable(self, name: str, fn, args: tuple, static: tuple = (), batch: int | None = None):
+        """The compiled ``fn`` for the shapes of ``args`` (compiled ahead of time on first use; opens the compile
+        phase, see :meth:`_end_compile_phase`)."""
+        key = (name, static, _signature(args))
+        exe = self._executables.get(key)
+        if exe is None:
+            if self._compile_t0 is None:
+                self._compile_t0 = time.perf_counter()
+                self._phase_compiled = 0
+                _notify("start", batch=batch)
+            t0 = time.perf_counter()
+            lowered = fn.lower(*args, *static)
+            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
+            _notify("compile", program=name)
+            exe, from_cache = compile_lowered(lowered)
+            self._executables[key] = exe
+            field = "from_cache" if from_cache else "compiled"
+            self.last_timing[field] = self.last_timing.get(field, 0) + 1
+            self._phase_compiled += 0 if from_cache else 1
+            _notify("compiled", program=name, from_cache=from_cache)
+        return exe
+
+    def _end_compile_phase(self, batch: int) -> None:
+        if self._compile_t0 is not None:
+            dt = time.perf_counter() - self._compile_t0
+            self._compile_t0 = None
+            self.last_timing["compile_s"] += dt
+            _notify("end", batch=batch, seconds=dt, from_cache=self._phase_compiled == 0)
+
+    def _new_timing(self, plan: "BatchPlan") -> None:
+        self._reset_compile_phase()
+        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, compiled=0, from_cache=0,
+                                batch=plan.size, passes=plan.passes, instances=plan.n)
+
+    def chunk_ticks(self, chunk_seconds: float | None) -> int:
+        """Ticks per chunk: the largest divisor of ``cfg.n_ticks`` that is at most ``chunk_seconds`` of simulated
+        time and a multiple of ``cfg.record_every`` (all ticks when ``chunk_seconds`` is None). It depends on the
+        configuration alone, never on the batch, so every batch size shares the chunk program's length."""
+        n, rec = self.cfg.n_ticks, max(self.cfg.record_every, 1) if self.record is not None else 1
+        if chunk_seconds is None:
+            return n
+        if not chunk_seconds > 0:
+            raise ValueError(f"chunk_seconds must be > 0 s, got {chunk_seconds}")
+        want = max(int(chunk_seconds / self.cfg.control_dt), 1)
+        fits = [k for k in range(rec, n + 1, rec) if n % k == 0 and k <= want]
+        return max(fits) if fits else rec if n % rec == 0 else n
 
 
 def _rows(tree, axes, idx: np.ndarray):
@@ -114,7 +227,7 @@ def _signature(args) -> tuple:
     return treedef, tuple(jax.typeof(x) for x in leaves)
 
 
-class BatchRunner:
+class BatchRunner(AheadOfTime):
     """``vmap`` of :func:`hyqjax.sim.rollout.rollout` over instances, jitted once and optionally sharded over a device mesh.
 
     Built by :func:`make_batch_runner`; call ``runner(mx_batched, d0, params, push)``. The static parts
@@ -128,7 +241,8 @@ class BatchRunner:
     ticks. :attr:`last_timing` holds the last call's ``compile_s`` (the compile phase: tracing, lowering, and
     compiling the programs or loading them from the persistent cache), ``trace_s`` (its tracing and lowering
     part, paid by every new process: the persistent cache holds compiled programs, not traces), ``simulate_s``
-    (running them), ``batch`` (the compiled batch size), ``passes`` and ``instances``.
+    (running them), ``compiled`` and ``from_cache`` (programs XLA compiled, programs loaded from the persistent
+    cache), ``batch`` (the compiled batch size), ``passes`` and ``instances``.
     """
 
     def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg: SimConfig, metrics: Metrics = no_metrics(),
@@ -138,21 +252,9 @@ class BatchRunner:
         self.params_axes, self.mesh, self.buckets = params_axes, mesh, buckets
         self._init = self._advance = None
         self._executables: dict = {}
-        self._compile_t0: float | None = None
+        self._reset_compile_phase()
         self.n_compiles = 0  # programs traced (for retrace guards)
         self.last_timing: dict = {}
-
-    def chunk_ticks(self, chunk_seconds: float | None) -> int:
-        """Ticks per chunk: the largest divisor of ``cfg.n_ticks`` that is at most ``chunk_seconds`` of simulated
-        time and a multiple of ``cfg.record_every`` (all ticks when ``chunk_seconds`` is None)."""
-        n, rec = self.cfg.n_ticks, max(self.cfg.record_every, 1) if self.record is not None else 1
-        if chunk_seconds is None:
-            return n
-        if not chunk_seconds > 0:
-            raise ValueError(f"chunk_seconds must be > 0 s, got {chunk_seconds}")
-        want = max(int(chunk_seconds / self.cfg.control_dt), 1)
-        fits = [k for k in range(rec, n + 1, rec) if n % k == 0 and k <= want]
-        return max(fits) if fits else rec if n % rec == 0 else n
 
     def plan(self, n: int, mx_batched: mjx.Model | None = None) -> BatchPlan:
         """The :class:`BatchPlan` of a batch of ``n`` (one pass of ``n`` without buckets or under MuJoCo Warp)."""
@@ -200,28 +302,6 @@ class BatchRunner:
                                 out_shardings=shard)
         self._whole = jax.jit(whole, in_shardings=self._put, out_shardings=shard)
 
-    def _executable(self, name: str, fn, args: tuple, static: tuple = ()):
-        """The compiled ``fn`` for the shapes of ``args`` (compiled ahead of time on first use; opens the compile
-        phase, see :meth:`_end_compile_phase`)."""
-        key = (name, static, _signature(args))
-        exe = self._executables.get(key)
-        if exe is None:
-            if self._compile_t0 is None:
-                self._compile_t0 = time.perf_counter()
-                _notify("start", batch=int(args[1].qpos.shape[0]) if name == "init" else None)
-            t0 = time.perf_counter()
-            lowered = fn.lower(*args, *static)
-            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
-            exe = self._executables[key] = lowered.compile()
-        return exe
-
-    def _end_compile_phase(self, batch: int) -> None:
-        if self._compile_t0 is not None:
-            dt = time.perf_counter() - self._compile_t0
-            self._compile_t0 = None
-            self.last_timing["compile_s"] += dt
-            _notify("end", batch=batch, seconds=dt)
-
     def program(self, mx_batched: mjx.Model, d0: mjx.Data, params: Any, push: Push | None = None):
         """``(fn, args)``: the whole run (all ticks) as ONE jitted program and its placed arguments, for
         ahead-of-time compilation and timing (``fn.lower(*args).compile()``); ``fn(*args)`` equals ``self(...)``
@@ -247,9 +327,7 @@ class BatchRunner:
         if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((mx_batched, d0, params, push))):
             return self._traced(mx_batched, d0, params, push, k)
         plan = self.plan(n, mx_batched)
-        self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
-        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, batch=plan.size, passes=plan.passes,
-                                instances=n)
+        self._new_timing(plan)
         if plan.passes == 1 and plan.size == n:
             out = self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
             _notify("done", **self.last_timing)
@@ -288,9 +366,9 @@ class BatchRunner:
         if self._put is not None:  # committed (single-device) inputs move onto the mesh
             mx_batched, d0, params, push = jax.device_put((mx_batched, d0, params, push), self._put)
         batch = int(d0.qpos.shape[0])
-        init = self._executable("init", self._init, (mx_batched, d0, params))
+        init = self._executable("init", self._init, (mx_batched, d0, params), batch=batch)
         carry = init(mx_batched, d0, params)
-        advance = self._executable("advance", self._advance, (mx_batched, carry, params, push), (k,))
+        advance = self._executable("advance", self._advance, (mx_batched, carry, params, push), (k,), batch=batch)
         self._end_compile_phase(batch)
         t0 = time.perf_counter()
         n, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []

@@ -21,7 +21,6 @@ import math
 from typing import Any
 
 import numpy as np
-from scipy import optimize, special, stats
 
 __all__ = ["h95_logistic", "h95_wilson", "height_summary", "logistic_fit", "mean_interval", "success_curve",
            "wilson_interval"]
@@ -34,6 +33,8 @@ def wilson_interval(k: int, n: int, confidence: float = 0.95) -> tuple[float, fl
         return (float("nan"), float("nan"))
     if not 0 <= k <= n:
         raise ValueError(f"successes k={k} must be in [0, n={n}]")
+    from scipy import stats  # imported on use: scipy.stats costs about 0.9 s, before a run's first tick otherwise
+
     ci = stats.binomtest(k, n).proportion_ci(confidence_level=confidence, method="wilson")
     return (max(0.0, float(ci.low)), min(1.0, float(ci.high)))
 
@@ -43,6 +44,8 @@ def mean_interval(values, confidence: float = 0.95) -> tuple[float, float]:
     v = np.asarray(values, np.float64)
     if v.size < 2:
         return (float("nan"), float("nan"))
+    from scipy import stats
+
     half = float(stats.norm.ppf(0.5 + confidence / 2)) * float(v.std(ddof=1)) / math.sqrt(v.size)
     return (float(v.mean()) - half, float(v.mean()) + half)
 
@@ -89,6 +92,8 @@ def logistic_fit(x, y, ridge: float = 1e-6) -> tuple[float, float] | None:
     ``X^T (p - y) + ridge w`` and Hessian ``X^T diag(p(1-p)) X + ridge I``. ``None`` if fewer than two
     distinct ``x``, all outcomes equal, or the gradient at the result is not below ``1e-6 n``.
     """
+    from scipy import optimize, special
+
     x = np.asarray(x, np.float64).reshape(-1)
     y = np.asarray(y, np.float64).reshape(-1)
     if len(np.unique(x)) < 2 or y.all() or not y.any():
