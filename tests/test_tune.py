@@ -529,6 +529,85 @@ def test_checkpoints_get_the_iterate_finished_before_them():
     assert [p["theta"] for p in tr2.finish(clk2)] == [[3.0, 3.0], [3.0, 3.0]]
 
 
+def test_selection_returns_the_best_validated_iterate_and_charges_its_cost():
+    """Closed-loop selection with a fake validation: the returned iterate at every checkpoint is the best of the
+    iterates validated before it (start point included; ties go to the later one), validated every 2 iterations;
+    the validations' time runs on the method's clock and their physics steps are counted."""
+    from hyqjax.studies.tune import search
+
+    clk = _FakeClock()
+    score = {0.0: 0.5, 1.0: 0.2, 2.0: 0.7, 3.0: 0.9, 4.0: 0.6, 5.0: 0.1, 6.0: 0.7, 7.0: 0.3, 8.0: 0.2}
+
+    def validate(thetas):
+        clk.now += 0.25  # a validation costs 0.25 s of the method's clock
+        c = np.full((1, 4), False)
+        c[0, :round(4 * score[float(thetas[0, 0])])] = True
+        return dict(clean=c, completed=np.ones((1, 4), bool), physics_steps=40)
+
+    sel = search.Selection(validate, every=2)
+    tr = search.Trace((2.0, 3.5, 100.0), np.zeros(1), select=sel)
+    tr.begin(clk)  # the start point (0.5 -> 2 of 4 clean) is validated first
+    assert clk.now == 0.25 and clk.physics_steps == 40
+    for i in range(1, 9):  # iterates 1..8, 0.25 s and 100 physics steps each; 2, 4, 6, 8 validated
+        clk.now += 0.25
+        clk.physics_steps += 100
+        tr.advance(clk, np.full(1, float(i)), dict(step=i))
+    # validated: start 0.5 (2/4), 2 -> 0.75 (3/4), 4 -> 0.5 (2/4), 6 -> 0.75 (3/4, a tie: the later), 8 -> 0.25
+    assert [(r["iteration"], r["clean"], r["selected"]) for r in sel.log] == [
+        (0, 0.5, True), (2, 0.75, True), (4, 0.5, False), (6, 0.75, True), (8, 0.25, False)]
+    pts = tr.finish(clk)
+    # at 2.0 s: iterate 2 finished validating at 1.0 s; iterate 6 finished validating at 3.0 s (< 3.5 s)
+    assert [p["theta"] for p in pts] == [[2.0], [6.0], [6.0]]
+    assert pts[1]["selected_iteration"] == 6 and pts[1]["validation_clean"] == 0.75
+    assert clk.now == pytest.approx(0.25 * (8 + 5)) and clk.physics_steps == 8 * 100 + 5 * 40
+    # an unchanged iterate (random search's incumbent) is not validated again; it stays due until it changes
+    clk2 = _FakeClock()
+    sel2 = search.Selection(validate, every=1)
+    tr2 = search.Trace((10.0,), np.zeros(1), select=sel2)
+    tr2.begin(clk2)
+    for th in (0.0, 0.0, 2.0, 2.0, 3.0):
+        tr2.advance(clk2, np.full(1, th), {})
+    assert [r["iteration"] for r in sel2.log] == [0, 3, 5]
+    with pytest.raises(ValueError, match="every"):
+        search.Selection(validate, every=0, every_s=0.0)
+
+
+def test_search_with_selection_keeps_its_best_mean():
+    """CMA-ES with a validation that scores the true success rate: the returned iterate at the end is the best
+    validated mean (not the last one), and the run's clock carries the validations' physics steps."""
+    from hyqjax.studies.tune import search
+
+    target = np.array([1.0, -1.0])
+    rate = lambda th: np.exp(-0.5 * np.sum((np.asarray(th) - target) ** 2, -1))  # noqa: E731
+    clk = _FakeClock()
+
+    def f_gen(thetas, g):
+        clk.now += 0.05
+        u = np.random.default_rng([3, g]).random(16)
+        clean = u[None, :] < rate(thetas)[:, None]
+        return dict(fitness=clean.mean(1), clean=clean, completed=clean, physics_steps=thetas.shape[0] * 16)
+
+    vals = []
+
+    def validate(thetas):
+        clk.now += 0.05
+        vals.append((thetas[0].copy(), rate(thetas[0])))
+        c = np.random.default_rng(9).random((1, 400)) < rate(thetas[0])  # fixed scenarios: common draws
+        return dict(clean=c, completed=c, physics_steps=400)
+
+    sel = search.Selection(validate, every=3)
+    tr = search.Trace((1.0,), np.zeros(2), select=sel)
+    tr.begin(clk)
+    search.run_search("cma_es", f_gen, np.zeros(2), 8, 0.3, clk, tr, seed=2)
+    out = np.asarray(tr.finish(clk)[-1]["theta"])
+    before = [r for r in sel.log if r["wall_s"] < 1.0]  # validations finished before the checkpoint
+    best = max(before, key=lambda r: (r["clean"], r["completed"], r["iteration"]))
+    assert out.tolist() == vals[sel.log.index(best)][0].tolist() and best["selected"]
+    assert rate(out) > rate(np.zeros(2)) + 0.1
+    gens = len(tr.log)
+    assert clk.physics_steps == gens * 9 * 16 + len(sel.log) * 400
+
+
 @pytest.mark.parametrize("method", ["cma_es", "snes", "open_es", "random_search"])
 def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers(method):
     """A synthetic 'success' (Bernoulli with probability decreasing with the distance to a target, M draws per
@@ -587,7 +666,15 @@ def test_charges_count_compile_not_run_time():
                                        (dict(heldout_seed=0), "heldout_seed must differ"),
                                        (dict(hybrid_split=1.0), "hybrid_split"),
                                        (dict(start_from=(("cma_es/shared", (0.0,)),)), "start_from"),
-                                       (dict(start_from=(("pso/shared", (0.0,) * 14),)), "start_from")])
+                                       (dict(start_from=(("pso/shared", (0.0,) * 14),)), "start_from"),
+                                       (dict(select_instances=6), "select_instances must be a multiple of 4"),
+                                       (dict(select_instances=-4), "select_instances must be"),
+                                       (dict(select_every=0), "select_every"),
+                                       (dict(select_every_s=-1.0), "select_every_s"),
+                                       (dict(select_seed=7777), "select_seed must differ"),
+                                       (dict(select_seed=1), "select_seed must differ"),
+                                       (dict(grad_directions=-1), "grad_directions"),
+                                       (dict(cold_compile=1), "cold_compile")])
 def test_wallclock_config_validation(kw, match):
     from hyqjax.studies.tune import wallclock
 
@@ -602,7 +689,12 @@ def test_wallclock_config_validation(kw, match):
                                          (["--start-from", "/nonexistent.json"], "--start-from"),
                                          (["--warm-start", "5"], "--warm-start belongs to --gradient-study"),
                                          (["--study", "--methods", "open_es", "--popsize", "5"], "popsize must be even"),
-                                         (["--quick", "--study"], "--quick")])
+                                         (["--quick", "--study"], "--quick"),
+                                         (["--study", "--select-seed", "7777"], "select_seed must differ"),
+                                         (["--study", "--select-instances", "10"], "multiple of 4"),
+                                         (["--study", "--select-every", "0"], "--select-every"),
+                                         (["--gradient-study", "--select-seed", "3"], "--select-seed belongs"),
+                                         (["--gradient-study", "--cold-compile"], "--cold-compile belongs")])
 def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
     from hyqjax.cli.app import main
 
@@ -681,7 +773,8 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     def evaluate(ths):
         return -np.asarray(ths)[:, 0]  # loss falls as theta_0 grows
 
-    grad = SimpleNamespace(fns={"shared": (step_fn, evaluate, 0)}, obj=obj_mod.ClosedLoopObjective(ticks=10))
+    grad = SimpleNamespace(fns={"shared": (step_fn, evaluate, 0)}, obj=obj_mod.ClosedLoopObjective(ticks=10),
+                           exact_step=lambda param: step_fn)
     th0 = p.theta_of(base)
     members = {"start": (p, th0, base)}
     heldout = {"start": dict(clean=0.1)}
