@@ -708,14 +708,19 @@ def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, 
 @pytest.mark.slow
 def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_path, monkeypatch):
     """A tiny study on the CPU (random search and CMA-ES on the shared 14 coordinates, 0.5 s runs, one compiled
-    forward program for training and held-out): members with equal parameters get equal outcomes on the common
-    scenarios; every checkpoint's iterate is evaluated on the same held-out instances; a second call on the same
-    directory keeps every finished stage and runs nothing; another configuration there is refused."""
+    forward program for training, selection and held-out), each method in its own call into the same directory
+    (as one process per method would): members with equal parameters get equal outcomes on the common
+    scenarios; every method validates its iterates on the fixed validation batch and pays for it (physics steps
+    of generations plus validations); every checkpoint's iterate is the best validated one finished before it and
+    is evaluated on the same held-out instances; the two calls compose into one results file; a further call keeps
+    every finished stage and runs nothing; another configuration there is refused."""
     from hyqjax.studies.tune import forward, schedule, wallclock
 
     cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.02, 0.04),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
-                                    heldout_duration=0.5, impl="jax", charge_compile=False)
+                                    heldout_duration=0.5, impl="jax", charge_compile=False, select_instances=12,
+                                    select_every=1)
+    assert wallclock.selection_program(cfg) == "forward"  # 12 rows: the generation's program
     base = wallclock.start_params(cfg)
     p = schedule.make("shared")
     ev = forward.SuccessEvaluator(p, base, 0.5, "jax")
@@ -726,17 +731,29 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert not np.array_equal(r["columns"]["progress"][0], r["columns"]["progress"][1])
     assert r["physics_steps"] == 3 * 4 * 250
     monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)  # one compiled program for the study
-    res = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
-    assert res["complete"]
+    for m in cfg.methods:  # one call per method, as one process per method
+        res = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=lambda s: None)
+        assert res["complete"] and set(res["runs"]) == {f"{x}/shared" for x in cfg.methods[:cfg.methods.index(m) + 1]}
+    assert res["config"]["methods"] == ["cma_es", "random_search"]
     members = {"table1", "start"} | {wallclock.member_key(m, "shared", s) for m in cfg.methods
                                      for s in cfg.checkpoints_s}
     assert set(res["heldout"]) == members
     assert all(h["n"] == 6 for h in res["heldout"].values())
     for m in cfg.methods:
         run = res["runs"][f"{m}/shared"]
+        sel = run["selection"]
+        assert sel["instances"] == 12 and sel["log"][0]["iteration"] == 0 and len(sel["log"]) >= 2
         assert [pt["seconds"] for pt in run["points"]] == list(cfg.checkpoints_s)
-        assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250
+        assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250 + len(sel["log"]) * 12 * 250
+        assert sel["physics_steps"] == len(sel["log"]) * 12 * 250
         assert [pt["physics_steps"] for pt in run["points"]] == sorted(pt["physics_steps"] for pt in run["points"])
+        for pt in run["points"]:
+            done = [v for v in sel["log"] if v["wall_s"] < pt["seconds"]]
+            if not done:  # still validating the start point: the start point
+                assert pt["theta"] == th0.tolist()
+                continue
+            best = max(done, key=lambda v: (v["clean"], v["completed"], v["iteration"]))
+            assert pt.get("selected_iteration", 0) == best["iteration"]
     assert {(c["method"], len(c["points"])) for c in res["budget_curves"]} == {(m, 2) for m in cfg.methods}
     again = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
     assert again["runs"] == json.loads(json.dumps(res["runs"])) and again["heldout"] == res["heldout"]
@@ -746,6 +763,26 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert "random_search / shared (14)" in figure.wallclock_markdown(again)
     with pytest.raises(RuntimeError, match="another configuration"):
         wallclock.run_wallclock_study(dataclasses_replace(cfg, seed=5), str(tmp_path), log=lambda s: None)
+
+
+def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
+    """A study directory written by one method's process is resumed by another method's process (the
+    configuration's fingerprint leaves ``methods`` out; the stored configuration names every method run);
+    another setting there is still refused."""
+    from hyqjax.io.atomic import write_json
+    from hyqjax.studies.tune import wallclock
+
+    a = wallclock.WallClockConfig(methods=("random_search",), dims=("shared",))
+    write_json(str(tmp_path / "results.json"),
+               dict(kind="wallclock", config=a.to_dict(), runs={"random_search/shared": {}}))
+    b = wallclock.WallClockConfig(methods=("cma_es", "gradient"), dims=("shared",))
+    prev = wallclock.previous(str(tmp_path), b)
+    assert set(prev["runs"]) == {"random_search/shared"}
+    assert wallclock._methods_union(prev["config"]["methods"], b.methods) == ["cma_es", "random_search", "gradient"]
+    for other in (dataclasses_replace(b, select_instances=0), dataclasses_replace(b, cold_compile=True),
+                  dataclasses_replace(b, wall_minutes=(1.0, 10.0))):
+        with pytest.raises(RuntimeError, match="another configuration"):
+            wallclock.previous(str(tmp_path), other)
 
 
 def dataclasses_replace(obj, **kw):

@@ -448,6 +448,20 @@ def _run_wallclock(args) -> int:
         print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
               f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
               f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
+        c = g.get("step_cost")
+        if c:
+            print(f"gradient on {d}: one jacfwd step ({c['tangents']} tangents) costs {c['jacfwd_over_value']:.1f} "
+                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s)"
+                  + (f"; the forward gradient ({c['forward_gradient_directions']} directions) "
+                     f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
+    for key, r in res["runs"].items():
+        sel = r.get("selection")
+        if sel and sel["log"]:
+            pt = r["points"][-1]
+            print(f"selection of {key}: {len(sel['log'])} validations on {sel['instances']} fixed scenarios "
+                  f"({sel['wall_s']:.0f} s, {sel['physics_steps']:,} physics steps of its budget); returned: "
+                  f"iteration {pt.get('selected_iteration', 0)}, validation clean "
+                  f"{pt.get('validation_clean', float('nan')):.3f}")
     w = wallclock.winner(res, cfg.wall_minutes[-1])
     if args.study and w:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "

@@ -232,7 +232,8 @@ def make_value_and_forward_gradient(base, space: ParamSpace, obj: ClosedLoopObje
 
     unbiased (``E[v v^T] = I``) with ``K`` tangents carried instead of ``P`` (one ``jacfwd`` over the ``K``
     coordinates ``alpha`` of ``theta + V^T alpha`` at ``alpha = 0``), at the price of variance: per window
-    ``E|g_hat - g|^2 = (P + 1) |g|^2 / K`` (the covariance of ``(g . v) v`` is ``|g|^2 I + g g^T``). ``key`` draws ``V`` (a new key per step)."""
+    ``E|g_hat - g|^2 = (P + 1) |g|^2 / K`` (the covariance of ``(g . v) v`` is ``|g|^2 I + g g^T``).
+    ``key`` draws ``V`` (a new key per step)."""
     k = int(directions)
     if k < 1:
         raise ValueError(f"directions must be >= 1, got {directions}")

@@ -3,10 +3,12 @@ closed-loop gradient, and the hybrid (search, then gradient polish).
 
 Every method runs against a :class:`Clock` and returns, for each checkpoint ``c`` (seconds), the iterate it would
 hand back had it been stopped at ``c``: the last iterate it had finished by then (the start point if it had
-finished none, e.g. while compiling). The clock counts everything a stand-alone run would pay: the compile of
-each program the method uses (:class:`Charges`, measured once per process and *charged* to every method that
-uses the program, so that a method run after another does not profit from its compile), the snapshot windows of
-the gradient, every evaluation and every optimiser update. Physics steps are counted next to it (tangents of
+finished none, e.g. while compiling), or with a :class:`Selection` the best of the iterates it had validated by
+then on a fixed validation batch (closed-loop clean success; the validations paid from its clock). The clock
+counts everything a stand-alone run would pay: the compile of each program the method uses (:class:`Charges`,
+measured once per process and *charged* to every method that uses the program, so that a method run after
+another does not profit from its compile), the snapshot windows of the gradient, every evaluation and every
+optimiser update. Physics steps are counted next to it (tangents of
 forward-mode derivatives included).
 
 Success-driven methods (:func:`run_search`) maximise the fitness of :mod:`.forward` (clean success plus

@@ -13,17 +13,29 @@
    scenarios, common random numbers per generation; ``gradient`` is Adam + line search on the closed-loop window
    objective; ``hybrid`` is CMA-ES for ``hybrid_split`` of the budget, then the gradient from its mean) until its
    clock reaches the last of ``wall_minutes``; at every checkpoint the iterate it would return is kept with the
-   physics steps spent by then (tangents of the ``jacfwd`` counted);
+   physics steps spent by then (tangents of the ``jacfwd`` counted). With ``select_instances > 0`` (the
+   default) every method returns the best of its validated iterates (:class:`.search.Selection`: the start
+   point, then the iterate every ``select_every`` iterations / ``select_every_s`` seconds, by clean success on
+   one fixed batch of ``select_instances`` validation scenarios drawn like training from ``select_seed``, on the
+   forward program), the validations paid from its clock and physics steps; the hybrid's gradient starts from
+   the selected iterate;
 3. **held-out evaluation** of Table I (the paper's crawl), the start point and every (method, dim, checkpoint)
    iterate on the same ``>= heldout`` instances drawn wider than training (:func:`.forward.heldout_scenarios`:
    heights 14-30 cm, of which 14, 18, 22, 26, 30 cm never trained on; start 0-15 cm, friction 0.4-1.0, payload
    0-15 kg; another seed), 24 s each, in chunks of ``heldout_chunk`` members;
-4. ``results.json`` (every iterate's ``theta``, so that any other held-out set can re-evaluate it), the budget
-   curves (held-out clean and completed success against wall-clock and against physics steps) and the figure.
+4. ``results.json`` (every iterate's ``theta``, so that any other held-out set can re-evaluate it; each run's
+   validations under ``selection``), the budget curves (held-out clean and completed success against wall-clock
+   and against physics steps) and the figure;
+5. gradient diagnostics (outside every clock), per parameterisation with a gradient-method run: SNR at the start,
+   the window objective's rank correlation with held-out success, and the step's cost in forward windows
+   (``step_cost``: one ``jacfwd`` step and one forward evaluation of the same windows for one candidate, timed
+   after their compiles).
 
 Resuming: ``results.json`` is written after every run and every held-out chunk; the same command on the same
 directory keeps every finished run and every finished held-out member (a run cut off by a kill starts over: its
-wall-clock budget is measured from its own start). Another configuration in the directory is refused.
+wall-clock budget is measured from its own start). Another configuration in the directory is refused, except
+for ``methods``: one process per method (each with ``cold_compile``, so that none loads another's compiled
+programs) composes into one results file.
 """
 from __future__ import annotations
 
@@ -544,8 +556,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
             sc_ = diag["step_cost"]
             log(f"gradient on {d}: one jacfwd step {sc_['jacfwd_s']:.3f} s = {sc_['jacfwd_over_value']:.1f} forward "
                 f"windows ({sc_['window_value_s']:.3f} s, one candidate, MJX-JAX)"
-                + (f"; forward gradient ({sc_['forward_gradient_directions']} directions) {sc_['forward_gradient_s']:.3f}"
-                   f" s = {sc_['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in sc_ else ""))
+                + (f"; forward gradient ({sc_['forward_gradient_directions']} directions) "
+                   f"{sc_['forward_gradient_s']:.3f} s = {sc_['forward_gradient_over_value']:.1f}"
+                   if "forward_gradient_s" in sc_ else ""))
             save()
     res["complete"] = True
     save()
