@@ -239,16 +239,25 @@ def make_value_and_forward_gradient(base, space: ParamSpace, obj: ClosedLoopObje
         raise ValueError(f"directions must be >= 1, got {directions}")
 
     def f(theta, win, key):
-        v = jax.random.normal(key, (k, theta.shape[-1]), theta.dtype)
-
-        def per_window(alpha):
-            loss, terms, finite = window_losses(theta + alpha @ v, win, base, space, obj, su)
+        def per_window(th):
+            loss, terms, finite = window_losses(th, win, base, space, obj, su)
             return (loss, terms["prefix_loss"]), (loss, terms, finite)
 
-        (ja, ja_prefix), (loss, terms, finite) = jax.jacfwd(per_window, has_aux=True)(jnp.zeros(k, theta.dtype))
-        return _step_result(ja @ v / k, ja_prefix @ v / k, loss, terms, finite, win)
+        (jac, jac_prefix), (loss, terms, finite) = forward_gradient(per_window, theta, key, k)
+        return _step_result(jac, jac_prefix, loss, terms, finite, win)
 
     return jax.jit(f)
+
+
+def forward_gradient(fn, theta, key, directions: int):
+    """``(J_hat, aux)``: the forward-gradient estimate ``J_hat = (1/K) (J V^T) V`` of the Jacobian ``J`` of
+    ``fn(theta) -> (outputs, aux)`` (every output leaf gets a trailing ``P`` axis, as ``jax.jacfwd``'s), with
+    ``V (K, P)`` standard normal directions drawn from ``key``; ``K`` tangents in one ``jacfwd`` over the
+    coordinates ``alpha`` of ``theta + V^T alpha`` at 0 (:func:`make_value_and_forward_gradient`)."""
+    k = int(directions)
+    v = jax.random.normal(key, (k, theta.shape[-1]), theta.dtype)
+    ja, aux = jax.jacfwd(lambda a: fn(theta + a @ v), has_aux=True)(jnp.zeros(k, theta.dtype))
+    return jax.tree_util.tree_map(lambda x: x @ v / k, ja), aux
 
 
 def make_value(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup):
