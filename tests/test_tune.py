@@ -529,6 +529,111 @@ def test_checkpoints_get_the_iterate_finished_before_them():
     assert [p["theta"] for p in tr2.finish(clk2)] == [[3.0, 3.0], [3.0, 3.0]]
 
 
+def test_forward_gradient_is_unbiased_and_exact_along_its_directions():
+    """The forward-gradient estimate (K random directions) of the Jacobian of a smooth vector function: its mean
+    over many keys is the exact Jacobian (unbiased), its per-draw error matches (P + 1) |g|^2 / K, and with K = P
+    orthogonal-ish directions it is a projection (J V^T V / K)."""
+    from hyqjax.studies.tune import objective
+
+    a = jnp.asarray(np.random.default_rng(0).normal(size=(3, 5)), jnp.float32)
+
+    def fn(th):
+        y = jnp.sin(a @ th) + 0.1 * (a @ th) ** 2
+        return (y, jnp.sum(y)), y
+
+    th = jnp.linspace(-0.5, 0.5, 5, dtype=jnp.float32)
+    exact = jax.jacfwd(lambda t: fn(t)[0][0])(th)  # (3, 5)
+    est = jax.vmap(lambda kk: objective.forward_gradient(fn, th, kk, 2)[0][0])(jax.random.split(jax.random.key(1),
+                                                                                                20000))
+    g = np.asarray(exact, np.float64)
+    se = np.sqrt((np.sum(g**2, -1, keepdims=True) + g**2) / 2 / 20000)  # Var = (|g|^2 + g_j^2) / K per entry
+    assert np.all(np.abs(np.mean(np.asarray(est), 0) - g) < 4.5 * se)
+    err = np.mean(np.sum((np.asarray(est) - np.asarray(exact)) ** 2, -1), 0)  # per output row
+    np.testing.assert_allclose(err, (5 + 1) * np.sum(np.asarray(exact) ** 2, -1) / 2, rtol=0.1)
+    (j, s), aux = objective.forward_gradient(fn, th, jax.random.key(3), 4)
+    assert j.shape == (3, 5) and s.shape == (5,) and aux.shape == (3,)
+    np.testing.assert_allclose(np.asarray(s), np.asarray(j).sum(0), rtol=1e-5, atol=1e-6)
+
+
+def test_selection_returns_the_best_validated_iterate_and_charges_its_cost():
+    """Closed-loop selection with a fake validation: the returned iterate at every checkpoint is the best of the
+    iterates validated before it (start point included; ties go to the later one), validated every 2 iterations;
+    the validations' time runs on the method's clock and their physics steps are counted."""
+    from hyqjax.studies.tune import search
+
+    clk = _FakeClock()
+    score = {0.0: 0.5, 1.0: 0.2, 2.0: 0.7, 3.0: 0.9, 4.0: 0.6, 5.0: 0.1, 6.0: 0.7, 7.0: 0.3, 8.0: 0.2}
+
+    def validate(thetas):
+        clk.now += 0.25  # a validation costs 0.25 s of the method's clock
+        c = np.full((1, 4), False)
+        c[0, :round(4 * score[float(thetas[0, 0])])] = True
+        return dict(clean=c, completed=np.ones((1, 4), bool), physics_steps=40)
+
+    sel = search.Selection(validate, every=2)
+    tr = search.Trace((2.0, 3.5, 100.0), np.zeros(1), select=sel)
+    tr.begin(clk)  # the start point (0.5 -> 2 of 4 clean) is validated first
+    assert clk.now == 0.25 and clk.physics_steps == 40
+    for i in range(1, 9):  # iterates 1..8, 0.25 s and 100 physics steps each; 2, 4, 6, 8 validated
+        clk.now += 0.25
+        clk.physics_steps += 100
+        tr.advance(clk, np.full(1, float(i)), dict(step=i))
+    # validated: start 0.5 (2/4), 2 -> 0.75 (3/4), 4 -> 0.5 (2/4), 6 -> 0.75 (3/4, a tie: the later), 8 -> 0.25
+    assert [(r["iteration"], r["clean"], r["selected"]) for r in sel.log] == [
+        (0, 0.5, True), (2, 0.75, True), (4, 0.5, False), (6, 0.75, True), (8, 0.25, False)]
+    pts = tr.finish(clk)
+    # at 2.0 s: iterate 2 finished validating at 1.0 s; iterate 6 finished validating at 3.0 s (< 3.5 s)
+    assert [p["theta"] for p in pts] == [[2.0], [6.0], [6.0]]
+    assert pts[1]["selected_iteration"] == 6 and pts[1]["validation_clean"] == 0.75
+    assert clk.now == pytest.approx(0.25 * (8 + 5)) and clk.physics_steps == 8 * 100 + 5 * 40
+    # an unchanged iterate (random search's incumbent) is not validated again; it stays due until it changes
+    clk2 = _FakeClock()
+    sel2 = search.Selection(validate, every=1)
+    tr2 = search.Trace((10.0,), np.zeros(1), select=sel2)
+    tr2.begin(clk2)
+    for th in (0.0, 0.0, 2.0, 2.0, 3.0):
+        tr2.advance(clk2, np.full(1, th), {})
+    assert [r["iteration"] for r in sel2.log] == [0, 3, 5]
+    with pytest.raises(ValueError, match="every"):
+        search.Selection(validate, every=0, every_s=0.0)
+
+
+def test_search_with_selection_keeps_its_best_mean():
+    """CMA-ES with a validation that scores the true success rate: the returned iterate at the end is the best
+    validated mean (not the last one), and the run's clock carries the validations' physics steps."""
+    from hyqjax.studies.tune import search
+
+    target = np.array([1.0, -1.0])
+    rate = lambda th: np.exp(-0.5 * np.sum((np.asarray(th) - target) ** 2, -1))  # noqa: E731
+    clk = _FakeClock()
+
+    def f_gen(thetas, g):
+        clk.now += 0.05
+        u = np.random.default_rng([3, g]).random(16)
+        clean = u[None, :] < rate(thetas)[:, None]
+        return dict(fitness=clean.mean(1), clean=clean, completed=clean, physics_steps=thetas.shape[0] * 16)
+
+    vals = []
+
+    def validate(thetas):
+        clk.now += 0.05
+        vals.append((thetas[0].copy(), rate(thetas[0])))
+        c = np.random.default_rng(9).random((1, 400)) < rate(thetas[0])  # fixed scenarios: common draws
+        return dict(clean=c, completed=c, physics_steps=400)
+
+    sel = search.Selection(validate, every=3)
+    tr = search.Trace((1.0,), np.zeros(2), select=sel)
+    tr.begin(clk)
+    search.run_search("cma_es", f_gen, np.zeros(2), 8, 0.3, clk, tr, seed=2)
+    out = np.asarray(tr.finish(clk)[-1]["theta"])
+    before = [r for r in sel.log if r["wall_s"] < 1.0]  # validations finished before the checkpoint
+    best = max(before, key=lambda r: (r["clean"], r["completed"], r["iteration"]))
+    assert out.tolist() == vals[sel.log.index(best)][0].tolist() and best["selected"]
+    assert rate(out) > rate(np.zeros(2)) + 0.1
+    gens = len(tr.log)
+    assert clk.physics_steps == gens * 9 * 16 + len(sel.log) * 400
+
+
 @pytest.mark.parametrize("method", ["cma_es", "snes", "open_es", "random_search"])
 def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers(method):
     """A synthetic 'success' (Bernoulli with probability decreasing with the distance to a target, M draws per
@@ -587,7 +692,15 @@ def test_charges_count_compile_not_run_time():
                                        (dict(heldout_seed=0), "heldout_seed must differ"),
                                        (dict(hybrid_split=1.0), "hybrid_split"),
                                        (dict(start_from=(("cma_es/shared", (0.0,)),)), "start_from"),
-                                       (dict(start_from=(("pso/shared", (0.0,) * 14),)), "start_from")])
+                                       (dict(start_from=(("pso/shared", (0.0,) * 14),)), "start_from"),
+                                       (dict(select_instances=6), "select_instances must be a multiple of 4"),
+                                       (dict(select_instances=-4), "select_instances must be"),
+                                       (dict(select_every=0), "select_every"),
+                                       (dict(select_every_s=-1.0), "select_every_s"),
+                                       (dict(select_seed=7777), "select_seed must differ"),
+                                       (dict(select_seed=1), "select_seed must differ"),
+                                       (dict(grad_directions=-1), "grad_directions"),
+                                       (dict(cold_compile=1), "cold_compile")])
 def test_wallclock_config_validation(kw, match):
     from hyqjax.studies.tune import wallclock
 
@@ -602,7 +715,12 @@ def test_wallclock_config_validation(kw, match):
                                          (["--start-from", "/nonexistent.json"], "--start-from"),
                                          (["--warm-start", "5"], "--warm-start belongs to --gradient-study"),
                                          (["--study", "--methods", "open_es", "--popsize", "5"], "popsize must be even"),
-                                         (["--quick", "--study"], "--quick")])
+                                         (["--quick", "--study"], "--quick"),
+                                         (["--study", "--select-seed", "7777"], "select_seed must differ"),
+                                         (["--study", "--select-instances", "10"], "multiple of 4"),
+                                         (["--study", "--select-every", "0"], "--select-every"),
+                                         (["--gradient-study", "--select-seed", "3"], "--select-seed belongs"),
+                                         (["--gradient-study", "--cold-compile"], "--cold-compile belongs")])
 def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
     from hyqjax.cli.app import main
 
@@ -616,14 +734,19 @@ def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, 
 @pytest.mark.slow
 def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_path, monkeypatch):
     """A tiny study on the CPU (random search and CMA-ES on the shared 14 coordinates, 0.5 s runs, one compiled
-    forward program for training and held-out): members with equal parameters get equal outcomes on the common
-    scenarios; every checkpoint's iterate is evaluated on the same held-out instances; a second call on the same
-    directory keeps every finished stage and runs nothing; another configuration there is refused."""
+    forward program for training, selection and held-out), each method in its own call into the same directory
+    (as one process per method would): members with equal parameters get equal outcomes on the common
+    scenarios; every method validates its iterates on the fixed validation batch and pays for it (physics steps
+    of generations plus validations); every checkpoint's iterate is the best validated one finished before it and
+    is evaluated on the same held-out instances; the two calls compose into one results file; a further call keeps
+    every finished stage and runs nothing; another configuration there is refused."""
     from hyqjax.studies.tune import forward, schedule, wallclock
 
-    cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.02, 0.04),
+    cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.1, 0.3),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
-                                    heldout_duration=0.5, impl="jax", charge_compile=False)
+                                    heldout_duration=0.5, impl="jax", charge_compile=False, select_instances=12,
+                                    select_every=1)
+    assert wallclock.selection_program(cfg) == "forward"  # 12 rows: the generation's program
     base = wallclock.start_params(cfg)
     p = schedule.make("shared")
     ev = forward.SuccessEvaluator(p, base, 0.5, "jax")
@@ -634,17 +757,30 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert not np.array_equal(r["columns"]["progress"][0], r["columns"]["progress"][1])
     assert r["physics_steps"] == 3 * 4 * 250
     monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)  # one compiled program for the study
-    res = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
-    assert res["complete"]
+    for m in cfg.methods:  # one call per method, as one process per method
+        res = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=lambda s: None)
+        assert res["complete"] and set(res["runs"]) == {f"{x}/shared" for x in cfg.methods[:cfg.methods.index(m) + 1]}
+    assert res["config"]["methods"] == ["cma_es", "random_search"]
     members = {"table1", "start"} | {wallclock.member_key(m, "shared", s) for m in cfg.methods
                                      for s in cfg.checkpoints_s}
     assert set(res["heldout"]) == members
     assert all(h["n"] == 6 for h in res["heldout"].values())
     for m in cfg.methods:
         run = res["runs"][f"{m}/shared"]
+        sel = run["selection"]
+        assert sel["instances"] == 12 and sel["log"][0]["iteration"] == 0  # the start point first
         assert [pt["seconds"] for pt in run["points"]] == list(cfg.checkpoints_s)
-        assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250
+        assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250 + len(sel["log"]) * 12 * 250
+        assert sel["physics_steps"] == len(sel["log"]) * 12 * 250
         assert [pt["physics_steps"] for pt in run["points"]] == sorted(pt["physics_steps"] for pt in run["points"])
+        for pt in run["points"]:
+            done = [v for v in sel["log"] if v["wall_s"] < pt["seconds"]]
+            if not done:  # still validating the start point: the start point
+                assert pt["theta"] == th0.tolist()
+                continue
+            best = max(done, key=lambda v: (v["clean"], v["completed"], v["iteration"]))
+            assert pt.get("selected_iteration", 0) == best["iteration"]
+    assert sum(len(res["runs"][f"{m}/shared"]["selection"]["log"]) for m in cfg.methods) >= 3
     assert {(c["method"], len(c["points"])) for c in res["budget_curves"]} == {(m, 2) for m in cfg.methods}
     again = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
     assert again["runs"] == json.loads(json.dumps(res["runs"])) and again["heldout"] == res["heldout"]
@@ -654,6 +790,26 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert "random_search / shared (14)" in figure.wallclock_markdown(again)
     with pytest.raises(RuntimeError, match="another configuration"):
         wallclock.run_wallclock_study(dataclasses_replace(cfg, seed=5), str(tmp_path), log=lambda s: None)
+
+
+def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
+    """A study directory written by one method's process is resumed by another method's process (the
+    configuration's fingerprint leaves ``methods`` out; the stored configuration names every method run);
+    another setting there is still refused."""
+    from hyqjax.io.atomic import write_json
+    from hyqjax.studies.tune import wallclock
+
+    a = wallclock.WallClockConfig(methods=("random_search",), dims=("shared",))
+    write_json(str(tmp_path / "results.json"),
+               dict(kind="wallclock", config=a.to_dict(), runs={"random_search/shared": {}}))
+    b = wallclock.WallClockConfig(methods=("cma_es", "gradient"), dims=("shared",))
+    prev = wallclock.previous(str(tmp_path), b)
+    assert set(prev["runs"]) == {"random_search/shared"}
+    assert wallclock._methods_union(prev["config"]["methods"], b.methods) == ["cma_es", "random_search", "gradient"]
+    for other in (dataclasses_replace(b, select_instances=0), dataclasses_replace(b, cold_compile=True),
+                  dataclasses_replace(b, wall_minutes=(1.0, 10.0))):
+        with pytest.raises(RuntimeError, match="another configuration"):
+            wallclock.previous(str(tmp_path), other)
 
 
 def dataclasses_replace(obj, **kw):
@@ -681,7 +837,8 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     def evaluate(ths):
         return -np.asarray(ths)[:, 0]  # loss falls as theta_0 grows
 
-    grad = SimpleNamespace(fns={"shared": (step_fn, evaluate, 0)}, obj=obj_mod.ClosedLoopObjective(ticks=10))
+    grad = SimpleNamespace(fns={"shared": (step_fn, evaluate, 0)}, obj=obj_mod.ClosedLoopObjective(ticks=10),
+                           exact_step=lambda param: step_fn)
     th0 = p.theta_of(base)
     members = {"start": (p, th0, base)}
     heldout = {"start": dict(clean=0.1)}

@@ -49,7 +49,9 @@ QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=4, h
 #: Options only the gradient study (--gradient-study) uses: refused elsewhere.
 GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "train_heights", "prefixes", "warm_start", "baselines",
                        "success_instances", "success_duration", "curve_instances", "baseline_wall_s",
-                       "select_instances", "select_every", "offset", "checkpoint_every")
+                       "offset", "checkpoint_every")
+#: Options only the default tuner and --study use: refused with --gradient-study.
+WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "cold_compile")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -81,6 +83,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--no-compile-charge", action="store_true",
                    help="do not charge each method the compile of its programs (default: charged, as a stand-alone "
                         "run pays it)")
+    g.add_argument("--cold-compile", action="store_true",
+                   help="compile every program cold: JAX's persistent cache and Warp's kernel cache in a fresh empty "
+                        "directory of this process, so a method run in its own process (--methods one,name) pays the "
+                        "compile a first run pays; runs of one study may be split over processes into one --out")
+    g.add_argument("--select-every-s", type=float, default=0.0,
+                   help="selection: also validate the iterate when this many seconds of the method's clock have "
+                        "passed since the last validation (0: by iterations only, --select-every)")
+    g.add_argument("--select-seed", type=int, default=5555,
+                   help="seed of the fixed validation scenarios of the selection (drawn like training; never the "
+                        "training or held-out seeds)")
+    g.add_argument("--grad-directions", type=int, default=0,
+                   help="tangents of the gradient's tuning step: 0 = exact jacfwd (one per parameter); K > 0 = the "
+                        "unbiased forward-gradient estimate from K random directions (cheaper, noisier)")
     g.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier default run or study; its last iterate of the "
                         "same method and parameterisation is the start")
@@ -124,10 +139,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--baseline-wall-s", type=float, default=0.0,
                    help="also stop each success baseline after this many wall seconds (0: budget only; the "
                         "window-objective baselines always get the whole budget)")
-    p.add_argument("--select-instances", type=int, default=16,
-                   help="keep the gradient iterate with the best clean success over this many full runs of "
-                        "selection scenarios (counted in the budget; 0: the last iterate)")
-    p.add_argument("--select-every", type=int, default=5, help="iterates compared by the selection: every N steps")
+    p.add_argument("--select-instances", type=int, default=None,
+                   help="closed-loop selection: return the iterate with the best clean success over this many fixed "
+                        "validation runs (paid from the budget; 0: the last iterate). --study and the default tuner: "
+                        "every method's, validated every --select-every iterations; default (popsize + 1) x "
+                        "train-instances (544), the rows of a generation, so it runs on the program the search "
+                        "compiled. --gradient-study: the gradient's, default 16")
+    p.add_argument("--select-every", type=int, default=5,
+                   help="iterates compared by the selection: every N iterations (generations or steps; --study: 0 "
+                        "with --select-every-s for time only)")
     p.add_argument("--gradient-study", action="store_true",
                    help="the gradient study at equal physics budget (the options above this group's)")
     p.add_argument("--offset", type=int, default=0, help="window start, control ticks after the snapshot trigger")
@@ -164,7 +184,13 @@ def _validate_gradient_study(args) -> None:
     args.window_ticks = 750 if args.window_ticks is None else args.window_ticks
     args.sigma = 0.5 if args.sigma is None else args.sigma
     args.heldout = 36 if args.heldout is None else args.heldout
+    args.select_instances = 16 if args.select_instances is None else args.select_instances
     check_impl(args.impl)
+    defaults = _defaults()
+    for k in WALLCLOCK_ONLY:
+        if getattr(args, k) != getattr(defaults, k):
+            raise UsageError(f"--{k.replace('_', '-')} belongs to the default tuner and --study, not to "
+                             f"--gradient-study")
 
     check_range("--steps", args.steps, 0, 100000, integer=True)
     check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
@@ -263,6 +289,13 @@ def _validate_wallclock(args) -> None:
     check_range("--windows-per-scenario", args.windows_per_scenario, 1, 8, integer=True)
     check_range("--lead", args.lead, 0.1, 60.0, "s")
     check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
+    if args.select_instances is None:
+        args.select_instances = (args.popsize + 1) * args.train_instances
+    check_range("--select-instances", args.select_instances, 0, 10**6, integer=True)
+    check_range("--select-every", args.select_every, 0, 10**5, integer=True)
+    check_range("--select-every-s", args.select_every_s, 0.0, 3600.0, "s")
+    check_range("--select-seed", args.select_seed, 0, 2**31 - 1, integer=True)
+    check_range("--grad-directions", args.grad_directions, 0, 4096, integer=True)
     if args.heldout_seed == args.seed:
         raise UsageError(f"--heldout-seed must differ from --seed (the held-out scenarios), got {args.heldout_seed}")
     groups = _names(args.groups)
@@ -283,7 +316,9 @@ def _validate_wallclock(args) -> None:
             windows_per_scenario=args.windows_per_scenario, window_lead=args.lead, window_ticks=args.window_ticks,
             lr=args.lr, hybrid_split=args.hybrid_split, heldout=args.heldout, heldout_seed=args.heldout_seed,
             heldout_duration=args.heldout_duration, heldout_chunk=args.heldout_chunk, impl=args.impl,
-            charge_compile=not args.no_compile_charge,
+            charge_compile=not args.no_compile_charge, cold_compile=args.cold_compile,
+            select_instances=args.select_instances, select_every=args.select_every,
+            select_every_s=args.select_every_s, select_seed=args.select_seed, grad_directions=args.grad_directions,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)
@@ -413,6 +448,20 @@ def _run_wallclock(args) -> int:
         print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
               f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
               f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
+        c = g.get("step_cost")
+        if c:
+            print(f"gradient on {d}: one jacfwd step ({c['tangents']} tangents) costs {c['jacfwd_over_value']:.1f} "
+                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s)"
+                  + (f"; the forward gradient ({c['forward_gradient_directions']} directions) "
+                     f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
+    for key, r in res["runs"].items():
+        sel = r.get("selection")
+        if sel and sel["log"]:
+            pt = r["points"][-1]
+            print(f"selection of {key}: {len(sel['log'])} validations on {sel['instances']} fixed scenarios "
+                  f"({sel['wall_s']:.0f} s, {sel['physics_steps']:,} physics steps of its budget); returned: "
+                  f"iteration {pt.get('selected_iteration', 0)}, validation clean "
+                  f"{pt.get('validation_clean', float('nan')):.3f}")
     w = wallclock.winner(res, cfg.wall_minutes[-1])
     if args.study and w:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "

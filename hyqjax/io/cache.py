@@ -56,6 +56,36 @@ def enable_compilation_cache(path: str | None = None) -> str | None:
     return path
 
 
+def use_cold_caches(path: str | None = None) -> str:
+    """Compile everything of this process cold: JAX's persistent compilation cache and Warp's kernel cache in
+    ``path`` (default: a fresh empty temporary directory, removed at exit), so that no program or kernel is
+    loaded from an earlier process (a compile time measured now is what a first run on a fresh machine pays).
+    Call it before the first compile (JAX) and before Warp is initialised (its kernel cache is fixed then).
+    Returns the directory."""
+    import tempfile
+
+    if path is None:
+        import shutil
+
+        path = tempfile.mkdtemp(prefix="hyqjax-cold-")
+        atexit.register(shutil.rmtree, path, True)
+    jax_dir, warp_dir = os.path.join(path, "jax"), os.path.join(path, "warp")
+    os.makedirs(jax_dir, exist_ok=True)
+    os.makedirs(warp_dir, exist_ok=True)
+    os.environ["WARP_CACHE_PATH"] = warp_dir
+    if "warp" in sys.modules:
+        import warp
+
+        warp.config.kernel_cache_dir = warp_dir
+    os.environ.pop("HYQJAX_CACHE_DIR", None)
+    enable_compilation_cache(jax_dir)
+    if "jax" in sys.modules:  # a cache JAX opened already is closed, so the next compile opens the new one
+        from jax._src import compilation_cache
+
+        compilation_cache.reset_cache()
+    return path
+
+
 # XLA:CPU logs two ERROR lines (thousands of characters each) for every program it loads from the persistent
 # cache on hosts whose LLVM target features include the tuning flags +prefer-no-gather / +prefer-no-scatter
 # ("Target machine feature ... is not supported on the host machine"); the program loads and runs correctly

@@ -189,6 +189,18 @@ def batch_objective(theta, win: wmod.Windows, base, space, obj, su):
     return jnp.sum(w * loss) / jnp.maximum(jnp.sum(w), 1.0), loss
 
 
+def _step_result(jac, jac_prefix, loss, terms, finite, win):
+    """The step's dict from the per-window Jacobian rows ``(W, P)`` (exact or estimated)."""
+    terms = {k: v for k, v in terms.items() if k != "prefix_loss"}
+    ok = win.valid & finite & jnp.all(jnp.isfinite(jac), -1)
+    w = ok.astype(loss.dtype)
+    nw = jnp.maximum(jnp.sum(w), 1.0)
+    jac = jnp.where(ok[:, None], jac, 0.0)
+    return dict(loss=jnp.sum(w * loss) / nw, grad=jnp.sum(w[:, None] * jac, 0) / nw, per_window_loss=loss,
+                per_window_grad=jac, per_window_prefix_grad=jac_prefix, ok=ok,
+                terms={k: jnp.sum(w * v) / nw for k, v in terms.items()})
+
+
 def make_value_and_jac(win_example: wmod.Windows, base, space: ParamSpace, obj: ClosedLoopObjective,
                        su: wmod.Setup):
     """A jitted ``f(theta, windows) -> dict(loss, grad, per_window_loss, per_window_grad, terms, finite)``.
@@ -204,15 +216,48 @@ def make_value_and_jac(win_example: wmod.Windows, base, space: ParamSpace, obj: 
             return (loss, terms["prefix_loss"]), (loss, terms, finite)
 
         (jac, jac_prefix), (loss, terms, finite) = jax.jacfwd(per_window, has_aux=True)(theta)
-        terms = {k: v for k, v in terms.items() if k != "prefix_loss"}
-        ok = win.valid & finite & jnp.all(jnp.isfinite(jac), -1)
-        w = ok.astype(loss.dtype)
-        nw = jnp.maximum(jnp.sum(w), 1.0)
-        jac = jnp.where(ok[:, None], jac, 0.0)
-        return dict(loss=jnp.sum(w * loss) / nw, grad=jnp.sum(w[:, None] * jac, 0) / nw, per_window_loss=loss,
-                    per_window_grad=jac, per_window_prefix_grad=jac_prefix, ok=ok, terms={k: jnp.sum(w * v) / nw for k, v in terms.items()})
+        return _step_result(jac, jac_prefix, loss, terms, finite, win)
 
     return jax.jit(f)
+
+
+def make_value_and_forward_gradient(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup,
+                                    directions: int):
+    """A jitted ``f(theta, windows, key)`` with the output of :func:`make_value_and_jac`, the Jacobian rows
+    estimated from ``K = directions`` random directional derivatives (the forward gradient, Baydin et al. 2022;
+    Nesterov & Spokoiny 2017 without the finite differences):
+
+    .. math:: \\hat g = \\frac{1}{K} \\sum_{k=1}^{K} (\\nabla L \\cdot v_k)\\, v_k,
+              \\qquad v_k \\sim \\mathcal N(0, I_P),
+
+    unbiased (``E[v v^T] = I``) with ``K`` tangents carried instead of ``P`` (one ``jacfwd`` over the ``K``
+    coordinates ``alpha`` of ``theta + V^T alpha`` at ``alpha = 0``), at the price of variance: per window
+    ``E|g_hat - g|^2 = (P + 1) |g|^2 / K`` (the covariance of ``(g . v) v`` is ``|g|^2 I + g g^T``).
+    ``key`` draws ``V`` (a new key per step)."""
+    k = int(directions)
+    if k < 1:
+        raise ValueError(f"directions must be >= 1, got {directions}")
+
+    def f(theta, win, key):
+        def per_window(th):
+            loss, terms, finite = window_losses(th, win, base, space, obj, su)
+            return (loss, terms["prefix_loss"]), (loss, terms, finite)
+
+        (jac, jac_prefix), (loss, terms, finite) = forward_gradient(per_window, theta, key, k)
+        return _step_result(jac, jac_prefix, loss, terms, finite, win)
+
+    return jax.jit(f)
+
+
+def forward_gradient(fn, theta, key, directions: int):
+    """``(J_hat, aux)``: the forward-gradient estimate ``J_hat = (1/K) (J V^T) V`` of the Jacobian ``J`` of
+    ``fn(theta) -> (outputs, aux)`` (every output leaf gets a trailing ``P`` axis, as ``jax.jacfwd``'s), with
+    ``V (K, P)`` standard normal directions drawn from ``key``; ``K`` tangents in one ``jacfwd`` over the
+    coordinates ``alpha`` of ``theta + V^T alpha`` at 0 (:func:`make_value_and_forward_gradient`)."""
+    k = int(directions)
+    v = jax.random.normal(key, (k, theta.shape[-1]), theta.dtype)
+    ja, aux = jax.jacfwd(lambda a: fn(theta + a @ v), has_aux=True)(jnp.zeros(k, theta.dtype))
+    return jax.tree_util.tree_map(lambda x: x @ v / k, ja), aux
 
 
 def make_value(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup):

@@ -3,10 +3,12 @@ closed-loop gradient, and the hybrid (search, then gradient polish).
 
 Every method runs against a :class:`Clock` and returns, for each checkpoint ``c`` (seconds), the iterate it would
 hand back had it been stopped at ``c``: the last iterate it had finished by then (the start point if it had
-finished none, e.g. while compiling). The clock counts everything a stand-alone run would pay: the compile of
-each program the method uses (:class:`Charges`, measured once per process and *charged* to every method that
-uses the program, so that a method run after another does not profit from its compile), the snapshot windows of
-the gradient, every evaluation and every optimiser update. Physics steps are counted next to it (tangents of
+finished none, e.g. while compiling), or with a :class:`Selection` the best of the iterates it had validated by
+then on a fixed validation batch (closed-loop clean success; the validations paid from its clock). The clock
+counts everything a stand-alone run would pay: the compile of each program the method uses (:class:`Charges`,
+measured once per process and *charged* to every method that uses the program, so that a method run after
+another does not profit from its compile), the snapshot windows of the gradient, every evaluation and every
+optimiser update. Physics steps are counted next to it (tangents of
 forward-mode derivatives included).
 
 Success-driven methods (:func:`run_search`) maximise the fitness of :mod:`.forward` (clean success plus
@@ -97,39 +99,125 @@ class Charges:
         return out
 
 
+class Selection:
+    """Closed-loop validation selection: the iterate a method returns is the best, by clean success on a FIXED
+    validation batch, of the iterates it has validated so far (the start point first).
+
+    ``evaluate(thetas (1, P)) -> dict(clean (1, V), completed (1, V), physics_steps)`` runs one iterate on the
+    ``V`` validation scenarios (the forward program of :mod:`.forward`; the study draws them like the training
+    scenarios from a seed of their own, never the held-out set). An iterate is validated when it is *due*:
+    ``every`` iterations (0: not by iterations) or ``every_s`` seconds of the method's clock (0: not by time) have
+    passed since the last validation, and it differs from the last validated iterate (an unchanged incumbent of
+    random search is not run again; it stays due until it changes). Its wall time runs on the method's clock and
+    its physics steps are added to the clock's, so the selection is paid from the method's budget.
+
+    Score: (clean rate, completed rate) on the validation batch; an iterate replaces the selected one when its
+    score is at least as high (ties go to the later iterate, the one with more optimisation behind it)."""
+
+    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0):
+        if every <= 0 and every_s <= 0:
+            raise ValueError("a selection needs every > 0 iterations or every_s > 0 seconds")
+        self.evaluate, self.every, self.every_s = evaluate, int(every), float(every_s)
+        self.log: list = []
+        self.best: tuple | None = None  # (score, theta)
+        self._since, self._t_last, self._theta_last = 0, -math.inf, None
+
+    def due(self, clock: Clock, theta) -> bool:
+        self._since += 1
+        if self._theta_last is not None and np.array_equal(np.asarray(theta, np.float64), self._theta_last):
+            return False
+        return bool((self.every > 0 and self._since >= self.every)
+                    or (self.every_s > 0 and clock.elapsed() - self._t_last >= self.every_s))
+
+    def validate(self, clock: Clock, theta, iteration: int) -> bool:
+        """Run ``theta`` on the validation batch (on ``clock``); True when it becomes the selected iterate."""
+        theta = np.asarray(theta, np.float64).copy()
+        t0, s0 = clock.elapsed(), clock.physics_steps
+        r = self.evaluate(theta[None])
+        clock.physics_steps += int(r["physics_steps"])
+        score = (float(np.mean(r["clean"][0])), float(np.mean(r["completed"][0])))
+        better = self.best is None or score >= self.best[0]
+        if better:
+            self.best = (score, theta)
+        self._since, self._t_last, self._theta_last = 0, clock.elapsed(), theta
+        self.log.append(dict(iteration=int(iteration), wall_s=round(clock.elapsed(), 3),
+                             physics_steps=int(clock.physics_steps), clean=score[0], completed=score[1],
+                             selected=bool(better), wall_s_run=round(clock.elapsed() - t0, 3),
+                             physics_steps_run=int(clock.physics_steps - s0)))
+        return better
+
+
 @dataclasses.dataclass
 class Trace:
-    """What a method did: per generation / step a log row; per checkpoint the iterate it would return."""
+    """What a method did: per generation / step a log row; per checkpoint the iterate it would return (with the
+    physics steps spent by the last work finished before the checkpoint). With a :class:`Selection`, the iterate
+    it would return is the selected one (:meth:`begin` validates the start point)."""
 
     checkpoints: tuple
     theta0: np.ndarray
+    select: Selection | None = None
     log: list = dataclasses.field(default_factory=list)
     points: list = dataclasses.field(default_factory=list)
     _last: tuple = None
 
     def __post_init__(self):
-        self._last = (np.asarray(self.theta0, np.float64).copy(), 0)
+        self._last = (np.asarray(self.theta0, np.float64).copy(), None)
+        self._spent, self._iterations = 0, 0
 
     def done(self, clock: Clock) -> bool:
         return clock.elapsed() >= self.checkpoints[-1]
 
-    def advance(self, clock: Clock, theta, row: dict | None = None) -> None:
-        """Record that ``theta`` is the iterate after the work just finished (``clock`` now); checkpoints that
-        passed during that work get the iterate from before it."""
+    def _pass(self, clock: Clock) -> None:
+        """Checkpoints that passed during the work just finished get the iterate from before it."""
         now = clock.elapsed()
         for c in self.checkpoints[len(self.points):]:
             if now < c:
                 break
-            self.points.append(dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._last[1])))
-        self._last = (np.asarray(theta, np.float64).copy(), int(clock.physics_steps))
+            pt = dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._spent))
+            pt.update(self._last[1] or {})
+            self.points.append(pt)
+        self._spent = int(clock.physics_steps)
+
+    def _validate(self, clock: Clock, theta, iteration: int) -> None:
+        better = self.select.validate(clock, theta, iteration)
+        self._pass(clock)  # checkpoints passed while validating get the iterate selected before
+        if better:
+            row = self.select.log[-1]
+            self._last = (np.asarray(theta, np.float64).copy(),
+                          dict(selected_iteration=iteration, validation_clean=row["clean"],
+                               validation_completed=row["completed"]))
+
+    @property
+    def returned(self) -> np.ndarray:
+        """The iterate the method would return now."""
+        return self._last[0].copy()
+
+    def begin(self, clock: Clock) -> None:
+        """With a selection: validate the start point (on ``clock``), so that an iterate is returned only when it
+        validates at least as well as the start. Without one: nothing."""
+        if self.select is not None and self.select.best is None:
+            self._validate(clock, self.theta0, 0)
+
+    def advance(self, clock: Clock, theta, row: dict | None = None) -> None:
+        """Record that ``theta`` is the iterate after the work just finished (``clock`` now); checkpoints that
+        passed during that work get the iterate from before it. With a selection, ``theta`` becomes the returned
+        iterate only once validated (when due) at least as well as the selected one."""
+        self._pass(clock)
+        self._iterations += 1
         if row is not None:
-            row.update(wall_s=round(now, 3), physics_steps=int(clock.physics_steps))
+            row.update(wall_s=round(clock.elapsed(), 3), physics_steps=int(clock.physics_steps))
             self.log.append(row)
+        if self.select is None:
+            self._last = (np.asarray(theta, np.float64).copy(), None)
+        elif self.select.due(clock, theta):
+            self._validate(clock, theta, self._iterations)
 
     def finish(self, clock: Clock) -> list:
-        """Checkpoints not reached (the budget ran out at the last one): the final iterate."""
+        """Checkpoints not reached (the budget ran out at the last one): the iterate returned at the end."""
         for c in self.checkpoints[len(self.points):]:
-            self.points.append(dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._last[1])))
+            pt = dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._spent))
+            pt.update(self._last[1] or {})
+            self.points.append(pt)
         return self.points
 
 

@@ -13,17 +13,29 @@
    scenarios, common random numbers per generation; ``gradient`` is Adam + line search on the closed-loop window
    objective; ``hybrid`` is CMA-ES for ``hybrid_split`` of the budget, then the gradient from its mean) until its
    clock reaches the last of ``wall_minutes``; at every checkpoint the iterate it would return is kept with the
-   physics steps spent by then (tangents of the ``jacfwd`` counted);
+   physics steps spent by then (tangents of the ``jacfwd`` counted). With ``select_instances > 0`` (the
+   default) every method returns the best of its validated iterates (:class:`.search.Selection`: the start
+   point, then the iterate every ``select_every`` iterations / ``select_every_s`` seconds, by clean success on
+   one fixed batch of ``select_instances`` validation scenarios drawn like training from ``select_seed``, on the
+   forward program), the validations paid from its clock and physics steps; the hybrid's gradient starts from
+   the selected iterate;
 3. **held-out evaluation** of Table I (the paper's crawl), the start point and every (method, dim, checkpoint)
    iterate on the same ``>= heldout`` instances drawn wider than training (:func:`.forward.heldout_scenarios`:
    heights 14-30 cm, of which 14, 18, 22, 26, 30 cm never trained on; start 0-15 cm, friction 0.4-1.0, payload
    0-15 kg; another seed), 24 s each, in chunks of ``heldout_chunk`` members;
-4. ``results.json`` (every iterate's ``theta``, so that any other held-out set can re-evaluate it), the budget
-   curves (held-out clean and completed success against wall-clock and against physics steps) and the figure.
+4. ``results.json`` (every iterate's ``theta``, so that any other held-out set can re-evaluate it; each run's
+   validations under ``selection``), the budget curves (held-out clean and completed success against wall-clock
+   and against physics steps) and the figure;
+5. gradient diagnostics (outside every clock), per parameterisation with a gradient-method run: SNR at the start,
+   the window objective's rank correlation with held-out success, and the step's cost in forward windows
+   (``step_cost``: one ``jacfwd`` step and one forward evaluation of the same windows for one candidate, timed
+   after their compiles).
 
 Resuming: ``results.json`` is written after every run and every held-out chunk; the same command on the same
 directory keeps every finished run and every finished held-out member (a run cut off by a kill starts over: its
-wall-clock budget is measured from its own start). Another configuration in the directory is refused.
+wall-clock budget is measured from its own start). Another configuration in the directory is refused, except
+for ``methods``: one process per method (each with ``cold_compile``, so that none loads another's compiled
+programs) composes into one results file.
 """
 from __future__ import annotations
 
@@ -70,6 +82,20 @@ def heartbeat(log, message, every: float = 5.0):
         th.join()
 
 
+def generation_seed(seed: int, dim: str) -> int:
+    """The seed of the training scenarios of the search methods on parameterisation ``dim``."""
+    return seed + 1 + 1000 * list(schedule.NAMES).index(dim)
+
+
+#: Offset of the seed of the gradient's snapshot scenarios.
+WINDOW_SEED_OFFSET = 11
+
+
+def training_seeds(seed: int) -> tuple:
+    """Every seed the training draws of a study with ``seed`` use (the validation seed must be none of them)."""
+    return (seed, seed + WINDOW_SEED_OFFSET) + tuple(generation_seed(seed, d) for d in schedule.NAMES)
+
+
 def run_key(method: str, dim: str) -> str:
     return f"{method}/{dim}"
 
@@ -96,6 +122,10 @@ class WallClockConfig:
     window_lead: float = 10.0
     window_ticks: int = 500
     lr: float = 0.1
+    #: tangents of the tuning step: 0 = exact ``jacfwd`` (``P``); ``K > 0`` = the forward-gradient estimate from
+    #: ``K`` random directions (:func:`.objective.make_value_and_forward_gradient`, unbiased, ``(P + 1) / K``
+    #: times the variance of one window's gradient)
+    grad_directions: int = 0
     hybrid_split: float = 0.5
     # held-out
     heldout: int = 2000
@@ -108,6 +138,18 @@ class WallClockConfig:
     start_from: tuple = ()
     #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
     charge_compile: bool = True
+    #: compile every program cold: JAX's persistent compilation cache and Warp's kernel cache in fresh empty
+    #: directories of this process (:func:`hyqjax.io.cache.use_cold_caches`), so no process profits from another's
+    cold_compile: bool = False
+    #: closed-loop validation selection (:class:`.search.Selection`): every method returns its best iterate by
+    #: clean success on ``select_instances`` fixed validation scenarios (drawn like training from ``select_seed``),
+    #: validated every ``select_every`` iterations and / or ``select_every_s`` seconds, paid from its clock.
+    #: The default, (16 + 1) x 32 = 544, is the rows of a default generation: the selection runs on the forward
+    #: program the search already compiled. 0: no selection (the last iterate is returned)
+    select_instances: int = 544
+    select_every: int = 5
+    select_every_s: float = 0.0
+    select_seed: int = 5555
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -123,14 +165,31 @@ class WallClockConfig:
             raise ValueError(f"wall_minutes must be increasing values in (0, 600] minutes, got {list(wm)}")
         for k, lo, hi in (("popsize", 2, 4096), ("train_instances", 4, 100000), ("grad_train_per_height", 1, 1000),
                           ("windows_per_scenario", 1, 8), ("window_ticks", 1, 20000), ("heldout", 1, 10**6),
+                          ("grad_directions", 0, 4096),
                           ("heldout_chunk", 1, 4096), ("seed", 0, 2**31 - 1), ("heldout_seed", 0, 2**31 - 1)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
         if "open_es" in self.methods and self.popsize % 2:
             raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
-        if not isinstance(self.charge_compile, bool):
-            raise ValueError(f"charge_compile must be True or False, got {self.charge_compile!r}")
+        for k in ("charge_compile", "cold_compile"):
+            if not isinstance(getattr(self, k), bool):
+                raise ValueError(f"{k} must be True or False, got {getattr(self, k)!r}")
+        for k, lo, hi in (("select_instances", 0, 10**6), ("select_every", 0, 10**5), ("select_seed", 0, 2**31 - 1)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if not 0.0 <= float(self.select_every_s) <= 3600.0:
+            raise ValueError(f"select_every_s must be in [0, 3600] s, got {self.select_every_s}")
+        if self.select_instances % len(forward.TRAIN_HEIGHTS):
+            raise ValueError(f"select_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
+                             f"training height; 0: no selection), got {self.select_instances}")
+        if self.select_instances and not (self.select_every > 0 or self.select_every_s > 0):
+            raise ValueError("select_every (iterations) or select_every_s (seconds) must be > 0 with "
+                             f"select_instances {self.select_instances}")
+        if self.select_seed in training_seeds(self.seed) or self.select_seed == self.heldout_seed:
+            raise ValueError(f"select_seed must differ from heldout_seed ({self.heldout_seed}) and the training "
+                             f"draws' seeds ({', '.join(map(str, training_seeds(self.seed)))}), got {self.select_seed}")
         if self.train_instances % len(forward.TRAIN_HEIGHTS):
             raise ValueError(f"train_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
                              f"training height), got {self.train_instances}")
@@ -180,9 +239,20 @@ def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
             prev = json.load(f)
     except (OSError, ValueError):
         return None
-    if prev.get("kind") != "wallclock" or prev.get("config") != cfg.to_dict():
+    if prev.get("kind") != "wallclock" or _fingerprint(prev.get("config", {})) != _fingerprint(cfg.to_dict()):
         raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
     return prev
+
+
+def _fingerprint(config: dict) -> dict:
+    """The settings that must agree for runs to share one results file: all but ``methods`` (one process per
+    method composes into one study; each run is stored under its own method's key)."""
+    return {k: v for k, v in config.items() if k != "methods"}
+
+
+def _methods_union(*lists) -> list:
+    seen = [m for ms in lists for m in ms]
+    return [m for m in search.METHODS if m in seen]
 
 
 class _Gradient:
@@ -194,38 +264,98 @@ class _Gradient:
 
         self.cfg, self.base = cfg, base
         self.su = windows.setup()
-        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + 11, params=base)
+        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
+                                   params=base)
         spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
         self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
             windows.make_windows(sc, spec, self.su)))
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
         self.fns: dict = {}
+        self.exact_fns: dict = {}
+        self.value_fns: dict = {}
         self.charges = charges
         log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
             f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
+
+    def step_name(self, param) -> str:
+        """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents) or the forward gradient with
+        ``K = grad_directions`` tangents (:func:`.objective.make_value_and_forward_gradient`)."""
+        k = self.cfg.grad_directions
+        return f"jacfwd/{param.name}" if not k else f"forward_gradient_{k}/{param.name}"
+
+    def exact(self, param):
+        """The jitted exact ``jacfwd`` step of ``param`` (built on first use)."""
+        from hyqjax.studies.tune import objective
+
+        if param.name not in self.exact_fns:
+            self.exact_fns[param.name] = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
+        return self.exact_fns[param.name]
 
     def programs(self, param: schedule.Parameterisation):
         """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
         from hyqjax.studies.tune import objective
 
         if param.name not in self.fns:
-            vj = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
+            k_dir = self.cfg.grad_directions
+            if k_dir:
+                fg = objective.make_value_and_forward_gradient(self.base, param, self.obj, self.su, k_dir)
+                keys = iter(range(1 << 30))
+                key0 = jax.random.key(self.cfg.seed + 17)
+
+                def vj(t, win):  # a new set of directions every step
+                    return fg(t, win, jax.random.fold_in(key0, next(keys)))
+            else:
+                vj = self.exact(param)
             fval = objective.make_value(self.base, param, self.obj, self.su)
+            self.value_fns[param.name] = fval
             th = jnp.asarray(param.theta_of(self.base), jnp.float32)
             k = 6  # c = 0 and the five line-search scales of search.run_gradient
             cands = jnp.tile(th[None], (k, 1))
-            with self.charges.track(f"jacfwd/{param.name}"):
+            with self.charges.track(self.step_name(param)):
                 jax.block_until_ready(vj(th, self.win))
             with self.charges.track(f"window_value/{param.name}"):
                 jax.block_until_ready(fval(cands, self.win))
             n_win = self.win.size
-            cost = objective.physics_steps(n_win, self.obj, param.size) + k * objective.physics_steps(n_win, self.obj)
+            cost = (objective.physics_steps(n_win, self.obj, k_dir or param.size)
+                    + k * objective.physics_steps(n_win, self.obj))
             self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
                                     lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
         return self.fns[param.name]
 
     def charge_names(self, param) -> list:
-        return ["gradient_windows", f"jacfwd/{param.name}", f"window_value/{param.name}"]
+        return ["gradient_windows", self.step_name(param), f"window_value/{param.name}"]
+
+    def exact_step(self, param):
+        """``theta -> dict`` of the exact ``jacfwd`` step on the windows (the diagnostics' SNR)."""
+        return lambda t: self.exact(param)(jnp.asarray(t, jnp.float32), self.win)
+
+    def step_cost(self, param, reps: int = 3) -> dict:
+        """Wall seconds (median of ``reps``, after compiles) of one tuning step on the windows (value and
+        Jacobian, exact ``jacfwd`` and, with ``grad_directions``, the forward gradient) and of one forward
+        evaluation of the same windows for one candidate (:func:`.objective.make_value`), all on MJX-JAX;
+        the ratios are the step's cost in forward windows (the target: <= 5)."""
+        th = jnp.asarray(param.theta_of(self.base), jnp.float32)
+        self.programs(param)
+
+        def timed(fn):
+            jax.block_until_ready(fn())  # compiles (if new) and warms
+            ts = []
+            for _ in range(reps):
+                t = time.perf_counter()
+                jax.block_until_ready(fn())
+                ts.append(time.perf_counter() - t)
+            return float(np.median(ts))
+
+        value = timed(lambda: self.value_fns[param.name](th[None], self.win))
+        jac = timed(lambda: self.exact(param)(th, self.win))
+        out = dict(windows=int(self.win.size), ticks=int(self.obj.ticks), tangents=int(param.size),
+                   window_value_s=value, jacfwd_s=jac, jacfwd_over_value=jac / value, reps=int(reps))
+        if self.cfg.grad_directions:
+            fg = self.fns[param.name][0]
+            fgs = timed(lambda: fg(th))
+            out.update(forward_gradient_directions=int(self.cfg.grad_directions), forward_gradient_s=fgs,
+                       forward_gradient_over_value=fgs / value)
+        return out
 
 
 def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConfig, evaluator: forward.SuccessEvaluator,
@@ -238,8 +368,17 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
             grad.programs(param)
     clock = search.Clock()
-    trace = search.Trace(cfg.checkpoints_s, theta0)
-    gen_seed = cfg.seed + 1 + 1000 * list(schedule.NAMES).index(param.name)
+    selection = None
+    if cfg.select_instances:
+        sel_sc = validation_scenarios(cfg)
+
+        def f_select(thetas):
+            with charges.track(selection_program(cfg)):  # compiles in this clock unless an earlier method did
+                return evaluator(thetas, sel_sc, param=param)
+
+        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s)
+    trace = search.Trace(cfg.checkpoints_s, theta0, select=selection)
+    gen_seed = generation_seed(cfg.seed, param.name)
 
     def f_gen(thetas, g):
         with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
@@ -253,9 +392,11 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
             row = tr.log[-1] if tr.log else {}
             val = row.get("iterate_fitness", row.get("loss_at_theta"))
             what = "fitness" if "iterate_fitness" in row else "window loss"
+            sel = tr.select.best if tr.select is not None else None
             log(f"  {run_key(method, param.name)}: {clk.elapsed():7.1f} / {cfg.checkpoints_s[-1]:.0f} s, "
                 f"{clk.physics_steps:,} physics steps, {len(tr.log)} iterations"
-                + (f", iterate {what} {val:.3f}" if val is not None else ""))
+                + (f", iterate {what} {val:.3f}" if val is not None else "")
+                + (f", selected: validation clean {sel[0][0]:.3f} ({len(tr.select.log)} validations)" if sel else ""))
 
     t_wall = time.perf_counter()
     beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
@@ -266,15 +407,43 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
         _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log)
     points = trace.finish(clock)
     return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
+                selection=None if selection is None else dict(
+                    instances=cfg.select_instances, seed=cfg.select_seed, every=cfg.select_every,
+                    every_s=cfg.select_every_s, log=selection.log,
+                    physics_steps=int(sum(r["physics_steps_run"] for r in selection.log)),
+                    wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
                 charged_s=clock.charged, wall_s=time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
                 params=param.describe(np.asarray(points[-1]["theta"])))
 
 
+def validation_scenarios(cfg: WallClockConfig):
+    """The fixed validation batch of the selection: ``select_instances`` scenarios drawn like training (training
+    heights and ranges) from ``select_seed``; never the held-out set."""
+    return forward.train_scenarios(cfg.select_instances, cfg.select_seed, 0)
+
+
+def selection_program(cfg: WallClockConfig) -> str:
+    """The charge name of the selection's forward program: the training program's (``forward``) when it has its
+    rows (``select_instances == (popsize + 1) x train_instances``), else a program of its own."""
+    rows = cfg.select_instances
+    return "forward" if rows == (cfg.popsize + 1) * cfg.train_instances else f"forward/{rows}_rows"
+
+
+def forward_programs(method: str, cfg: WallClockConfig) -> list:
+    """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
+    out = ["forward"] if method in search.SEARCH_METHODS or method == "hybrid" else []
+    if cfg.select_instances and selection_program(cfg) not in out:
+        out.append(selection_program(cfg))
+    return out
+
+
 def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log):
     charge = clock.charge if cfg.charge_compile else (lambda s: None)
-    if (method in search.SEARCH_METHODS or method == "hybrid") and "forward" in charges.seconds:
-        charge(charges.seconds["forward"])  # compiled by an earlier method: charged as if compiled here
+    for name in forward_programs(method, cfg):
+        if name in charges.seconds:
+            charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
+    trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           progress=progress)
@@ -283,8 +452,9 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
         if method == "hybrid":
             mean = search.run_search("cma_es", f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                                      progress=progress, stop_at=cfg.hybrid_split * cfg.checkpoints_s[-1])
-            theta_start = mean
-            log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its mean")
+            theta_start = mean if trace.select is None else trace.returned
+            log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its "
+                + ("mean" if trace.select is None else "selected iterate"))
         step_fn, evaluate, cost = grad.programs(param)
         for name in grad.charge_names(param):
             charge(charges.seconds[name])
@@ -301,8 +471,13 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     t_start = time.time()
     os.makedirs(out_dir, exist_ok=True)
     prev = previous(out_dir, cfg) or {}
+    if cfg.cold_compile:
+        from hyqjax.io.cache import use_cold_caches
+
+        log(f"cold compile: JAX's persistent cache and Warp's kernel cache in {use_cold_caches()} (empty)")
+    config = dict(cfg.to_dict(), methods=_methods_union(prev.get("config", {}).get("methods", []), cfg.methods))
     res = dict(kind="wallclock", complete=False, provenance=provenance(seed=cfg.seed),
-               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl), config=cfg.to_dict(),
+               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl), config=config,
                charges=dict(prev.get("charges", {})), runs=dict(prev.get("runs", {})),
                heldout=dict(prev.get("heldout", {})))
 
@@ -361,15 +536,38 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
                 hev, [members[k] for k in left], sc, cfg.heldout_chunk, done=done,
                 progress=lambda a, n, w: log(f"  held-out {a}/{n} sets ({time.perf_counter() - t:.1f} s)"))
     res["budget_curves"] = budget_curves(res)
-    if grad is not None and "diagnostics" not in res:
-        with heartbeat(log, lambda t0=time.perf_counter(): f"  gradient diagnostics: {time.perf_counter() - t0:.0f} s"):
-            res["diagnostics"] = gradient_diagnostics(cfg, res, params, base, grad, members)
-        save()
-    elif "diagnostics" in prev:
-        res["diagnostics"] = prev["diagnostics"]
+    # ---- gradient diagnostics (outside every method's clock): for every parameterisation with a gradient-method
+    # run whose diagnostics are missing or cover fewer evaluated iterates than there are now
+    res["diagnostics"] = dict(prev.get("diagnostics", {}))
+    due = [d for d in cfg.dims if any(r["dim"] == d and r["method"] in search.GRADIENT_METHODS
+                                      for r in res["runs"].values())
+           and res["diagnostics"].get(d, {}).get("iterates") != diagnostic_iterates(res, members, d)]
+    if due:
+        if grad is None:
+            log("snapshot windows for the gradient diagnostics (MJX-JAX) ...")
+            grad = _Gradient(cfg, base, search.Charges(), log)
+        for d in due:
+            with heartbeat(log, lambda t0=time.perf_counter(), d=d: f"  gradient diagnostics on {d}: "
+                           f"{time.perf_counter() - t0:.0f} s"):
+                grad.programs(params[d])
+                diag = gradient_diagnostics(cfg, res, {d: params[d]}, base, grad, members)[d]
+                diag["step_cost"] = grad.step_cost(params[d])
+            res["diagnostics"][d] = diag
+            sc_ = diag["step_cost"]
+            log(f"gradient on {d}: one jacfwd step {sc_['jacfwd_s']:.3f} s = {sc_['jacfwd_over_value']:.1f} forward "
+                f"windows ({sc_['window_value_s']:.3f} s, one candidate, MJX-JAX)"
+                + (f"; forward gradient ({sc_['forward_gradient_directions']} directions) "
+                   f"{sc_['forward_gradient_s']:.3f} s = {sc_['forward_gradient_over_value']:.1f}"
+                   if "forward_gradient_s" in sc_ else ""))
+            save()
     res["complete"] = True
     save()
     return res
+
+
+def diagnostic_iterates(res: dict, members: dict, dim: str) -> list:
+    """The held-out-evaluated iterates of parameterisation ``dim`` the diagnostics rank (start point included)."""
+    return [k for k, (p, _, _) in members.items() if p.name == dim and k in res["heldout"] and k != "table1"]
 
 
 def gradient_diagnostics(cfg: WallClockConfig, res: dict, params: dict, base, grad: _Gradient, members: dict) -> dict:
@@ -389,11 +587,11 @@ def gradient_diagnostics(cfg: WallClockConfig, res: dict, params: dict, base, gr
     for d, param in params.items():
         if param.name not in grad.fns:
             continue
-        step_fn, evaluate, _ = grad.fns[param.name]
-        r0 = step_fn(param.theta_of(base))
+        _, evaluate, _ = grad.fns[param.name]
+        r0 = grad.exact_step(param)(param.theta_of(base))
         gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
         snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
-        keys = [k for k, (p, _, b) in members.items() if p.name == d and k in res["heldout"] and k != "table1"]
+        keys = diagnostic_iterates(res, members, d)
         thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])
         k6 = 6  # the window program's batch (search.run_gradient's line search)
         vals = []
