@@ -72,11 +72,9 @@ def use_cold_caches(path: str | None = None) -> str:
     jax_dir, warp_dir = os.path.join(path, "jax"), os.path.join(path, "warp")
     os.makedirs(jax_dir, exist_ok=True)
     os.makedirs(warp_dir, exist_ok=True)
-    os.environ["WARP_CACHE_PATH"] = warp_dir
-    if "warp" in sys.modules:
-        import warp
+    from hyqjax.sim.backend import point_warp_kernel_cache
 
-        warp.config.kernel_cache_dir = warp_dir
+    point_warp_kernel_cache(warp_dir)
     os.environ.pop("HYQJAX_CACHE_DIR", None)
     enable_compilation_cache(jax_dir)
     if "jax" in sys.modules:  # a cache JAX opened already is closed, so the next compile opens the new one

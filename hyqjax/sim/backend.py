@@ -63,6 +63,17 @@ def warp_installed() -> bool:
     return importlib.util.find_spec("warp") is not None
 
 
+def point_warp_kernel_cache(path: str) -> None:
+    """Make Warp compile its kernels into (and load them from) ``path``: the ``WARP_CACHE_PATH`` a later Warp
+    import reads, and, when Warp is imported already, its live ``kernel_cache_dir``. Imports no Warp."""
+    import os
+
+    os.environ["WARP_CACHE_PATH"] = path
+    warp = sys.modules.get("warp")
+    if warp is not None:
+        warp.config.kernel_cache_dir = path
+
+
 def cuda_available() -> bool:
     import jax
 
