@@ -3,8 +3,8 @@ numbers (the success-driven search methods' objective, and the held-out evaluati
 
 :class:`SuccessEvaluator` runs ``N`` parameter vectors ``theta`` (:class:`.schedule.Parameterisation`) on the same
 ``M`` step-down scenarios: one batch of ``N x M`` full runs of ``duration`` seconds through the one batch runner
-(:func:`hyqjax.sim.runner.make_batch_runner`; MuJoCo Warp with ``impl="warp"`` on a GPU, MJX-JAX with
-``impl="jax"``), compiled once per batch shape. Member ``n`` sees exactly the scenarios member ``n'`` sees
+of the simulator's backend object (MuJoCo Warp with ``impl="warp"`` on a GPU, MJX-JAX with ``impl="jax"``, C
+MuJoCo with ``impl="c"`` on a CPU), compiled once per batch shape. Member ``n`` sees exactly the scenarios member ``n'`` sees
 (common random numbers: differences between members are differences of parameters, not of draws). Per member it
 returns the clean and completed rates of :mod:`hyqjax.studies.stepdown_outcome` and the fitness
 
@@ -30,7 +30,6 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import rollout as sim
-from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.tune.schedule import Parameterisation
@@ -82,8 +81,8 @@ class SuccessEvaluator:
         self.setup = stepdown.setup(self.cfg)
         st = self.setup
         self.ticks = self.cfg.sim_config().n_ticks
-        self.runner = srunner.make_batch_runner(st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(),
-                                                stepdown.make_metrics(st.ids, self.cfg), None, params_axes=0)
+        self.runner = st.backend.make_runner(st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(),
+                                             stepdown.make_metrics(st.ids, self.cfg), None, params_axes=0)
         cfg = self.cfg
         self._outcome = jax.jit(jax.vmap(lambda r: so.outcome(r, st.ids, cfg.max_tilt, cfg.min_progress)))
         self.completed_weight = float(completed_weight)
@@ -116,8 +115,7 @@ class SuccessEvaluator:
         sp = Scheduled(base=base, table=jnp.repeat(table, m, axis=0), cond=jnp.repeat(cond, m, axis=0))
         sc = _tile(scenario, n)
         st = self.setup
-        mb = stepdown.hmodel.batch_model(st.mx, st.ids, sc.terrain)
-        d0 = stepdown.initial_batch_data(st, mb, sc)
+        mb, d0 = stepdown.batch_inputs(st, sc)
         t0 = time.perf_counter()
         res = self.runner(mb, d0, sp, sc.push)
         out = self._outcome(res._replace(trace=None))

@@ -278,9 +278,11 @@ def make_per_robot_value_and_jac(base, space: ParamSpace, obj: ClosedLoopObjecti
 
     def one(theta, win):
         def mean_loss(th):
-            return batch_objective(th, win, base, space, obj, su)[0]
+            loss = batch_objective(th, win, base, space, obj, su)[0]
+            return loss, loss
 
-        return mean_loss(theta), jax.jacfwd(mean_loss)(theta)
+        grad, loss = jax.jacfwd(mean_loss, has_aux=True)(theta)  # the value rides on the tangents' rollout
+        return loss, grad
 
     def f(thetas, wins):
         loss, grad = jax.vmap(one, in_axes=(0, win_axes))(thetas, wins)

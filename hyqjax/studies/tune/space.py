@@ -6,12 +6,15 @@ parameter inside its allowed range, so every ``theta`` gives valid parameters (`
 
 * ``log``: ``log p = log lo + (log hi - log lo) sigmoid(theta)`` (stiffness ``K_base``, ``K_kl``, damping
   minima: a log scale inside ``(lo, hi)``);
-* ``gap``: ``p = p_ref + (hi - p_ref) sigmoid(theta)`` for an upper bound above its lower bound
-  (``D_max`` above ``D_min``), so ``D_min < D_max <= hi`` always holds;
+* ``gap``: ``p = p_ref + (hi - p_ref) (g + (1 - g) sigmoid(theta))`` for an upper bound above its lower bound
+  (``D_max`` above ``D_min``), so ``D_min < D_max <= hi`` always holds, in float32 too: the floor
+  ``g`` = :data:`SEPARATION` keeps the two apart where ``sigmoid`` underflows (a search that drives ``theta``
+  far negative otherwise rounds ``D_max`` onto ``D_min``, which ``ReflexParams`` refuses);
 * ``box``: ``p = lo + (hi - lo) sigmoid(theta)`` for a parameter in ``(lo, hi)`` (``K_x`` in
   ``(0, K_x,max)``, ``Delta`` in ``(0, 0.5)``, the crawl's trunk height, step length, apex, search speed, and the remedy's
   forward search per metre of depth and terrain adaptation);
-* ``ratio``: ``m_min = m_max sigmoid(theta)`` (``0 < m_min < m_max``).
+* ``ratio``: ``m_min = m_max (g + (1 - 2 g) sigmoid(theta))`` (``0 < m_min < m_max``, in float32 too:
+  ``sigmoid`` rounds to 1 above ``theta`` of about 17 and to 0 far below).
 
 Every ``(lo, hi)`` lies inside the range ``ReflexParams`` / ``CrawlParams`` declare for the field (checked
 by the tests against ``core.params.param_ranges``). ``m_max`` is a ``box`` in ``(0, M_NOMINAL)``: the damping schedule reacts to a *loss* of mobility, and
@@ -77,6 +80,11 @@ REMEDY_GROUPS = ("search_forward", "terrain_adaptation")
 DEFAULT_GROUPS = REFLEX_GROUPS + CRAWL_GROUPS + REMEDY_GROUPS
 
 
+#: The smallest share of its range that separates a ``gap`` coordinate from its lower bound, and a ``ratio``
+#: coordinate from 0 and from its upper bound (module docstring).
+SEPARATION = 1e-3
+
+
 def _logit(p: float) -> float:
     p = min(max(p, 1e-6), 1 - 1e-6)
     return math.log(p / (1 - p))
@@ -123,11 +131,12 @@ class ParamSpace:
             if c.kind == "log":
                 out[c.name] = jnp.exp(math.log(c.lo) + (math.log(c.hi) - math.log(c.lo)) * jax.nn.sigmoid(t))
             elif c.kind == "gap":
-                out[c.name] = out[c.ref] + (c.hi - out[c.ref]) * jax.nn.sigmoid(t)
+                share = SEPARATION + (1.0 - SEPARATION) * jax.nn.sigmoid(t)
+                out[c.name] = out[c.ref] + (c.hi - out[c.ref]) * share
             elif c.kind == "box":
                 out[c.name] = c.lo + (c.hi - c.lo) * jax.nn.sigmoid(t)
             else:  # ratio
-                out[c.name] = out[c.ref] * jax.nn.sigmoid(t)
+                out[c.name] = out[c.ref] * (SEPARATION + (1.0 - 2.0 * SEPARATION) * jax.nn.sigmoid(t))
         return out
 
     def theta_of(self, params: crawl.CrawlParams) -> np.ndarray:
@@ -140,12 +149,12 @@ class ParamSpace:
                 out.append(_logit((math.log(v) - math.log(c.lo)) / (math.log(c.hi) - math.log(c.lo))))
             elif c.kind == "gap":
                 ref = val(next(cc for cc in self.coords if cc.name == c.ref))
-                out.append(_logit((v - ref) / (c.hi - ref)))
+                out.append(_logit(((v - ref) / (c.hi - ref) - SEPARATION) / (1.0 - SEPARATION)))
             elif c.kind == "box":
                 out.append(_logit((v - c.lo) / (c.hi - c.lo)))
             else:
                 ref = next(cc for cc in self.coords if cc.name == c.ref)
-                out.append(_logit(v / val(ref)))
+                out.append(_logit((v / val(ref) - SEPARATION) / (1.0 - 2.0 * SEPARATION)))
         return np.asarray(out, np.float64)
 
     def crawl_params(self, theta, base: crawl.CrawlParams) -> crawl.CrawlParams:

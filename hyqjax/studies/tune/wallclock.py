@@ -477,7 +477,8 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
         log(f"cold compile: JAX's persistent cache and Warp's kernel cache in {use_cold_caches()} (empty)")
     config = dict(cfg.to_dict(), methods=_methods_union(prev.get("config", {}).get("methods", []), cfg.methods))
     res = dict(kind="wallclock", complete=False, provenance=provenance(seed=cfg.seed),
-               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl), config=config,
+               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl, stepdown.SUPPORTED_IMPLS),
+               config=config,
                charges=dict(prev.get("charges", {})), runs=dict(prev.get("runs", {})),
                heldout=dict(prev.get("heldout", {})))
 
