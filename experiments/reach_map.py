@@ -348,7 +348,8 @@ def plot(cells, path: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/reach_map")
-    ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
+    ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c (auto: warp on a CUDA GPU with "
+                    "warp-lang, else c without an accelerator, else jax)")
     ap.add_argument("--instances", type=int, default=1024, help="instances per (variant, spread, height) cell")
     ap.add_argument("--heights", type=float, nargs="+", default=list(HEIGHTS), help="platform heights (m)")
     ap.add_argument("--spread", nargs="+", default=["wide", "narrow"], help="wide | narrow (one or both)")
@@ -378,7 +379,8 @@ def main(argv=None) -> int:
 
     params = config.pop("_params")
     # A map resumes only on the same kind of device and implementation (float32 results depend on the layout).
-    config.update(device=jax.devices()[0].device_kind, impl_resolved=backend.resolve_impl(args.impl))
+    config.update(device=jax.devices()[0].device_kind,
+                  impl_resolved=backend.resolve_impl(args.impl, stepdown.SUPPORTED_IMPLS))
     os.makedirs(args.out, exist_ok=True)
     config_hash = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
     cfg_path = os.path.join(args.out, "config.json")
@@ -418,13 +420,13 @@ def main(argv=None) -> int:
 def check(args) -> dict:
     """Validate every option before anything compiles; returns the configuration (hashed for resuming)."""
     from hyqjax.sim import backend
-    from hyqjax.sim import impls
     from hyqjax.sim import model as hmodel
+    from hyqjax.studies import stepdown
 
     try:
-        backend.validate_impl(args.impl, impls.MJX_IMPLS)
+        backend.validate_impl(args.impl, stepdown.SUPPORTED_IMPLS)
     except ValueError:
-        raise UsageError(f"--impl {args.impl!r}: must be one of auto, {', '.join(impls.MJX_IMPLS)}") from None
+        raise UsageError(f"--impl {args.impl!r}: must be one of auto, {', '.join(stepdown.SUPPORTED_IMPLS)}") from None
     if not 1 <= args.instances <= 1_000_000:
         raise UsageError(f"--instances {args.instances}: must be in [1, 1000000]")
     bad = [h for h in args.heights if not 0.0 <= h <= hmodel.MAX_PLATFORM_HEIGHT]

@@ -215,6 +215,7 @@ def _resolve(dotted: str):
     raise ImportError(dotted)
 
 
+@pytest.mark.slow
 def test_docs_name_objects_that_exist_and_k_base_enters_eq6_where_they_say():
     """Every ``module.name`` that docs/architecture.md and docs/api.md mention exists (the docs follow the code),
     and the one hop from the public API to Eq. 6 holds: ``hyqjax.ReflexParams.k_base`` is read by

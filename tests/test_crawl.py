@@ -118,6 +118,7 @@ def test_saturating_forward_search_is_the_linear_one_below_its_limit_and_straigh
     np.testing.assert_allclose(foot(0.5), [0.10, 0.0, -0.5], atol=1e-6)
 
 
+@pytest.mark.slow
 def test_step_down_options_lower_and_tilt_the_trunk_only_while_a_step_down_is_under_way():
     # The trunk pitched 0.2 rad on a flat stance: in the horizontal frame the feet plane pitches by as much.
     obs = dataclasses.replace(_obs(), quat=jnp.asarray([np.cos(0.1), 0.0, np.sin(0.1), 0.0], jnp.float32))

@@ -55,7 +55,7 @@ def test_tuned_variant_is_the_study_selected_parameters():
 @pytest.mark.slow
 def test_tiny_cpu_map_writes_resumes_and_counts_every_instance(tmp_path):
     out = tmp_path / "map"
-    argv = ["--out", str(out), "--impl", "jax", "--instances", "1", "--heights", "0.16", "0.24", "--duration", "0.6",
+    argv = ["--out", str(out), "--impl", "c", "--instances", "1", "--heights", "0.16", "0.24", "--duration", "0.6",
             "--variants", "default", "remedy_all", "--spread", "narrow", "--chunk", "4"]
     assert reach_map.main(argv) == 0
     res = json.loads((out / "reach_map.json").read_text())

@@ -479,6 +479,7 @@ def test_padded_batch_rows_equal_the_unpadded_ones(hyq):
         np.testing.assert_array_equal(np.asarray(g), w)
 
 
+@pytest.mark.slow
 def test_chunk_length_divides_the_run_and_the_trace_decimation():
     cfg = sim.SimConfig(duration=24.0, record_every=10)
     runner = runner_mod.make_batch_runner(None, stand.stand_controller, cfg, record=record)

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -107,6 +108,7 @@ def test_euler_rates_trace_quat_and_roll_pitch_frame(rpy, omega):
 # ---------------------------------------------------------------- closed-form small solves (core.smallmat)
 
 
+@pytest.mark.slow
 def test_closed_form_small_solves_match_numpy_in_float64():
     from hyqjax.core import smallmat
 

@@ -44,6 +44,7 @@ def _slsqp(r, st, force, torque, mu):
     return res.x.reshape(4, 3) * sc, (p, q, sc)
 
 
+@pytest.mark.slow
 def test_qp_matches_slsqp_on_random_instances():
     rng = np.random.default_rng(0)
     solve = jax.jit(trunk.solve_wrench_qp)
@@ -88,6 +89,7 @@ def test_qp_meets_the_wrench_where_clipping_the_least_norm_solution_does_not():
     assert better >= 10
 
 
+@pytest.mark.slow
 def test_qp_is_exact_when_the_cones_are_inactive():
     """CoM moved 7 cm into the support triangle of LF, RF, LH (as a body phase does): the weight is met within
     the regulariser's bias (< 1% of the weight, the tie-break toward small forces)."""

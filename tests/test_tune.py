@@ -104,6 +104,7 @@ def test_adam_lowers_loss_logs_and_counts_budget(kin_runs):
         assert json.load(fh)["config"] == dict(kind="test")
 
 
+@pytest.mark.slow
 def test_resume_matches_uninterrupted_and_refuses_other_config(kin_runs):
     f, th0, cfg, conf, _, part, r_full, r_res, sp = kin_runs
     assert r_res["step"] == 4
@@ -113,6 +114,7 @@ def test_resume_matches_uninterrupted_and_refuses_other_config(kin_runs):
         optimize.run_adam(f, th0, optimize.AdamConfig(steps=4, lr=0.2), part, dict(kind="other"), 7, progress=False)
 
 
+@pytest.mark.slow
 def test_baselines_respect_budget_and_improve():
     target = np.array([1.0, -2.0, 0.5])
     calls = []
@@ -350,6 +352,7 @@ def test_fingerprint_holds_every_result_setting_of_both_objectives():
     assert study.settings_of(cl.to_dict()) == study.fingerprint(cl)
 
 
+@pytest.mark.slow
 def test_kinematic_objective_honours_checkpoint_every_and_refuses_another_learning_rate(kin_runs, tmp_path,
                                                                                       monkeypatch):
     f, th0, *_ = kin_runs
@@ -431,6 +434,7 @@ def test_waiting_tune_run_then_refused_for_other_settings_before_any_compile(tmp
 # ------------------------------------------------------------------ parameterisations, search methods, wall-clock study
 
 
+@pytest.mark.slow
 def test_parameterisations_sizes_and_start_point_rows():
     from hyqjax.studies.tune import schedule
 
@@ -479,6 +483,7 @@ def test_per_leg_and_conditioned_coordinates_act_where_declared():
         assert all(0.0 < d[f"m_min[{leg}]"] < d[f"m_max[{leg}]"] < spmod.M_NOMINAL for leg in schedule.LEGS)
 
 
+@pytest.mark.slow
 def test_features_are_the_controllers_own_measurements():
     from hyqjax.core import robot
     from hyqjax.core.types import Observation
@@ -538,6 +543,7 @@ def test_checkpoints_get_the_iterate_finished_before_them():
     assert [p["theta"] for p in tr2.finish(clk2)] == [[3.0, 3.0], [3.0, 3.0]]
 
 
+@pytest.mark.slow
 def test_forward_gradient_is_unbiased_and_exact_along_its_directions():
     """The forward-gradient estimate (K random directions) of the Jacobian of a smooth vector function: its mean
     over many keys is the exact Jacobian (unbiased), its per-draw error matches (P + 1) |g|^2 / K, and with K = P
@@ -607,6 +613,7 @@ def test_selection_returns_the_best_validated_iterate_and_charges_its_cost():
         search.Selection(validate, every=0, every_s=0.0)
 
 
+@pytest.mark.slow
 def test_search_with_selection_keeps_its_best_mean():
     """CMA-ES with a validation that scores the true success rate: the returned iterate at the end is the best
     validated mean (not the last one), and the run's clock carries the validations' physics steps."""
@@ -643,6 +650,7 @@ def test_search_with_selection_keeps_its_best_mean():
     assert clk.physics_steps == gens * 9 * 16 + len(sel.log) * 400
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["cma_es", "snes", "open_es", "random_search"])
 def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers(method):
     """A synthetic 'success' (Bernoulli with probability decreasing with the distance to a target, M draws per
@@ -827,6 +835,7 @@ def dataclasses_replace(obj, **kw):
     return dataclasses.replace(obj, **kw)
 
 
+@pytest.mark.slow
 def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     """With a window objective that ranks held-out success perfectly (lower loss, higher success) the rank
     correlation is -1; the signal-to-noise ratio is |mean| / (std / sqrt(W)) of the per-window gradients."""
