@@ -375,12 +375,10 @@ def main(argv=None) -> int:
     from hyqjax.io import atomic
     from hyqjax.studies import stepdown
 
-    from hyqjax.sim import backend
-
     params = config.pop("_params")
     # A map resumes only on the same kind of device and implementation (float32 results depend on the layout).
     config.update(device=jax.devices()[0].device_kind,
-                  impl_resolved=backend.resolve_impl(args.impl, stepdown.SUPPORTED_IMPLS))
+                  impl_resolved=stepdown.setup(stepdown.StepdownConfig(impl=args.impl)).impl)
     os.makedirs(args.out, exist_ok=True)
     config_hash = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
     cfg_path = os.path.join(args.out, "config.json")

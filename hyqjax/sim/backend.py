@@ -39,6 +39,7 @@ import contextlib
 import importlib.abc
 import importlib.util
 import io
+import os
 import sys
 
 from hyqjax.sim.impls import ALL_IMPLS, IMPLS, MJX_IMPLS
@@ -66,8 +67,6 @@ def warp_installed() -> bool:
 def point_warp_kernel_cache(path: str) -> None:
     """Make Warp compile its kernels into (and load them from) ``path``: the ``WARP_CACHE_PATH`` a later Warp
     import reads, and, when Warp is imported already, its live ``kernel_cache_dir``. Imports no Warp."""
-    import os
-
     os.environ["WARP_CACHE_PATH"] = path
     warp = sys.modules.get("warp")
     if warp is not None:

@@ -29,7 +29,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
-from hyqjax.sim import rollout as sim
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.tune.schedule import Parameterisation

@@ -477,8 +477,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
         log(f"cold compile: JAX's persistent cache and Warp's kernel cache in {use_cold_caches()} (empty)")
     config = dict(cfg.to_dict(), methods=_methods_union(prev.get("config", {}).get("methods", []), cfg.methods))
     res = dict(kind="wallclock", complete=False, provenance=provenance(seed=cfg.seed),
-               device=str(jax.devices()[0].device_kind), impl=backend.resolve_impl(cfg.impl, stepdown.SUPPORTED_IMPLS),
-               config=config,
+               device=str(jax.devices()[0].device_kind), config=config,
                charges=dict(prev.get("charges", {})), runs=dict(prev.get("runs", {})),
                heldout=dict(prev.get("heldout", {})))
 
@@ -489,6 +488,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     base = start_params(cfg)
     params = {d: schedule.make(d, cfg.groups) for d in cfg.dims}
     evaluator = forward.SuccessEvaluator(params[cfg.dims[0]], base, cfg.train_duration, cfg.impl, cfg.completed_weight)
+    res["impl"] = evaluator.setup.impl  # the simulator the forward runs use (cfg.impl resolved by their setup)
     # compile charges are re-measured in every process (a resumed study's programs compile again)
     charges = search.Charges()
     n_members = cfg.popsize + 1
