@@ -270,9 +270,12 @@ def test_scheduled_parameterisation_gradient_matches_central_differences(cl64):
     swinging front leg's own K_base row; the hind legs' rows do not act in this window (zero gradient)."""
     from hyqjax.studies.tune import schedule
 
-    win, sp, _, _, base, obj, _ = cl64
+    win, _, _, _, base, obj, _ = cl64
     with jax.enable_x64(True):
         su = windows.setup(dtype="float64")
+        # K_base and the forward search per swing leg, both conditioned on the 3 features: 14 tangents (every
+        # coordinate kind of a scheduled parameterisation: a per-leg row and a conditioning column each).
+        sp = spmod.ParamSpace.make(("k_base", "search_forward"))
         par = schedule.Parameterisation("test", sp, per_leg=True, conditioned=("k_base", "search_forward"))
         vj = objective.make_value_and_jac(win, base, par, obj, su)
         th = jnp.asarray(par.theta_of(base))
@@ -867,3 +870,24 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     assert d["objective_vs_heldout_spearman"] == pytest.approx(-1.0)
     assert d["snr_mean"] == pytest.approx(2.0 / (np.sqrt(2.0) / np.sqrt(2.0)))
     assert len(d["iterates"]) == 8 and d["windows"] == 2
+
+
+def test_winner_is_clear_only_of_runs_that_exist():
+    """The study's winner: the best held-out clean rate at a budget; its interval is "clear" only when it lies
+    above every other run's, and a lone run is clear of nothing (it was compared with nothing)."""
+    from hyqjax.studies.tune import wallclock
+
+    def curve(method, clean, ci):
+        return dict(method=method, dim="shared", points=[dict(minutes=10.0, clean=clean, completed=0.8,
+                                                              clean_ci95=list(ci))])
+
+    lone = dict(budget_curves=[curve("cma_es", 0.5, (0.45, 0.55))])
+    w = wallclock.winner(lone, 10.0)
+    assert w["method"] == "cma_es" and w["others"] == 0 and not w["clear_of_all_others"]
+    tie = dict(budget_curves=[curve("cma_es", 0.53, (0.51, 0.55)), curve("random_search", 0.50, (0.48, 0.52))])
+    w = wallclock.winner(tie, 10.0)
+    assert w["method"] == "cma_es" and w["others"] == 1 and not w["clear_of_all_others"]
+    clear = dict(budget_curves=[curve("random_search", 0.50, (0.48, 0.52)), curve("cma_es", 0.58, (0.56, 0.60))])
+    w = wallclock.winner(clear, 10.0)
+    assert w["method"] == "cma_es" and w["clear_of_all_others"]
+    assert wallclock.winner(clear, 3.0) is None

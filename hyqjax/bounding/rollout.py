@@ -14,6 +14,9 @@ and float width):
   outcomes (leading batch axis) and the :class:`hyqjax.sim.rollout.RolloutResult` (final state, fall metrics,
   trace). :func:`run` is this with the trace as NumPy arrays.
 
+Bounding is a task (:class:`BoundingTask`, :mod:`hyqjax.sim.task`) run by the generic
+:class:`hyqjax.sim.task.Rollout`; :mod:`hyqjax.studies.tasks` registers it as ``bound``.
+
 The run starts at an apex (gait phase 0) and lasts a whole number of gait periods, so its final state is an
 apex again: :class:`BoundingOutcome` holds the final apex state (forward speed along the heading included), the
 final yaw and position, and the fall and divergence flags.
@@ -27,7 +30,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -43,16 +45,17 @@ from hyqjax.bounding.state import BoundingInfo
 from hyqjax.core import robot
 from hyqjax.core import spatial
 from hyqjax.sim import backend
-from hyqjax.sim import impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
-from hyqjax.sim import runner as srunner
+from hyqjax.sim import task
+from hyqjax.studies import tasks
 
 #: Largest controller period (s) and trace decimation (ticks) of a :class:`BoundingRolloutConfig`.
 MAX_CONTROL_DT = 0.02
 MAX_RECORD_EVERY = 10_000
-#: The simulators bounding runs on (:mod:`hyqjax.sim.backend`): MJX (its initial apex state is MJX-JAX data).
-SUPPORTED_IMPLS = impls.MJX_IMPLS
+#: The simulators bounding runs on (:mod:`hyqjax.sim.backend`): MJX (its initial apex state is MJX-JAX data);
+#: declared once, in the task registry.
+SUPPORTED_IMPLS = tasks.get("bound").impls
 
 
 @dataclasses.dataclass(frozen=True)
@@ -292,67 +295,75 @@ def instance_args(batch: bbatch.Batch) -> tuple:
     return batch.params, batch.terrain, f32(batch.apex0), batch.push, f32(batch.roll0), f32(batch.yaw_rate0)
 
 
-class BoundingRollout:
-    """The bounding closed loop for one static config (built by :func:`make_bounding_rollout`).
+class BoundingTask(task.Task):
+    """Bounding as a :class:`hyqjax.sim.task.Task`: :data:`hyqjax.bounding.controller.bounding_controller`, the fall
+    metrics (:func:`fall_metrics`), the trace sample :func:`record`, the outcome :func:`outcome`. ONE instance is
+    ``(terrain, apex0, push, roll, yaw_rate)`` (:meth:`BoundingRollout.__call__` takes them as arguments), a batch
+    is a :class:`hyqjax.bounding.batch.Batch`; both start in the air at an apex state. The one-instance rollout runs
+    on the task's simulator whatever it is (a forward run under Warp included)."""
 
-    ``rollout(params, terrain, apex0, push=None, roll=0.0, yaw_rate=0.0) -> (BoundingOutcome, mjx.Data)``: ONE
-    instance (leaves without batch axes; ``apex0`` (5,) in :class:`hyqjax.bounding.params.Apex` order), pure JAX.
-    ``rollout.run(batch)``: a batch through the jitted runner, compiled once per batch shape and mesh.
-    """
+    one_instance_on_every_backend = True
 
     def __init__(self, cfg: BoundingRolloutConfig):
         self.cfg = cfg
-        self.setup = setup(cfg.control_dt, cfg.impl)
         self.sim_config = cfg.sim_config()
+        self.controller = bctrl.bounding_controller
         self.metrics = fall_metrics()
-        self._runners: dict = {}
-        self._outcomes = jax.jit(jax.vmap(outcome))
+        self.record = record
+
+    def setup(self, differentiable: bool = False) -> BoundingSetup:
+        return setup(self.cfg.control_dt, self.cfg.impl)
+
+    def outcome(self, res: sim.RolloutResult) -> BoundingOutcome:
+        return outcome(res)
+
+    def check_instance(self, params: BoundingParams, instance) -> None:
+        if not isinstance(params.gait.period, jax.core.Tracer):
+            self.cfg.check_period(params.gait.period)
+
+    def check_batch(self, batch: bbatch.Batch) -> None:
+        self.cfg.check_period(batch.params.gait.period)
+
+    def initial_data(self, st: BoundingSetup, mx1, params: BoundingParams, apex0, roll=0.0, yaw_rate=0.0):
+        """ONE instance's data in the air at apex state ``apex0`` (:func:`hyqjax.bounding.cycle.apex_data` on the
+        JAX model), put into the data of ``st``'s simulator for the instance model ``mx1``."""
+        d = bc.apex_data(st.mx_jax, st.m, params, apex0, roll=roll, yaw_rate=yaw_rate)
+        return st.backend.from_jax_data(mx1, d, st.m)
+
+    def instance_inputs(self, st: BoundingSetup, params: BoundingParams, instance):
+        terrain, apex0, push, roll, yaw_rate = instance
+        mx1 = hmodel.instance_model(st.mx, st.ids, terrain)
+        return mx1, self.initial_data(st, mx1, params, apex0, roll, yaw_rate), push
+
+    def batch_inputs(self, st: BoundingSetup, batch: bbatch.Batch):
+        mb = st.backend.batch_model(st.mx, st.ids, batch.terrain)
+        return mb, st.backend.from_jax_data(mb, apex_initial_data(batch, st.m, st.mx_jax), st.m)
+
+
+class BoundingRollout(task.Rollout):
+    """The bounding closed loop for one static config (built by :func:`make_bounding_rollout`): the generic
+    :class:`hyqjax.sim.task.Rollout` of :class:`BoundingTask`.
+
+    ``rollout(params, terrain, apex0, push=None, roll=0.0, yaw_rate=0.0) -> (BoundingOutcome, mjx.Data)``: ONE
+    instance (leaves without batch axes; ``apex0`` (5,) in :class:`hyqjax.bounding.params.Apex` order), pure JAX.
+    ``rollout.run(batch)``: a batch through the jitted runner, compiled once per batch shape and mesh, returning
+    ``(BoundingOutcome, RolloutResult)`` (final state, :class:`FallMetrics`, trace of :func:`record` when
+    ``cfg.record_every``).
+    """
+
+    def __init__(self, cfg: BoundingRolloutConfig):
+        super().__init__(BoundingTask(cfg))
 
     def initial_data(self, mx1: mjx.Model, params: BoundingParams, apex0, roll=0.0, yaw_rate=0.0) -> mjx.Data:
         """ONE instance's data in the air at apex state ``apex0`` (:func:`hyqjax.bounding.cycle.apex_data` on the
         JAX model; put into the simulator's data of ``mx1`` by the backend, as :meth:`run` does)."""
-        st = self.setup
-        d = bc.apex_data(st.mx_jax, st.m, params, apex0, roll=roll, yaw_rate=yaw_rate)
-        return st.backend.from_jax_data(mx1, d, st.m)
+        return self.task.initial_data(self.setup, mx1, params, apex0, roll, yaw_rate)
 
     def __call__(self, params: BoundingParams, terrain: hmodel.InstanceTerrain, apex0, push: sim.Push | None = None,
                  roll=0.0, yaw_rate=0.0) -> tuple[BoundingOutcome, mjx.Data]:
         """Simulate ONE instance for ``cfg.duration`` s from apex state ``apex0`` with initial roll (rad) and yaw
         rate (rad/s); returns its outcome and final data. The gait period is checked when concrete."""
-        st = self.setup
-        if not isinstance(params.gait.period, jax.core.Tracer):
-            self.cfg.check_period(params.gait.period)
-        params, terrain, apex0, push, roll, yaw_rate = st.backend.forbid_derivatives(
-            (params, terrain, apex0, push, roll, yaw_rate))
-        mx1 = hmodel.instance_model(st.mx, st.ids, terrain)
-        d0 = self.initial_data(mx1, params, apex0, roll, yaw_rate)
-        cfg = dataclasses.replace(self.sim_config, record_every=0)
-        res = sim.rollout(mx1, st.ids, d0, bctrl.bounding_controller, params, cfg, self.metrics, None, push)
-        return outcome(res), res.data
-
-    def runner(self, mesh=None) -> srunner.BatchRunner:
-        """The batch runner: :func:`batch_runner` of this config without a mesh (shared with it), one kept per mesh
-        otherwise."""
-        if mesh is None:
-            return batch_runner(self.sim_config, self.setup.impl)
-        key = (tuple(mesh.devices.flat), mesh.axis_names)
-        if key not in self._runners:
-            self._runners[key] = self.setup.backend.make_runner(self.setup.ids, bctrl.bounding_controller,
-                                                                self.sim_config, self.metrics, record, params_axes=0,
-                                                                mesh=mesh)
-        return self._runners[key]
-
-    def run(self, batch: bbatch.Batch, progress: Callable[[float, float], None] | None = None, mesh=None,
-            chunk_seconds: float | None = None) -> tuple[BoundingOutcome, sim.RolloutResult]:
-        """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, :class:`FallMetrics`,
-        trace of :func:`record` when ``cfg.record_every``). ``progress(done_s, total_s)``
-        is called between chunks of simulated time (every second unless ``chunk_seconds``)."""
-        self.cfg.check_period(batch.params.gait.period)
-        st = self.setup
-        mb = st.backend.batch_model(st.mx, st.ids, batch.terrain)
-        d0 = st.backend.from_jax_data(mb, apex_initial_data(batch, st.m, st.mx_jax), st.m)
-        res = self.runner(mesh)(mb, d0, batch.params, batch.push, progress=progress, chunk_seconds=chunk_seconds)
-        return self._outcomes(res._replace(trace=None)), res
+        return super().__call__(params, (terrain, apex0, push, roll, yaw_rate))
 
 
 def make_bounding_rollout(cfg: BoundingRolloutConfig = BoundingRolloutConfig()) -> BoundingRollout:
@@ -374,21 +385,6 @@ def apex_initial_data(batch: bbatch.Batch, m: mujoco.MjModel, mx: mjx.Model) -> 
 
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
     return jax.vmap(one)(batch.params, f32(batch.apex0), f32(batch.roll0), f32(batch.yaw_rate0))
-
-
-def batch_runner(cfg: sim.SimConfig, impl: str = "jax"):
-    """The batch runner of the bound for a static configuration and resolved MJX implementation (the backend's
-    :func:`hyqjax.sim.runner.make_batch_runner`, built once per ``(cfg, impl)``, since a runner fixes the batched
-    model's structure, and compiled once per batch shape): ``runner(mx_batched, d0, params, push, progress=None,
-    chunk_seconds=None) -> RolloutResult`` with :class:`FallMetrics` and the trace of :func:`record`
-    (``cfg.record_every`` 0: none). Every argument has a leading batch axis."""
-    return _batch_runner(cfg, impl)
-
-
-@functools.lru_cache(maxsize=8)
-def _batch_runner(cfg: sim.SimConfig, impl: str):
-    _, _, ids = bc.model()
-    return backend.get(impl).make_runner(ids, bctrl.bounding_controller, cfg, fall_metrics(), record)
 
 
 def run(batch: bbatch.Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,

@@ -23,8 +23,12 @@ import argparse
 import os
 import time
 
+from hyqjax.studies import tasks
+
 
 NAME = "bound"
+#: The task this command runs (:mod:`hyqjax.studies.tasks`; reading it imports nothing heavy).
+TASK = tasks.get("bound")
 HELP = "bounding gait: in place, forward, turning; yaw / speed tracking, falls, ablation"
 ORDER = 40
 
@@ -61,9 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "default: the paper's reference cycle with the default gains")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     from hyqjax.cli.common import add_impl_argument
-    from hyqjax.sim.backend import MJX_IMPLS
 
-    add_impl_argument(p, MJX_IMPLS)  # bounding runs on MJX
+    add_impl_argument(p, TASK.impls)  # bounding runs on MJX
 
 
 def validate(args) -> None:
@@ -79,9 +82,8 @@ def check_options(args) -> None:
     """Every option checked, here and by ``bounding.batch.validate_run``, before anything is compiled;
     raises ValueError naming the option and its allowed range."""
     from hyqjax.cli.common import check_impl, check_out_free, check_range
-    from hyqjax.sim.backend import MJX_IMPLS
 
-    check_impl(args.impl, supported=MJX_IMPLS)
+    check_impl(args.impl, supported=TASK.impls)
 
     for opt, v, lo, hi, unit in (("--speed", args.speed, -1.5, 1.5, "m/s"), ("--yaw-rate", args.yaw_rate, -1.5, 1.5,
                                                                               "rad/s"),
@@ -132,9 +134,11 @@ def configurations(args) -> list[tuple[str, bool, bool]]:
 
 
 def run(args) -> int:
+    import jax
+    import numpy as np
+
     from hyqjax.bounding import batch as bbatch
     from hyqjax.bounding import params as bd
-    from hyqjax.bounding import rollout as brollout
     from hyqjax.bounding import summary as bs
     from hyqjax.cli.common import user_options
     from hyqjax.io import atomic as io
@@ -165,7 +169,9 @@ def run(args) -> int:
           f"{int(round(args.duration / 0.002))} ticks", flush=True)
     t0 = time.time()
     with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
-        res, trace = brollout.run(batch, duration=args.duration, progress=progress, impl=args.impl)
+        cfg = TASK.config(duration=args.duration, record_every=10, impl=args.impl)
+        _, res = TASK.rollout(cfg).run(batch, progress=progress)
+    trace = jax.tree_util.tree_map(np.asarray, res.trace)
     wall = time.time() - t0
     status = progress.status
     summary = bs.summarise(res, trace, batch)
@@ -175,10 +181,8 @@ def run(args) -> int:
         groups[name] = dict(kinematic_adjustment=kin, centrifugal=cf, aggregate=bs.aggregate(per),
                             instances=[p.to_dict() for p in per])
     opts = user_options(args)
-    from hyqjax.sim import backend
-
     n_ticks = int(round(args.duration / 0.002))
-    out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=backend.resolve_impl(args.impl),
+    out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=TASK.rollout(cfg).setup.impl,
                wall_time_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
                env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                batches=status.timings, groups=groups)

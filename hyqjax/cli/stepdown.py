@@ -27,7 +27,11 @@ import os
 import sys
 import time
 
+from hyqjax.studies import tasks
+
 NAME = "stepdown"
+#: The task this command runs (:mod:`hyqjax.studies.tasks`; reading it imports nothing heavy).
+TASK = tasks.get("stepdown")
 HELP = "step down from a platform with the height reflex on and off (the paper's headline experiment)"
 ORDER = 10
 
@@ -53,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
                         "results.json); the file format is in hyqjax/io/recording.py")
     p.add_argument("--out", default="out/stepdown", help="output directory")
-    add_impl_argument(p)
+    add_impl_argument(p, TASK.impls)
 
 
 SEED_MAX = 2**32 - 1
@@ -74,7 +78,7 @@ def validate(args) -> None:
     check_range("--speed", args.speed, v_f.lo, v_f.hi, v_f.unit)
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
-    check_impl(args.impl)
+    check_impl(args.impl, supported=TASK.impls)
     args.recorded = _recorded_instances(args)
     args.duration_warning = _check_duration(args)
     prepare_out(args.out)
@@ -95,11 +99,14 @@ def _check_duration(args) -> str | None:
 
 
 def run(args) -> int:
+    import jax
+    import numpy as np
+
     from hyqjax.crawl import controller as crawl
     from hyqjax.cli.common import sim_progress, user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
-    from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown, stepdown_outcome
 
     if not getattr(args, "options_checked", False):
         validate(args)
@@ -111,7 +118,7 @@ def run(args) -> int:
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every
-    cfg = stepdown.StepdownConfig(duration=args.duration, record_every=record_every, impl=args.impl)
+    cfg = TASK.config(duration=args.duration, record_every=record_every, impl=args.impl)
     n = scenario.batch_size
     n_ticks = cfg.sim_config().n_ticks
     impl = stepdown.setup(cfg).impl
@@ -119,7 +126,9 @@ def run(args) -> int:
           f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
     t0 = time.time()
     with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
-        out, trace = stepdown.run_batch(scenario, cfg, progress=progress)
+        outcome, res = TASK.rollout(cfg).run(scenario, progress=progress)
+    out = stepdown_outcome.to_columns(outcome)
+    trace = jax.tree_util.tree_map(np.asarray, res.trace) if record_every else None
     wall = time.time() - t0
     status = progress.status
     rows = stepdown.summarize(table, out)

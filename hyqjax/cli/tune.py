@@ -463,9 +463,12 @@ def _run_wallclock(args) -> int:
                   f"iteration {pt.get('selected_iteration', 0)}, validation clean "
                   f"{pt.get('validation_clean', float('nan')):.3f}")
     w = wallclock.winner(res, cfg.wall_minutes[-1])
-    if args.study and w:
+    if args.study and w and not w["others"]:
+        print(f"only run at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; no other "
+              f"method or parameterisation in this directory to compare with)")
+    elif args.study and w:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
-              f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the others')")
+              f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
     return 0
 

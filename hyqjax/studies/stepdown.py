@@ -3,6 +3,10 @@
 HyQ starts on a platform of height ``h`` (front feet ``start_distance`` before the edge) and crawls
 forward; the experiment runs the same batch with the height reflex on and off.
 
+The experiment is a task (:class:`StepdownTask`, :mod:`hyqjax.sim.task`): the crawl controller, the step-down
+metrics and outcome, and how a :class:`Scenario` becomes a simulator's model and initial data; the generic
+:class:`hyqjax.sim.task.Rollout` runs it. :mod:`hyqjax.studies.tasks` registers it as ``stepdown``.
+
 Entry points:
 
 * :func:`make_stepdown_rollout` ``(cfg) -> StepdownRollout``, compiled once per static config (cached):
@@ -26,20 +30,21 @@ import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np
-from mujoco import mjx
 
 from hyqjax.core import robot
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
+from hyqjax.sim import task
 from hyqjax.studies import stepdown_outcome as so
+from hyqjax.studies import tasks
 from hyqjax.studies.stepdown_outcome import FAILURE_REASONS, StepdownOutcome, failure_labels  # noqa: F401
 from hyqjax.studies.stepdown_table import format_table, summarize, wilson_interval  # noqa: F401
 
 
-#: The simulators the step-down runs on (:mod:`hyqjax.sim.backend`).
-SUPPORTED_IMPLS = backend.ALL_IMPLS
+#: The simulators the step-down runs on (:mod:`hyqjax.sim.backend`; declared once, in the task registry).
+SUPPORTED_IMPLS = tasks.get("stepdown").impls
 
 
 @dataclasses.dataclass(frozen=True)
@@ -203,8 +208,41 @@ def make_metrics(ids: hmodel.ModelIds, cfg: StepdownConfig) -> sim.Metrics:
     return so.make_metrics(ids, cfg.strike_force, cfg.max_tilt if cfg.terminate else None)
 
 
-class StepdownRollout:
-    """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`).
+class StepdownTask(task.Task):
+    """The step-down as a :class:`hyqjax.sim.task.Task`: the crawl with the reflex (:func:`hyqjax.crawl.controller.
+    crawl_controller`), the step-down metrics with the episode end at a fall (:func:`make_metrics`), the figures'
+    trace (:func:`record_trace`), the outcome of :mod:`hyqjax.studies.stepdown_outcome`; an instance is a
+    :class:`Scenario` without batch axes (its ``params`` field unused: the parameters are the rollout's
+    argument), a batch is a :class:`Scenario` with them."""
+
+    def __init__(self, cfg: StepdownConfig):
+        self.cfg = cfg
+        self.sim_config = cfg.sim_config()
+        self.controller = crawl.crawl_controller(cfg.control_dt)
+        self.ids = setup(cfg).ids  # the same model under every simulator
+        self.metrics = make_metrics(self.ids, cfg)
+        sites = np.asarray(self.ids.foot_sites)
+        self.record = lambda d, o, i: record_trace(d, o, i, sites)
+
+    def setup(self, differentiable: bool = False) -> StepdownSetup:
+        return setup(self.cfg, differentiable=differentiable)
+
+    def outcome(self, res: sim.RolloutResult) -> StepdownOutcome:
+        return so.outcome(res, self.ids, self.cfg.max_tilt, self.cfg.min_progress)
+
+    def instance_inputs(self, st: StepdownSetup, params, scenario: Scenario):
+        mx1 = hmodel.instance_model(st.mx, st.ids, scenario.terrain)
+        q0 = start_qpos(jnp.asarray(hmodel.standing_qpos(st.m), st.mx.qpos0.dtype), scenario.start_distance,
+                        scenario.lateral_offset, scenario.yaw, scenario.terrain.platform_height, xp=jnp)
+        return mx1, sim.initial_data(mx1, q0, m=st.m), scenario.push
+
+    def batch_inputs(self, st: StepdownSetup, scenario: Scenario):
+        return batch_inputs(st, scenario)
+
+
+class StepdownRollout(task.Rollout):
+    """The step-down closed loop for one static config (built by :func:`make_stepdown_rollout`): the generic
+    :class:`hyqjax.sim.task.Rollout` of :class:`StepdownTask`.
 
     ``rollout(params, scenario) -> (StepdownOutcome, mjx.Data)``: ONE instance (``scenario`` without batch
     axes; its ``params`` field is ignored), pure JAX under ``jit`` / ``vmap`` / ``jacfwd`` (``impl="jax"``, and
@@ -212,52 +250,11 @@ class StepdownRollout:
     one-instance call itself, are a ``ValueError``: Warp runs batches, whose contacts share one buffer, and C
     MuJoCo steps batches outside JAX). ``rollout.run(scenario)``:
     a batch through the simulator's batch runner (jitted, chunked; sharded under MJX), compiled once per batch
-    shape and mesh.
+    shape and mesh, returning ``(StepdownOutcome, RolloutResult)``.
     """
 
     def __init__(self, cfg: StepdownConfig):
-        self.cfg = cfg
-        self.setup = setup(cfg)
-        self.sim_config = cfg.sim_config()
-        self.controller = crawl.crawl_controller(cfg.control_dt)
-        self.metrics = make_metrics(self.setup.ids, cfg)
-        sites = np.asarray(self.setup.ids.foot_sites)
-        self.record = (lambda d, o, i: record_trace(d, o, i, sites)) if cfg.record_every else None
-        self._runners: dict = {}
-        self._outcomes = jax.jit(jax.vmap(self.outcome))
-
-    def outcome(self, res: sim.RolloutResult) -> StepdownOutcome:
-        """The outcome of one instance's rollout result (pure JAX)."""
-        return so.outcome(res._replace(trace=None), self.setup.ids, self.cfg.max_tilt, self.cfg.min_progress)
-
-    def __call__(self, params: crawl.CrawlParams, scenario: Scenario) -> tuple[StepdownOutcome, mjx.Data]:
-        st = setup(self.cfg, differentiable=True)
-        params, scenario = st.backend.forbid_derivatives((params, scenario))
-        if st.backend.one_instance_error is not None:
-            raise ValueError(f"the one-instance rollout needs impl='jax' ({st.backend.one_instance_error}); run "
-                             f"{st.impl} batches with rollout.run(scenario)")
-        mx1 = hmodel.instance_model(st.mx, st.ids, scenario.terrain)
-        q0 = start_qpos(jnp.asarray(hmodel.standing_qpos(st.m), st.mx.qpos0.dtype), scenario.start_distance,
-                        scenario.lateral_offset, scenario.yaw, scenario.terrain.platform_height, xp=jnp)
-        d0 = sim.initial_data(mx1, q0, m=st.m)
-        cfg = dataclasses.replace(self.sim_config, record_every=0)
-        res = sim.rollout(mx1, st.ids, d0, self.controller, params, cfg, self.metrics, None, scenario.push)
-        return self.outcome(res), res.data
-
-    def runner(self, mesh=None):
-        """The simulator's batch runner (one per mesh), built once and kept."""
-        key = None if mesh is None else (tuple(mesh.devices.flat), mesh.axis_names)
-        if key not in self._runners:
-            self._runners[key] = self.setup.backend.make_runner(self.setup.ids, self.controller, self.sim_config,
-                                                                self.metrics, self.record, params_axes=0, mesh=mesh)
-        return self._runners[key]
-
-    def run(self, scenario: Scenario, mesh=None, progress: Callable[[float, float], None] | None = None,
-            chunk_seconds: float | None = None) -> tuple[StepdownOutcome, sim.RolloutResult]:
-        """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, metrics, trace)."""
-        mb, d0 = batch_inputs(self.setup, scenario)
-        res = self.runner(mesh)(mb, d0, scenario.params, scenario.push, progress=progress, chunk_seconds=chunk_seconds)
-        return self._outcomes(res._replace(trace=None)), res
+        super().__init__(StepdownTask(cfg))
 
 
 def make_stepdown_rollout(cfg: StepdownConfig = StepdownConfig()) -> StepdownRollout:

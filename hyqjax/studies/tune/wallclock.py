@@ -648,8 +648,9 @@ def budget_curves(res: dict) -> list:
 
 
 def winner(res: dict, minutes: float) -> dict | None:
-    """The (method, dim) with the highest held-out clean success at ``minutes`` (ties: higher completed), and
-    whether its 95% interval is clear of every other's."""
+    """The (method, dim) with the highest held-out clean success at ``minutes`` (ties: higher completed), how many
+    other (method, dim) runs it was compared with (``others``), and whether its 95% interval is clear of every
+    other's (False when there is no other: a lone run wins nothing)."""
     rows = []
     for c in res.get("budget_curves", []):
         p = next((p for p in c["points"] if abs(p["minutes"] - minutes) < 1e-9), None)
@@ -659,6 +660,6 @@ def winner(res: dict, minutes: float) -> dict | None:
         return None
     rows.sort(key=lambda r: (r[0], r[1]), reverse=True)
     best = rows[0]
-    clear = all(best[4]["clean_ci95"][0] > r[4]["clean_ci95"][1] for r in rows[1:])
+    clear = len(rows) > 1 and all(best[4]["clean_ci95"][0] > r[4]["clean_ci95"][1] for r in rows[1:])
     return dict(method=best[2], dim=best[3], clean=best[0], completed=best[1], clean_ci95=best[4]["clean_ci95"],
-                clear_of_all_others=bool(clear))
+                others=len(rows) - 1, clear_of_all_others=bool(clear))
