@@ -43,8 +43,20 @@ from hyqjax.reflex import step as reflex
 from hyqjax.core.types import Controller, Observation
 
 
+def loaded_stance(p: CrawlParams, stance, foot_force_b, h_r_b):
+    """The stance legs that carry the trunk: those of ``stance`` whose estimated ground reaction force along the
+    vertical exceeds ``p.stance_min_force``, as long as at least two do (else every stance leg, as with
+    ``stance_min_force`` 0). A stance foot that has slipped off an edge presses on nothing; loading it anyway drives
+    its leg at the torque the trunk's weight asks for (docs/stepdown.md, "Divergences")."""
+    up_b = h_r_b.T @ jnp.array([0.0, 0.0, 1.0], h_r_b.dtype)
+    pressing = (foot_force_b @ up_b) > p.stance_min_force
+    gated = stance * pressing.astype(stance.dtype)
+    return jnp.where((p.stance_min_force > 0) & (jnp.sum(gated) >= 2), gated, stance)
+
+
 def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas, p_des, v_des, rp_des):
-    """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP, as joint torques ``(12,)``."""
+    """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP over the loaded stance feet
+    (:func:`loaded_stance`), as joint torques ``(12,)``."""
     dtype = p_des.dtype
     h_r_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1])
     x_meas_b = kinematics.foot_positions(obs.q)
@@ -60,7 +72,7 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas,
     rp_err = jnp.concatenate([rp_des - rp_meas, jnp.zeros(1, dtype)])
     torque = p.k_rot * rp_err - p.d_rot * (h_r_b @ obs.gyro)
     distribute = trunk_control.distribute_wrench if p.weight_qp else trunk_control.clipped_least_norm  # static
-    f_h = distribute(r_h, st.stance, force, torque, p.mu)
+    f_h = distribute(r_h, loaded_stance(p, st.stance, obs.foot_force, h_r_b), force, torque, p.mu)
     return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
 
 

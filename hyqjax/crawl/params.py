@@ -116,6 +116,8 @@ class CrawlParams:
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
     joint_speed_limit: jax.Array = param_field(robot.VELOCITY_LIMIT, 1.0, 1000.0, "rad/s",
                                                "no torque along a joint's motion beyond this speed (+ band)")
+    stance_min_force: jax.Array = param_field(0.0, 0.0, 500.0, "N", "a stance foot carries trunk load only while "
+                                              "it presses harder than this along the vertical (0: every stance foot)")
     weight_qp: bool = param_field(False, doc="friction-pyramid QP (True) or clipped least norm (False); static",
                                   static=True)
     foot_sequence: jax.Array = dataclasses.field(
@@ -132,7 +134,7 @@ class CrawlParams:
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS,
              search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, step_down_lowering=0.0,
              terrain_adaptation_step=0.0, velocity_feedforward=0.0, joint_margin=0.0,
-             joint_speed_limit=robot.VELOCITY_LIMIT, weight_qp=False,
+             joint_speed_limit=robot.VELOCITY_LIMIT, stance_min_force=0.0, weight_qp=False,
              foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
              gains: impedance.ImpedanceGains | None = None,
              reflex_params: reflex.ReflexParams | None = None) -> "CrawlParams":
@@ -148,7 +150,7 @@ class CrawlParams:
                      search_forward_limit=search_forward_limit, step_down_lowering=step_down_lowering,
                      terrain_adaptation_step=terrain_adaptation_step,
                      velocity_feedforward=velocity_feedforward, joint_margin=joint_margin,
-                     joint_speed_limit=joint_speed_limit)
+                     joint_speed_limit=joint_speed_limit, stance_min_force=stance_min_force)
         specs = param_ranges(CrawlParams)
         vals = {}
         for name, v in given.items():
