@@ -484,3 +484,38 @@ def test_usage_errors_refused_before_heavy_imports():
     for case in SPEC_REFUSALS:
         p = run_python(code.format(cases=[case]), timeout=120)
         assert p.stdout.strip() == "2 ['jax']", (case, p.stdout, p.stderr)
+
+
+def test_compilation_cache_is_kept_per_host_cpu(monkeypatch, tmp_path):
+    """JAX's cache key does not hold the CPU's instruction set, so the cache directory does: hosts whose CPUs
+    differ (nodes of a cluster sharing a home directory) get different subdirectories, the same CPU the same one;
+    ``$HYQJAX_CACHE_DIR`` gets the subdirectory too, JAX's own ``$JAX_COMPILATION_CACHE_DIR`` is used as given."""
+    import builtins
+    import io
+
+    from hyqjax.io import cache
+
+    real_open = builtins.open
+
+    def cpuinfo(flags):
+        def fake_open(path, *a, **k):
+            if path == "/proc/cpuinfo":
+                return io.StringIO(f"processor\t: 0\nflags\t\t: {flags}\n")
+            return real_open(path, *a, **k)
+        return fake_open
+
+    keys = {}
+    for name, flags in (("avx512", "fpu sse2 avx2 avx512f"), ("avx512_reordered", "avx512f avx2 sse2 fpu"),
+                        ("avx2", "fpu sse2 avx2")):
+        monkeypatch.setattr(builtins, "open", cpuinfo(flags))
+        keys[name] = cache.host_cpu_key()
+    monkeypatch.setattr(builtins, "open", real_open)
+    assert keys["avx512"] == keys["avx512_reordered"] != keys["avx2"]
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("HYQJAX_CACHE_DIR", str(tmp_path / "shared"))
+    assert cache.cache_dir() == str(tmp_path / "shared" / cache.host_cpu_key())
+    monkeypatch.delenv("HYQJAX_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cache.cache_dir() == str(tmp_path / "xdg" / "hyqjax" / "jax" / cache.host_cpu_key())
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jaxown"))
+    assert cache.cache_dir() == str(tmp_path / "jaxown")

@@ -2,7 +2,7 @@
 
 Every ``hyqjax`` command turns it on (``--no-cache`` to skip), and so does every Ray worker of a sweep, in
 :func:`cache_dir`: ``$HYQJAX_CACHE_DIR``, else ``$JAX_COMPILATION_CACHE_DIR``, else ``$XDG_CACHE_HOME/hyqjax/jax``
-(``~/.cache/hyqjax/jax``).
+(``~/.cache/hyqjax/jax``), in a subdirectory per host CPU (:func:`host_cpu_key`) but for JAX's own variable.
 JAX keys each entry by the program, the compile options, the backend and the JAX version, so a changed
 model, batch shape or installation compiles anew. Every program is cached (minimum compile time 0 s),
 including the small ones around the rollout.
@@ -20,14 +20,38 @@ import sys
 import threading
 
 
+def host_cpu_key() -> str:
+    """A short key of this host's CPU (architecture and instruction-set flags: ``/proc/cpuinfo``'s ``flags``
+    line on Linux, else ``platform.processor()``). JAX's cache key holds the program, the compile options, the
+    backend and the device kind ("cpu"), not the CPU's instruction set, so XLA:CPU code compiled on one host would
+    be loaded on another with other instructions (XLA only warns that this "could lead to execution errors such
+    as SIGILL"): on a cluster whose nodes share a home directory, each kind of CPU gets its own cache."""
+    import hashlib
+    import platform
+
+    features = ""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith(("flags", "Features")):
+                    features = " ".join(sorted(line.split(":", 1)[1].split()))
+                    break
+    except OSError:
+        pass
+    ident = f"{platform.machine()}|{features or platform.processor()}"
+    return f"{platform.machine() or 'cpu'}-{hashlib.sha256(ident.encode()).hexdigest()[:12]}"
+
+
 def cache_dir() -> str:
-    """``$HYQJAX_CACHE_DIR``, else JAX's own ``$JAX_COMPILATION_CACHE_DIR``, else ``$XDG_CACHE_HOME/hyqjax/jax``
-    (``~/.cache/hyqjax/jax``)."""
-    for var in ("HYQJAX_CACHE_DIR", "JAX_COMPILATION_CACHE_DIR"):
-        if os.environ.get(var):
-            return os.environ[var]
+    """``$HYQJAX_CACHE_DIR/<host CPU>``, else JAX's own ``$JAX_COMPILATION_CACHE_DIR`` (as given), else
+    ``$XDG_CACHE_HOME/hyqjax/jax/<host CPU>`` (``~/.cache/hyqjax/jax/<host CPU>``); ``<host CPU>`` is
+    :func:`host_cpu_key`, so hosts with different instruction sets never load each other's programs."""
+    if os.environ.get("HYQJAX_CACHE_DIR"):
+        return os.path.join(os.environ["HYQJAX_CACHE_DIR"], host_cpu_key())
+    if os.environ.get("JAX_COMPILATION_CACHE_DIR"):
+        return os.environ["JAX_COMPILATION_CACHE_DIR"]
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "hyqjax", "jax")
+    return os.path.join(base, "hyqjax", "jax", host_cpu_key())
 
 
 def enable_compilation_cache(path: str | None = None) -> str | None:
