@@ -891,3 +891,51 @@ def test_winner_is_clear_only_of_runs_that_exist():
     w = wallclock.winner(clear, 10.0)
     assert w["method"] == "cma_es" and w["clear_of_all_others"]
     assert wallclock.winner(clear, 3.0) is None
+
+
+def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
+    """Repeated study runs (another seed each): per member, every run's held-out clean rate, the mean and the
+    95% Student-t interval over runs (m +- t_{0.975,n-1} s / sqrt(n)); a member is apart from another only when
+    its interval over runs lies above the other's; runs of another configuration or held-out set are refused
+    naming what differs (the stored 14- and 68-coordinate H200 studies differ in their parameterisations)."""
+    import json as _json
+    from scipy import stats
+
+    from hyqjax.studies.tune import repeats
+
+    def study(seed, cma, rs):
+        cfg = dict(seed=seed, methods=["cma_es", "random_search"], dims=["shared"], popsize=16)
+        runs = {f"{m}/shared": dict(method=m, dim="shared") for m in ("cma_es", "random_search")}
+        held = {"cma_es/shared@10min": dict(clean=cma, completed=0.9, clean_ci95=[cma - 0.02, cma + 0.02], n=2000),
+                "random_search/shared@10min": dict(clean=rs, completed=0.8, clean_ci95=[rs - 0.02, rs + 0.02], n=2000),
+                "start": dict(clean=0.41, completed=0.6, clean_ci95=[0.39, 0.43], n=2000)}
+        return dict(kind="wallclock", config=cfg, runs=runs, heldout=held, heldout_set=dict(seed=7777, instances=2000))
+
+    res = [study(0, 0.60, 0.50), study(1, 0.62, 0.52), study(2, 0.58, 0.49)]
+    out = repeats.collect(res, ["a", "b", "c"], 10.0)
+    c = out["cma_es/shared"]["clean"]
+    m, s = np.mean([0.60, 0.62, 0.58]), np.std([0.60, 0.62, 0.58], ddof=1)
+    half = stats.t.ppf(0.975, 2) * s / np.sqrt(3)
+    assert c["n"] == 3 and c["mean"] == pytest.approx(m) and c["ci95"] == pytest.approx([m - half, m + half])
+    assert [r["seed"] for r in out["cma_es/shared"]["runs"]] == [0, 1, 2]
+    assert out["cma_es/shared"]["apart_from"] == ["random_search/shared", "start"]
+    assert "random_search/shared" not in out["start"]["apart_from"]
+    assert "cma_es/shared" in repeats.table(out, 10.0)
+    one = repeats.collect(res[:1], ["a"], 10.0)
+    assert one["cma_es/shared"]["clean"]["ci95"] is None and one["cma_es/shared"]["apart_from"] == []
+    other = study(3, 0.6, 0.5)
+    other["config"]["popsize"] = 32
+    with pytest.raises(ValueError, match="popsize"):
+        repeats.collect(res + [other], ["a", "b", "c", "d"], 10.0)
+    moved = study(3, 0.6, 0.5)
+    moved["heldout_set"] = dict(seed=1, instances=2000)
+    with pytest.raises(ValueError, match="another held-out set"):
+        repeats.collect(res + [moved], ["a", "b", "c", "d"], 10.0)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    stored = [os.path.join(repo, "docs", "results", d) for d in ("tune_wallclock_h200_10min", "tune_wallclock_h200_10min_68")]
+    loaded = [repeats.load(d) for d in stored]
+    with pytest.raises(ValueError, match="dims"):
+        repeats.collect(loaded, stored, 10.0)
+    (tmp_path / "results.json").write_text(_json.dumps(dict(kind="gradient")))
+    with pytest.raises(ValueError, match="not an equal-wall-clock study"):
+        repeats.load(str(tmp_path))

@@ -1,0 +1,117 @@
+"""Repeated runs of the equal-wall-clock study: how much one method's result varies from run to run, and which
+methods are apart once that is counted.
+
+One run of a method gives one held-out clean rate with a Wilson interval over the held-out instances; a second
+run of the same method (another ``--seed``, or the same seed on MuJoCo Warp, whose batched results are not bitwise
+reproducible) returns other parameters, and on 68 coordinates two such runs differed by 0.09 (docs/tuning.md),
+more than the methods did. The interval that ranks methods is therefore the one over runs:
+
+* for each (method, parameterisation) and budget, the held-out clean (and completed) rate of every run, their mean
+  ``m`` and sample standard deviation ``s`` over the ``n`` runs, and the 95% Student-t interval of the mean,
+  ``m +- t_{0.975, n-1} s / sqrt(n)`` (none for one run);
+* a method is *apart* from another when its interval over runs lies entirely above the other's.
+
+Every run must be a study directory of one configuration but for its seed (``config.seed``) and methods, on the
+same held-out set (``heldout_set``); anything else is refused naming the first setting that differs.
+``python -m experiments.tune_repeats DIR [DIR ...] --minutes 10`` prints the table and writes JSON.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+
+import numpy as np
+
+#: Settings that may differ between the runs of one comparison.
+FREE_SETTINGS = ("seed", "methods")
+
+
+def load(directory: str) -> dict:
+    """``results.json`` of a study directory (a ``ValueError`` naming the directory if it has none)."""
+    path = os.path.join(directory, "results.json")
+    try:
+        with open(path) as f:
+            res = json.load(f)
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{directory}: no readable results.json ({e})") from None
+    if res.get("kind") != "wallclock":
+        raise ValueError(f"{directory}: results.json is not an equal-wall-clock study")
+    return res
+
+
+def check_comparable(results: list[dict], names: list[str]) -> None:
+    """Refuse runs of different configurations (but for their seed and methods) or held-out sets."""
+    ref, ref_name = results[0], names[0]
+    fixed = {k: v for k, v in ref["config"].items() if k not in FREE_SETTINGS}
+    for res, name in zip(results[1:], names[1:]):
+        other = {k: v for k, v in res["config"].items() if k not in FREE_SETTINGS}
+        for k in sorted(set(fixed) | set(other)):
+            if fixed.get(k) != other.get(k):
+                raise ValueError(f"{name} differs from {ref_name} in {k}: {other.get(k)!r} against {fixed.get(k)!r}")
+        if res.get("heldout_set") != ref.get("heldout_set"):
+            raise ValueError(f"{name} was evaluated on another held-out set than {ref_name}")
+
+
+def t_quantile(df: int) -> float:
+    """The 0.975 quantile of Student's t with ``df`` degrees of freedom."""
+    from scipy import stats
+
+    return float(stats.t.ppf(0.975, df))
+
+
+def over_runs(values: list[float]) -> dict:
+    """Mean, sample standard deviation and the 95% t-interval of the mean of one value per run."""
+    v = np.asarray(values, np.float64)
+    n = int(v.size)
+    mean = float(v.mean())
+    if n < 2:
+        return dict(n=n, mean=mean, sd=None, ci95=None)
+    sd = float(v.std(ddof=1))
+    half = t_quantile(n - 1) * sd / math.sqrt(n)
+    return dict(n=n, mean=mean, sd=sd, ci95=[mean - half, mean + half])
+
+
+def collect(results: list[dict], names: list[str], minutes: float) -> dict:
+    """Per member (``method/dim``, and ``start``, ``table1``): the held-out clean and completed rate of every run
+    at ``minutes`` (with the run's name and seed) and :func:`over_runs` of both."""
+    check_comparable(results, names)
+    from hyqjax.studies.tune.wallclock import member_key
+
+    rows: dict[str, list] = {}
+    for res, name in zip(results, names):
+        seed = res["config"].get("seed")
+        for key, run in res.get("runs", {}).items():
+            h = res["heldout"].get(member_key(run["method"], run["dim"], minutes * 60.0))
+            if h is not None:
+                rows.setdefault(key, []).append(dict(run=name, seed=seed, clean=h["clean"], completed=h["completed"],
+                                                     clean_ci95=h["clean_ci95"], n=h["n"]))
+        for ref in ("start", "table1"):
+            if ref in res["heldout"]:
+                h = res["heldout"][ref]
+                rows.setdefault(ref, []).append(dict(run=name, seed=seed, clean=h["clean"], completed=h["completed"],
+                                                     clean_ci95=h["clean_ci95"], n=h["n"]))
+    out = {}
+    for key, runs in rows.items():
+        out[key] = dict(runs=runs, clean=over_runs([r["clean"] for r in runs]),
+                        completed=over_runs([r["completed"] for r in runs]))
+    for key, row in out.items():
+        ci = row["clean"]["ci95"]
+        row["apart_from"] = sorted(k for k, o in out.items() if k != key and ci is not None
+                                   and o["clean"]["ci95"] is not None and ci[0] > o["clean"]["ci95"][1])
+    return out
+
+
+def table(summary: dict, minutes: float) -> str:
+    """A markdown table of :func:`collect`'s summary, best mean clean first."""
+    lines = [f"held-out clean success at {minutes:g} min over runs (95% t-interval of the mean over runs)", "",
+             "| member | runs | clean per run | clean: mean [95% over runs] | sd | completed: mean | apart from |",
+             "|---|---:|---|---|---:|---:|---|"]
+    for key, row in sorted(summary.items(), key=lambda kv: -kv[1]["clean"]["mean"]):
+        c = row["clean"]
+        ci = "–" if c["ci95"] is None else f"[{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}]"
+        sd = "–" if c["sd"] is None else f"{c['sd']:.3f}"
+        per = ", ".join(f"{r['clean']:.3f}" for r in row["runs"])
+        lines.append(f"| {key} | {c['n']} | {per} | {c['mean']:.3f} {ci} | {sd} | {row['completed']['mean']:.3f} | "
+                     f"{', '.join(row['apart_from']) or '–'} |")
+    return "\n".join(lines)
