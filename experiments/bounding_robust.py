@@ -133,6 +133,23 @@ def config_of(args) -> dict:
     return json.loads(json.dumps(d))
 
 
+def save_heldout_instances(path: str, batch, cols: dict) -> str:
+    """Every held-out instance of one parameter set, one row each, to ``path`` (NumPy ``.npz``, written
+    atomically): its command (``speed_cmd``, ``lateral_cmd``, ``yaw_rate_cmd``), ``friction``, ``payload`` and
+    every outcome column of the run (``success``, the fall reasons, ``yaw_error_max_deg``, ``cost``, ...), so a fall
+    of the summary can be traced to the instance that fell. Returns the file's name."""
+    from hyqjax.io import atomic
+
+    cmd = batch.params.command
+    rows = dict(speed_cmd=np.asarray(cmd.velocity)[:, 0], lateral_cmd=np.asarray(cmd.velocity)[:, 1],
+                yaw_rate_cmd=np.asarray(cmd.yaw_rate), friction=np.asarray(batch.terrain.friction),
+                payload=np.asarray(batch.terrain.payload_mass))
+    n = rows["speed_cmd"].shape[0]
+    rows.update({k: np.asarray(v) for k, v in cols.items() if np.ndim(v) >= 1 and np.shape(v)[0] == n})
+    atomic.atomic_write(path, lambda f: np.savez_compressed(f, **rows))
+    return os.path.basename(path)
+
+
 def main(argv=None) -> int:
     args = parse(argv)
     try:
@@ -302,6 +319,8 @@ def run(args) -> dict:
             worst = s["yaw_error_worst_deg"]
             s["target_met"] = bool(s["failures"] == 0 and worst is not None and worst < envelope.YAW_LIMIT_DEG)
             res["heldout"]["methods"][m] = s
+            res["heldout"]["methods"][m]["instances_file"] = save_heldout_instances(
+                os.path.join(args.out, f"heldout_{m}.npz"), ho, cols)
             log(f"held-out {m}: failures {s['failures']}/{s['n']} {s['reasons']}, worst yaw "
                 f"{s['yaw_error_worst_deg']}, "
                 f"> 4 deg {s['yaw_over_4deg']}, cost {s['cost_mean']:.3f}")

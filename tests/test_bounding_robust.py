@@ -287,3 +287,27 @@ def test_small_map_tracks_and_counts():
     pc = be.summarise(spec, cols)
     assert [c["speed"] for c in pc] == [0.0, 0.5] and all(c["failures"] == 0 for c in pc)
     assert be.safe_area(spec, pc)["area_point"] == 0.0  # one yaw rate: a line, no area
+
+
+def test_heldout_instances_are_stored_one_row_each(tmp_path):
+    """The robust-bounding study keeps every held-out instance (command, friction, payload and its outcome
+    columns) so that a fall in its summary can be traced to the instance that fell."""
+    import os
+
+    from experiments.bounding_robust import save_heldout_instances
+    from hyqjax.bounding import batch as bb2
+    from hyqjax.bounding import params as bd2
+
+    plist = [bd2.default_params(speed=0.9, yaw_rate=0.5), bd2.default_params(speed=0.2, yaw_rate=-0.3, lateral_speed=0.1)]
+    batch = bb2.make_batch(plist, seed=5, rand=bb2.Randomisation(friction=(0.5, 0.9), payload=(0.0, 10.0)))
+    cols = dict(success=np.array([True, False]), fell_pitch=np.array([False, True]),
+                yaw_error_max_deg=np.array([2.5, np.nan]), cost=np.array([0.1, 3.0]), scalar_total=np.float64(3.1))
+    name = save_heldout_instances(str(tmp_path / "heldout_gradient.npz"), batch, cols)
+    z = np.load(tmp_path / name)
+    np.testing.assert_allclose(z["speed_cmd"], [0.9, 0.2], rtol=1e-6)
+    np.testing.assert_allclose(z["yaw_rate_cmd"], [0.5, -0.3], rtol=1e-6)
+    np.testing.assert_allclose(z["lateral_cmd"], [0.0, 0.1], atol=1e-7)
+    np.testing.assert_allclose(z["friction"], np.asarray(batch.terrain.friction))
+    assert np.all((z["friction"] >= 0.5) & (z["friction"] <= 0.9)) and np.all(z["payload"] <= 10.0)
+    assert z["fell_pitch"].tolist() == [False, True] and np.isnan(z["yaw_error_max_deg"][1])
+    assert "scalar_total" not in z.files and not [f for f in os.listdir(tmp_path) if ".tmp" in f]
