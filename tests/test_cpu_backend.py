@@ -273,12 +273,18 @@ def test_c_and_mjx_step_down_outcomes_agree():
     instance has the same outcome (completed, clean, each failure reason)."""
     from hyqjax.crawl import controller as crawl
     from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown_outcome as so
     from hyqjax.studies.stepdown_outcome import FAILURE_REASONS
 
     scenario, _ = stepdown.make_scenarios((0.16, 0.24), [False, True], 1, seed=0,
                                           params=crawl.CrawlParams.make(forward_velocity=0.1))
-    cols = {impl: stepdown.run_batch(scenario, stepdown.StepdownConfig(duration=24.0, impl=impl))[0]
-            for impl in ("c", "jax")}
+    cols = {}
+    for impl in ("c", "jax"):
+        # In chunks of 0.6 s (bitwise the one-scan run, tests/test_sim.py): each simulator's chunk program (batch 4,
+        # 300 ticks) is the one of the 0.6 s runs of the test above, loaded from the session's compilation cache.
+        out, _ = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl=impl)).run(
+            scenario, chunk_seconds=0.6)
+        cols[impl] = so.to_columns(out)
     for k in ("completed", "clean", *FAILURE_REASONS):
         np.testing.assert_array_equal(cols["c"][k], cols["jax"][k], err_msg=k)
     assert cols["c"]["completed"].any() and not cols["c"]["completed"].all()  # both kinds of outcome occur

@@ -47,10 +47,10 @@ def test_formerly_divergent_step_down_no_longer_diverges():
     d = sim.initial_data(mx, jnp.asarray(s["qpos"]), m=st.m)
     d = d.replace(qvel=jnp.asarray(s["qvel"]), ctrl=jnp.asarray(s["ctrl"]), act=jnp.asarray(s["act"]),
                   qacc_warmstart=jnp.asarray(s["qacc_warmstart"]), time=jnp.asarray(s["time"]))
-    d = jax.jit(mjx.forward)(mx, d)  # the derived fields the first observation reads
     controller = crawl.crawl_controller(cfg.control_dt)
     base = crawl.CrawlParams.make(shin_remedy=True)
-    template = controller.init(base, sim.observe(st.ids, d, d.ctrl, mx))
+    # The structure and dtypes of the crawl's state (abstract: nothing is compiled for it).
+    template = jax.eval_shape(lambda dd: controller.init(base, sim.observe(st.ids, dd, dd.ctrl, mx)), d)
     paths, treedef = jax.tree_util.tree_flatten_with_path(template)
     cs = treedef.unflatten([jnp.asarray(s["cs/" + jax.tree_util.keystr(k)], leaf.dtype) for k, leaf in paths])
 
@@ -63,7 +63,8 @@ def test_formerly_divergent_step_down_no_longer_diverges():
     ends = jnp.asarray([False, False, True, True])
     params = jax.vmap(lambda v: dataclasses.replace(base, joint_speed_limit=v))(limits)
 
-    def replay(p, end):
+    def replay(p, end, d):
+        d = mjx.forward(mx, d)  # the derived fields the first observation reads (in the replay's one program)
         carry = sim.RolloutCarry(d, cs, (base_metrics.init(d), end), d.ctrl, jnp.array(False), jnp.array(-1, jnp.int32),
                                  jnp.array(0, jnp.int32), jnp.array(False), jnp.array(-1, jnp.int32))
         carry = jax.tree_util.tree_map(lambda x: jax.lax.convert_element_type(x, jnp.result_type(x)), carry)
@@ -71,7 +72,7 @@ def test_formerly_divergent_step_down_no_longer_diverges():
                                        record_every=1), TICKS, metrics, lambda dd, o, i: jnp.max(jnp.abs(dd.qvel[6:])))
         return c.diverged, c.diverged_tick, c.terminated, c.terminated_tick, trace
 
-    div, div_tick, term, term_tick, speed = jax.jit(jax.vmap(replay))(params, ends)
+    div, div_tick, term, term_tick, speed = jax.jit(jax.vmap(replay, in_axes=(0, 0, None)))(params, ends, d)
     div, term, speed = np.asarray(div), np.asarray(term), np.asarray(speed)
     # The old behaviour: a joint spun to the divergence bound (|qvel| >= 100) within the replay.
     assert div[0] and 0 < int(div_tick[0]) < TICKS and not term[0]

@@ -65,12 +65,13 @@ def record(d, obs, info):
     return dict(qpos=d.qpos, foot_force=obs.foot_force, quat=obs.quat, tau=obs.tau)
 
 
-def run_scenario(m, ids, mesh=None, duration=10.0) -> dict:
-    """Run the scenario; returns numpy arrays."""
+def run_scenario(m, ids, mesh=None, duration=10.0, runner=None) -> dict:
+    """Run the scenario (through ``runner`` if given, else a new one); returns numpy arrays."""
     mxb, d0, push, cfg = scenario(m, ids, duration)
-    res = runner_mod.batch_rollout(mxb, ids, d0, stand.stand_controller, stand.StandParams.make(), cfg,
-                                   metrics=height_metrics(), record=record, params_axes=None, mesh=mesh, push=push)
-    res = jax.block_until_ready(res)
+    if runner is None:
+        runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record,
+                                              params_axes=None, mesh=mesh)
+    res = jax.block_until_ready(runner(mxb, d0, stand.StandParams.make(), push))
     out = dict(qpos=res.data.qpos, qvel=res.data.qvel, qfrc_bias=res.data.qfrc_bias, diverged=res.diverged, diverged_tick=res.diverged_tick,
                max_dz=res.metrics["max_dz"], max_qvel=res.metrics["max_qvel"],
                **{f"trace_{k}": v for k, v in res.trace.items()})
@@ -84,14 +85,17 @@ sys.path.insert(0, "tests")
 import hyqjax, jax
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import runner
-from test_sim import run_scenario
+from test_sim import height_metrics, record, run_scenario, scenario, stand
 assert jax.device_count() == 2, jax.devices()
 m = hmodel.load_model(); ids = hmodel.model_ids(m)
 mesh = runner.batch_mesh()
+# One runner called twice in a row (the second call of the same compiled programs must work too).
+r = runner.make_batch_runner(ids, stand.stand_controller, scenario(m, ids)[3], height_metrics(), record,
+                             params_axes=None, mesh=mesh)
 outs = []
-for call in range(2):  # twice in a row: the second call must work too
+for call in range(2):
     t = time.time()
-    outs.append(run_scenario(m, ids, mesh=mesh))
+    outs.append(run_scenario(m, ids, mesh=mesh, runner=r))
     print(f"call {call}: {time.time() - t:.1f} s", flush=True)
 for k in outs[0]:
     assert np.array_equal(outs[0][k], outs[1][k]), k
@@ -425,22 +429,29 @@ def test_importing_hyqjax_prints_no_warp_import_failure():
 # ---------------------------------------------------------------- the batch runner: chunks, progress, retrace guard
 
 
-@pytest.mark.slow
-def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(hyq, standing_run):
-    """The runner in chunks of 2.5 s (progress reported after each) gives exactly the one-scan result; a second
-    call with new values (another push) reuses the compiled programs."""
+@pytest.fixture(scope="module")
+def chunked_run(hyq):
+    """The scenario through a kept runner in chunks of 2.5 s (progress reported after each): the runner, its inputs,
+    the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced."""
     m, ids = hyq
     mxb, d0, push, cfg = scenario(m, ids)
     runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
     seen = []
     res = runner(mxb, d0, stand.StandParams.make(), push, progress=lambda done, total: seen.append((done, total)),
                  chunk_seconds=2.5)
+    return runner, (mxb, d0, push), seen, jax.block_until_ready(res), runner.n_compiles
+
+
+@pytest.mark.slow
+def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(standing_run, chunked_run):
+    """The runner in chunks of 2.5 s (progress reported after each) gives exactly the one-scan result; a second
+    call with new values (another push) reuses the compiled programs."""
+    runner, (mxb, d0, push), seen, res, compiled = chunked_run
     assert seen == [pytest.approx((2.5 * (k + 1), 10.0)) for k in range(4)]
     r = dict(qpos=res.data.qpos, qvel=res.data.qvel, diverged_tick=res.diverged_tick, max_dz=res.metrics["max_dz"],
              **{f"trace_{k}": v for k, v in res.trace.items()})
     for k, v in r.items():
         np.testing.assert_array_equal(np.asarray(v), standing_run[k], err_msg=k)
-    compiled = runner.n_compiles
     assert compiled == 2  # the initial carry and one chunk program
     push2 = sim.Push(push.force * 0.5, push.t_start + 0.1, push.duration)
     res2 = runner(mxb, d0, stand.StandParams.make(), push2, chunk_seconds=2.5)
@@ -450,20 +461,18 @@ def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(hyq, standin
 
 
 @pytest.mark.slow
-def test_padded_batch_rows_equal_the_unpadded_ones(hyq):
+def test_padded_batch_rows_equal_the_unpadded_ones(chunked_run):
     """Three instances run in the bucket of four (the last one repeated, then dropped) give bitwise the rows of the
-    same instances in an unpadded batch; the compile is announced and timed apart from the simulation. (The
-    2.5 s chunk program of batch 4 is the one of the chunked test above: loaded from the session's cache.)"""
-    m, ids = hyq
-    mxb, d0, push, cfg = scenario(m, ids, duration=2.5)
+    same instances in an unpadded batch (the batch of four of the chunked run above, at its own size); the compile
+    of the new runner is announced and timed apart from the simulation. (Its programs are those of the chunked
+    run's runner, the same static setup: loaded from the session's cache, not compiled again.)"""
+    runner, (mxb, d0, push), _, full, _ = chunked_run
+    assert runner.plan(4).size == 4 and runner.plan(4).passes == 1  # the reference batch ran unpadded
     params = stand.StandParams.make()
-    exact = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None,
-                                         buckets=False)
-    full = exact(mxb, d0, params, push, chunk_seconds=2.5)
     three = jax.tree_util.tree_map(lambda x: x[:3], (d0, push))
     mx3 = jax.tree_util.tree_map(lambda ax, x: x if ax is None else x[:3], hmodel.model_in_axes(mxb), mxb,
                                  is_leaf=lambda x: x is None)
-    bucketed = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record,
+    bucketed = runner_mod.make_batch_runner(runner.ids, stand.stand_controller, runner.cfg, height_metrics(), record,
                                             params_axes=None)
     events = []
     with runner_mod.compile_listener(lambda e, info: events.append(e)):
