@@ -313,22 +313,27 @@ def test_batched_crawl_params_validate_every_element_and_the_sweep_axis_uses_the
         batch_params(p, 2, reflex=dict(k_base=np.array([1500.0, -1.0])))
 
 
-def test_loaded_stance_drops_a_stance_foot_that_presses_on_nothing_and_keeps_two():
-    """``stance_min_force``: a stance foot whose vertical ground reaction force is below it carries no trunk load
-    (a foot that slipped off the edge), measured along the vertical of the tilted trunk; with fewer than two loaded
-    feet, or with the option off (0 N, the default), every stance foot carries the trunk as before."""
-    from hyqjax.crawl.controller import loaded_stance
+def test_loaded_stance_drops_a_stance_foot_that_stopped_pressing_and_keeps_two():
+    """``stance_min_force``: a stance foot that pressed on the ground since its touchdown and now presses below
+    the threshold (along the vertical of the tilted trunk: a foot that slipped off the edge) carries no trunk load;
+    a stance foot that has not pressed yet (a swing ended at a limit, its foot in the air) keeps its share; with
+    fewer than two carrying feet, or with the option off (0 N, the default), every stance foot carries the trunk."""
+    from hyqjax.crawl.controller import loaded_stance, pressing_feet
 
     pitch = 0.3
     h_r_b = spatial.roll_pitch_to_rot(jnp.float32(0.0), jnp.float32(pitch))
     up_b = np.asarray(h_r_b).T @ np.array([0.0, 0.0, 1.0])
-    stance = jnp.array([1.0, 1.0, 1.0, 0.0])
-    pressing = np.array([120.0, 5.0, 90.0, 200.0])[:, None] * up_b  # LF loaded, RF barely, LH loaded, RH swings
-    off = CrawlParams.make()
-    on = CrawlParams.make(stance_min_force=20.0)
-    np.testing.assert_array_equal(loaded_stance(off, stance, jnp.asarray(pressing), h_r_b), stance)
-    np.testing.assert_array_equal(loaded_stance(on, stance, jnp.asarray(pressing), h_r_b), [1.0, 0.0, 1.0, 0.0])
-    one = pressing * np.array([1.0, 0.0, 0.0, 1.0])[:, None]  # only one stance foot presses: keep all three
-    np.testing.assert_array_equal(loaded_stance(on, stance, jnp.asarray(one), h_r_b), stance)
-    sideways = np.array([[0.0, 80.0, 0.0]] * 4) @ np.asarray(h_r_b)  # horizontal in H: no vertical load
-    np.testing.assert_array_equal(loaded_stance(on, stance, jnp.asarray(sideways), h_r_b), stance)
+    off, on = CrawlParams.make(), CrawlParams.make(stance_min_force=20.0)
+    forces = jnp.asarray(np.array([120.0, 5.0, 90.0, 200.0])[:, None] * up_b)  # RF barely presses
+    pressing = pressing_feet(on, forces, h_r_b)
+    assert np.asarray(pressing).tolist() == [True, False, True, True]
+    sideways = jnp.asarray(np.array([[0.0, 80.0, 0.0]] * 4) @ np.asarray(h_r_b))  # horizontal in H: no vertical load
+    assert not np.any(np.asarray(pressing_feet(on, sideways, h_r_b)))
+    stance = jnp.array([1.0, 1.0, 1.0, 0.0])  # RH swings
+    slipped = jnp.array([True, True, True, False])  # RF pressed earlier in this stance
+    never = jnp.array([True, False, True, False])  # RF has not touched down yet
+    np.testing.assert_array_equal(loaded_stance(off, stance, slipped, pressing), stance)
+    np.testing.assert_array_equal(loaded_stance(on, stance, slipped, pressing), [1.0, 0.0, 1.0, 0.0])
+    np.testing.assert_array_equal(loaded_stance(on, stance, never, pressing), stance)
+    only_one = jnp.array([True, False, False, True])  # two of three stance feet slipped: keep all three
+    np.testing.assert_array_equal(loaded_stance(on, stance, jnp.ones(4, bool), only_one), stance)

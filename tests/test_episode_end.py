@@ -52,7 +52,9 @@ def test_formerly_divergent_step_down_no_longer_diverges():
     # The structure and dtypes of the crawl's state (abstract: nothing is compiled for it).
     template = jax.eval_shape(lambda dd: controller.init(base, sim.observe(st.ids, dd, dd.ctrl, mx)), d)
     paths, treedef = jax.tree_util.tree_flatten_with_path(template)
-    cs = treedef.unflatten([jnp.asarray(s["cs/" + jax.tree_util.keystr(k)], leaf.dtype) for k, leaf in paths])
+    # A field the crawl state gained after the file was saved (``loaded``) starts at zero (False), its initial value.
+    cs = treedef.unflatten([jnp.asarray(s[f"cs/{jax.tree_util.keystr(k)}"], leaf.dtype) if f"cs/{jax.tree_util.keystr(k)}"
+                            in s.files else jnp.zeros(leaf.shape, leaf.dtype) for k, leaf in paths])
 
     # One metrics state per instance: the step-down's, plus whether its episode may end (so one program runs both).
     base_metrics = so.make_metrics(st.ids, cfg.strike_force)

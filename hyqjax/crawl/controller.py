@@ -43,18 +43,24 @@ from hyqjax.reflex import step as reflex
 from hyqjax.core.types import Controller, Observation
 
 
-def loaded_stance(p: CrawlParams, stance, foot_force_b, h_r_b):
-    """The stance legs that carry the trunk: those of ``stance`` whose estimated ground reaction force along the
-    vertical exceeds ``p.stance_min_force``, as long as at least two do (else every stance leg, as with
-    ``stance_min_force`` 0). A stance foot that has slipped off an edge presses on nothing; loading it anyway drives
-    its leg at the torque the trunk's weight asks for (docs/stepdown.md, "Divergences")."""
+def pressing_feet(p: CrawlParams, foot_force_b, h_r_b):
+    """``(4,)`` bool: the feet whose estimated ground reaction force along the vertical exceeds
+    ``p.stance_min_force``."""
     up_b = h_r_b.T @ jnp.array([0.0, 0.0, 1.0], h_r_b.dtype)
-    pressing = (foot_force_b @ up_b) > p.stance_min_force
-    gated = stance * pressing.astype(stance.dtype)
+    return (foot_force_b @ up_b) > p.stance_min_force
+
+
+def loaded_stance(p: CrawlParams, stance, loaded, pressing):
+    """The stance legs that carry the trunk: ``stance`` without the feet that pressed on the ground since their
+    touchdown (``loaded``) and press no more (``~pressing``): a foot that slipped off an edge. Loading it anyway
+    drives its leg at the torque the trunk's weight asks for (docs/stepdown.md, "Divergences"). A foot that has not
+    pressed yet (a swing that ended at a limit with its foot in the air) keeps its share, which pushes it down onto
+    the ground. At least two legs carry the trunk (else every stance leg, as with ``stance_min_force`` 0: off)."""
+    gated = stance * (~(loaded & ~pressing)).astype(stance.dtype)
     return jnp.where((p.stance_min_force > 0) & (jnp.sum(gated) >= 2), gated, stance)
 
 
-def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas, p_des, v_des, rp_des):
+def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas, p_des, v_des, rp_des, pressing):
     """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP over the loaded stance feet
     (:func:`loaded_stance`), as joint torques ``(12,)``."""
     dtype = p_des.dtype
@@ -72,7 +78,7 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas,
     rp_err = jnp.concatenate([rp_des - rp_meas, jnp.zeros(1, dtype)])
     torque = p.k_rot * rp_err - p.d_rot * (h_r_b @ obs.gyro)
     distribute = trunk_control.distribute_wrench if p.weight_qp else trunk_control.clipped_least_norm  # static
-    f_h = distribute(r_h, loaded_stance(p, st.stance, obs.foot_force, h_r_b), force, torque, p.mu)
+    f_h = distribute(r_h, loaded_stance(p, st.stance, st.loaded, pressing), force, torque, p.mu)
     return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
 
 
@@ -112,7 +118,9 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     # A reference held at a joint limit does not move further out.
     qd_cmd = jnp.where(((q_cmd <= q_min + p.joint_margin) & (qd_cmd < 0))
                        | ((q_cmd >= q_max - p.joint_margin) & (qd_cmd > 0)), 0.0, qd_cmd)
-    tau_ff = trunk_feedforward(p, st, obs, rp_meas, p_des, v_des, rp_des)
+    pressing = pressing_feet(p, obs.foot_force, spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]))
+    st = dataclasses.replace(st, loaded=st.loaded | (pressing & (st.stance > 0)))
+    tau_ff = trunk_feedforward(p, st, obs, rp_meas, p_des, v_des, rp_des, pressing)
     tau = impedance.joint_impedance(p.gains, q_cmd, qd_cmd, obs.q, obs.qd, tau_ff)
     tau = speed_limited_torques(tau, obs.qd, p.joint_speed_limit)
 

@@ -55,6 +55,7 @@ class CrawlState:
     search_fwd: jax.Array  # (3,) unit of the remedy's forward search (H0; zero where it does not apply)
     search_depth: jax.Array  # depth searched past the nominal foothold (m)
     stance: jax.Array  # (4,) 1.0 for stance legs
+    loaded: jax.Array  # (4,) bool: the foot has pressed above stance_min_force since its last touchdown
     deep: jax.Array  # (4,) bool: the leg's last swing searched deeper than deep_search (a step down)
     reflex: reflex.ReflexState
     q_cmd: jax.Array  # (12,) last joint reference
@@ -125,7 +126,7 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> Crawl
     search_dir = remedy.search_direction(p, leg, n, target - lift)
     search_fwd = remedy.search_forward_unit(p, leg, n, target - lift)
     stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
-    return dataclasses.replace(st, phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
+    return dataclasses.replace(st, loaded=st.loaded.at[leg].set(False), phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
                                normal_h0=n, search_dir=search_dir, search_fwd=search_fwd,
                                search_depth=jnp.zeros_like(st.search_depth),
@@ -142,7 +143,7 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         phase=jnp.asarray(PHASE_BODY), seq_index=jnp.asarray(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
         normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype), search_depth=z, stance=jnp.ones(4, dtype),
-        deep=jnp.zeros(4, bool),
+        loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool),
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )
