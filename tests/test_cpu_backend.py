@@ -2,9 +2,9 @@
 choice of backend, and its agreement with MJX-JAX on the step-down (trajectories over the first 0.6 s, outcomes of
 24 s runs).
 
-The unit tests build no MJX model; the two agreement tests run MJX-JAX on the CPU (marked slow). The first reuses
-the program of tests/test_stepdown.py's Warp test (same scenario and config), the second runs the scenario of
-tests/test_stepdown.py's 24 s fixture, which itself now runs on C MuJoCo (``impl="auto"`` on a CPU).
+The unit tests build no MJX model; the two agreement tests run MJX-JAX on the CPU (marked slow). The second runs the
+scenario of tests/test_stepdown.py's 24 s fixture (which itself runs on C MuJoCo, ``impl="auto"`` on a CPU) in
+chunks of the first one's 0.6 s, so both compile one MJX-JAX program.
 """
 from __future__ import annotations
 
@@ -255,7 +255,7 @@ def test_c_follows_mjx_over_the_first_300_ticks():
 
     sc, _ = stepdown.make_scenarios([0.16, 0.24], [True], 2, seed=0)
     runs = {}
-    for impl in ("c", "jax"):  # the jax program is the one of test_stepdown's Warp test
+    for impl in ("c", "jax"):  # the jax chunk program is the one the 24 s agreement test below runs in chunks
         out, res = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=0.6, impl=impl)).run(sc)
         runs[impl] = (jax.tree_util.tree_map(np.asarray, out), np.asarray(res.data.qpos), np.asarray(res.data.qvel))
     (oc, qc, vc), (oj, qj, vj) = runs["c"], runs["jax"]
