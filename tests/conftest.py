@@ -31,35 +31,9 @@ jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE
 _RUNNING: dict[str, pytest.Item] = {}
 
 
-#: Test files by their cost in a full run (mostly XLA compiles; measured on 2 cores, heaviest first). The suite
-#: runs them in this order, then every other file in its collection order: with pytest-xdist's ``--dist loadfile``
-#: each idle worker takes the next file, so the longest files start first and the short ones fill in at the end
-#: (longest-processing-time-first), instead of a long file starting last and running alone. Only an order: a
-#: file missing here, or a stale entry, changes no result.
-HEAVY_FIRST = ("test_tune.py", "test_api.py", "test_bounding.py", "test_sim.py", "test_cpu_backend.py",
-               "test_bounding_robust.py", "test_warp.py", "test_cluster.py", "test_model.py", "test_reflex.py",
-               "test_episode_end.py", "test_sweep.py", "test_store.py", "test_stepdown.py", "test_trunk.py",
-               "test_reflex_stability.py", "test_crawl.py", "test_reach_map.py", "test_kinematics.py")
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """Files in :data:`HEAVY_FIRST`'s order, then the others; the tests of a file keep their order."""
-    rank = {name: i for i, name in enumerate(HEAVY_FIRST)}
-    first_seen: dict[str, int] = {}
-    for i, item in enumerate(items):
-        first_seen.setdefault(item.path.name, i)
-    items.sort(key=lambda item: (rank.get(item.path.name, len(rank)), first_seen[item.path.name]))
-
-
 def pytest_configure(config):
-    """Under pytest-xdist, files are handed to the workers in the suite's order (:data:`HEAVY_FIRST`), not
-    ordered by their number of tests (xdist's default ``--loadscope-reorder``, which ranks 179 one-line checks of
-    the command line above the minutes-long tuner tests).
-
-    The unit lane (``pytest -m "not slow"``) compiles no MJX model: there, building one (``mjx.put_model``)
+    """The unit lane (``pytest -m "not slow"``) compiles no MJX model: there, building one (``mjx.put_model``)
     in a test without the ``slow`` mark, or in a fixture it uses, fails at once naming the test and the fix."""
-    if hasattr(config.option, "loadscopereorder"):
-        config.option.loadscopereorder = False
     if "not slow" not in (config.getoption("-m") or ""):
         return
     from mujoco import mjx
