@@ -80,22 +80,16 @@ class UsageError(Exception):
 
 
 def parse_custom(text: str) -> tuple[str, dict]:
-    """``NAME:field=value,...`` -> (NAME, overrides of ``CrawlParams.make``)."""
-    from hyqjax.crawl import controller as crawl
+    """``NAME:field=value,...`` -> (NAME, overrides of ``CrawlParams.make``: :func:`hyqjax.crawl.params.parse_settings`)."""
+    from hyqjax.crawl.params import parse_settings
 
     name, sep, body = text.partition(":")
     if not sep or not name:
         raise UsageError(f"--custom {text!r}: expected NAME:field=value,...")
-    fields = {f.name for f in dataclasses.fields(crawl.CrawlParams)} - {"gains", "reflex", "weight_qp"}
-    over = {}
-    for item in filter(None, body.split(",")):
-        k, eq, v = item.partition("=")
-        if not eq or k not in fields:
-            raise UsageError(f"--custom {name}: {item!r} is not field=value with a field of CrawlParams.make "
-                             f"({', '.join(sorted(fields))})")
-        over[k] = v if k == "foot_sequence" else (v.lower() in ("1", "true", "on") if k in ("use_reflex", "shin_remedy")
-                                                  else float(v))
-    return name, over
+    try:
+        return name, parse_settings(body, f"--custom {name}")
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def tuned_params(path: str, method: str):

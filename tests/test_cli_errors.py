@@ -84,6 +84,11 @@ def run_cli(argv):
 CASES = [
     # stepdown
     (["stepdown", "--heights", "0.5"], "--heights"),
+    (["stepdown", "--crawl", "stance_min_force=900"], "stance_min_force"),
+    (["stepdown", "--crawl", "no_such_field=1"], "no_such_field"),
+    (["stepdown", "--crawl", "search_forward_limit=x"], "search_forward_limit"),
+    (["stepdown", "--crawl", "shin_remedy=maybe"], "shin_remedy"),
+    (["stepdown", "--crawl", "forward_velocity=0.2"], "--speed"),
     (["stepdown", "--heights", "-0.1"], "--heights"),
     (["stepdown", "--heights", "nan"], "--heights"),
     (["stepdown", "--instances", "0"], "--instances"),

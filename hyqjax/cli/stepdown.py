@@ -50,6 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the shin-strike remedy with the trunk following 80%% of the feet plane's tilt "
                         "(CrawlParams shin_remedy=True, terrain_adaptation=0.8; docs/stepdown.md); without it: the "
                         "paper's crawl")
+    p.add_argument("--crawl", default="", metavar="FIELD=VALUE,...",
+                   help="more CrawlParams.make settings, after --remedy's, e.g. 'search_forward_limit=0.10,"
+                        "stance_min_force=1' (the saturating search and the slip-aware trunk load, docs/stepdown.md); "
+                        "forward_velocity is --speed")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
@@ -78,11 +82,39 @@ def validate(args) -> None:
     check_range("--speed", args.speed, v_f.lo, v_f.hi, v_f.unit)
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
+    args.crawl_settings = _crawl_settings(args)
     check_impl(args.impl, supported=TASK.impls)
     args.recorded = _recorded_instances(args)
     args.duration_warning = _check_duration(args)
     prepare_out(args.out)
     args.options_checked = True
+
+
+#: What ``--remedy`` sets (docs/stepdown.md).
+REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
+
+
+def _crawl_settings(args) -> dict:
+    """``CrawlParams.make`` settings of ``--remedy`` and ``--crawl`` (the latter wins), checked against the declared
+    ranges (JAX's parameter classes only, no MJX)."""
+    import numpy as np
+
+    from hyqjax.core.params import ParameterError, param_ranges
+    from hyqjax.crawl.params import FOOT_SEQUENCES, CrawlParams, parse_settings
+
+    extra = parse_settings(args.crawl, "--crawl")
+    if "forward_velocity" in extra:
+        raise ValueError("--crawl: forward_velocity is set by --speed")
+    specs = param_ranges(CrawlParams)  # the one declaration of each range, checked in NumPy (nothing compiles)
+    for key, value in extra.items():
+        if key == "foot_sequence" and value not in FOOT_SEQUENCES:
+            raise ValueError(f"--crawl: foot_sequence must be one of {', '.join(sorted(FOOT_SEQUENCES))}, got {value!r}")
+        if key in specs and not isinstance(value, bool):
+            try:
+                specs[key].check(np.asarray(value, np.float64), "CrawlParams")
+            except ParameterError as e:
+                raise ValueError(f"--crawl: {e}") from None
+    return {**(REMEDY if args.remedy else {}), **extra}
 
 
 #: The start distance range of the randomised instances (m), as ``stepdown.make_scenarios`` draws it.
@@ -113,8 +145,7 @@ def run(args) -> int:
     if getattr(args, "duration_warning", None):
         print(f"hyqjax stepdown: {args.duration_warning}", file=sys.stderr, flush=True)
     recorded = args.recorded
-    crawl_options = dict(shin_remedy=True, terrain_adaptation=0.8) if args.remedy else {}
-    params = crawl.CrawlParams.make(forward_velocity=args.speed, **crawl_options)
+    params = crawl.CrawlParams.make(forward_velocity=args.speed, **args.crawl_settings)
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every

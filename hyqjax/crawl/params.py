@@ -204,3 +204,37 @@ class CrawlParams:
     def replace(self, **kw) -> "CrawlParams":
         """``dataclasses.replace``, validated (construction checks)."""
         return dataclasses.replace(self, **kw)
+
+
+#: ``CrawlParams.make`` arguments that take a word instead of a number in :func:`parse_settings`.
+BOOLEAN_SETTINGS = ("use_reflex", "shin_remedy", "weight_qp")
+
+
+def parse_settings(text: str, option: str = "--crawl") -> dict:
+    """``field=value,...`` (``CrawlParams.make`` arguments: numbers, ``true``/``false`` for
+    :data:`BOOLEAN_SETTINGS`, a name of :data:`FOOT_SEQUENCES` for ``foot_sequence``) as keyword arguments; a
+    ``ValueError`` naming ``option``, the item and the allowed fields otherwise. The values' ranges are checked by
+    ``CrawlParams.make`` itself."""
+    import inspect
+
+    fields = [n for n in inspect.signature(CrawlParams.make).parameters if n not in ("gains", "reflex_params")]
+    out = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        key, eq, value = item.partition("=")
+        key, value = key.strip(), value.strip()
+        if not eq or key not in fields:
+            raise ValueError(f"{option}: {item!r} is not field=value with a field of CrawlParams.make "
+                             f"({', '.join(sorted(fields))})")
+        if key in BOOLEAN_SETTINGS:
+            if value.lower() not in ("1", "0", "true", "false", "on", "off"):
+                raise ValueError(f"{option}: {key} must be true or false, got {value!r}")
+            out[key] = value.lower() in ("1", "true", "on")
+        elif key == "foot_sequence":
+            out[key] = value
+        else:
+            try:
+                out[key] = float(value)
+            except ValueError:
+                raise ValueError(f"{option}: {key} must be a number, got {value!r}") from None
+    return out
+
