@@ -116,8 +116,9 @@ class CrawlParams:
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
     joint_speed_limit: jax.Array = param_field(robot.VELOCITY_LIMIT, 1.0, 1000.0, "rad/s",
                                                "no torque along a joint's motion beyond this speed (+ band)")
-    stance_min_force: jax.Array = param_field(0.0, 0.0, 500.0, "N", "a stance foot carries trunk load only while "
-                                              "it presses harder than this along the vertical (0: every stance foot)")
+    stance_min_force: jax.Array = param_field(0.0, 0.0, 500.0, "N", "a stance foot that pressed since its "
+                                              "touchdown and presses less than this along the vertical (a slip) "
+                                              "carries no trunk load (0: off)")
     weight_qp: bool = param_field(False, doc="friction-pyramid QP (True) or clipped least norm (False); static",
                                   static=True)
     foot_sequence: jax.Array = dataclasses.field(
