@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     common.add_argument("--debug", action="store_true", help="show the traceback of an error")
     common.add_argument("--no-cache", action="store_true",
                         help="do not use JAX's persistent compilation cache (default: on, in ~/.cache/hyqjax/jax "
-                             "or $HYQJAX_CACHE_DIR)")
+                             "or $HYQJAX_CACHE_DIR, a subdirectory per host CPU)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.__doc__, parents=[common],
