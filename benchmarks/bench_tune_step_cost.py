@@ -3,7 +3,7 @@
 Usage: ``PYTHONPATH=. python benchmarks/bench_tune_step_cost.py [--dims shared,per_leg_cond] [--directions 2]
 [--train-per-height 2] [--windows-per-scenario 2] [--window-ticks 500] [--reps 3] [--out step_cost.json]``.
 
-Builds the equal-wall-clock study's gradient programs (:class:`hyqjax.studies.tune.wallclock._Gradient`:
+Builds the equal-wall-clock study's gradient programs (:class:`hyqjax.studies.tune.gradient_programs.GradientPrograms`:
 snapshot windows at the start point, the exact ``jacfwd`` step with ``P`` tangents, the forward-gradient step
 with ``K = --directions`` tangents, the forward window value) and reports, after every compile, the median wall
 time of one step and of one forward evaluation of the same windows for one candidate, and their ratios (the
@@ -33,14 +33,14 @@ def main(argv=None) -> int:
         p.error("--directions and --reps must be >= 1")
     import jax
 
-    from hyqjax.studies.tune import schedule, search, wallclock
+    from hyqjax.studies.tune import gradient_programs, schedule, search, wallclock
 
     dims = tuple(x for x in a.dims.split(",") if x)
     cfg = wallclock.WallClockConfig(methods=("gradient",), dims=dims, grad_train_per_height=a.train_per_height,
                                     windows_per_scenario=a.windows_per_scenario, window_ticks=a.window_ticks,
                                     grad_directions=a.directions)
     t0 = time.perf_counter()
-    grad = wallclock._Gradient(cfg, wallclock.start_params(cfg), search.Charges(), print)
+    grad = gradient_programs.GradientPrograms(cfg, wallclock.start_params(cfg), search.Charges(), print)
     rows = {}
     for d in dims:
         rows[d] = grad.step_cost(schedule.make(d, cfg.groups), reps=a.reps)

@@ -760,7 +760,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     of generations plus validations); every checkpoint's iterate is the best validated one finished before it and
     is evaluated on the same held-out instances; the two calls compose into one results file; a further call keeps
     every finished stage and runs nothing; another configuration there is refused."""
-    from hyqjax.studies.tune import forward, schedule, wallclock
+    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_results
 
     cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.05, 0.15),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
@@ -781,7 +781,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
         res = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=lambda s: None)
         assert res["complete"] and set(res["runs"]) == {f"{x}/shared" for x in cfg.methods[:cfg.methods.index(m) + 1]}
     assert res["config"]["methods"] == ["cma_es", "random_search"]
-    members = {"table1", "start"} | {wallclock.member_key(m, "shared", s) for m in cfg.methods
+    members = {"table1", "start"} | {wallclock_results.member_key(m, "shared", s) for m in cfg.methods
                                      for s in cfg.checkpoints_s}
     assert set(res["heldout"]) == members
     assert all(h["n"] == 6 for h in res["heldout"].values())
@@ -844,8 +844,8 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     correlation is -1; the signal-to-noise ratio is |mean| / (std / sqrt(W)) of the per-window gradients."""
     from types import SimpleNamespace
 
+    from hyqjax.studies.tune import gradient_programs, schedule, wallclock
     from hyqjax.studies.tune import objective as obj_mod
-    from hyqjax.studies.tune import schedule, wallclock
 
     cfg = wallclock.WallClockConfig(methods=("gradient",), dims=("shared",))
     p = schedule.make("shared")
@@ -866,7 +866,7 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
     for i in range(7):
         members[f"m{i}"] = (p, th0 + 0.1 * (i + 1), base)
         heldout[f"m{i}"] = dict(clean=0.2 + 0.05 * i)
-    d = wallclock.gradient_diagnostics(cfg, dict(heldout=heldout), {"shared": p}, base, grad, members)["shared"]
+    d = gradient_programs.gradient_diagnostics(cfg, dict(heldout=heldout), {"shared": p}, base, grad, members)["shared"]
     assert d["objective_vs_heldout_spearman"] == pytest.approx(-1.0)
     assert d["snr_mean"] == pytest.approx(2.0 / (np.sqrt(2.0) / np.sqrt(2.0)))
     assert len(d["iterates"]) == 8 and d["windows"] == 2
@@ -875,22 +875,22 @@ def test_gradient_diagnostics_measure_snr_and_rank_correlation():
 def test_winner_is_clear_only_of_runs_that_exist():
     """The study's winner: the best held-out clean rate at a budget; its interval is "clear" only when it lies
     above every other run's, and a lone run is clear of nothing (it was compared with nothing)."""
-    from hyqjax.studies.tune import wallclock
+    from hyqjax.studies.tune import wallclock_results
 
     def curve(method, clean, ci):
         return dict(method=method, dim="shared", points=[dict(minutes=10.0, clean=clean, completed=0.8,
                                                               clean_ci95=list(ci))])
 
     lone = dict(budget_curves=[curve("cma_es", 0.5, (0.45, 0.55))])
-    w = wallclock.winner(lone, 10.0)
+    w = wallclock_results.winner(lone, 10.0)
     assert w["method"] == "cma_es" and w["others"] == 0 and not w["clear_of_all_others"]
     tie = dict(budget_curves=[curve("cma_es", 0.53, (0.51, 0.55)), curve("random_search", 0.50, (0.48, 0.52))])
-    w = wallclock.winner(tie, 10.0)
+    w = wallclock_results.winner(tie, 10.0)
     assert w["method"] == "cma_es" and w["others"] == 1 and not w["clear_of_all_others"]
     clear = dict(budget_curves=[curve("random_search", 0.50, (0.48, 0.52)), curve("cma_es", 0.58, (0.56, 0.60))])
-    w = wallclock.winner(clear, 10.0)
+    w = wallclock_results.winner(clear, 10.0)
     assert w["method"] == "cma_es" and w["clear_of_all_others"]
-    assert wallclock.winner(clear, 3.0) is None
+    assert wallclock_results.winner(clear, 3.0) is None
 
 
 def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):

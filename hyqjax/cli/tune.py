@@ -416,7 +416,7 @@ def run(args) -> int:
 def _run_wallclock(args) -> int:
     import os
 
-    from hyqjax.studies.tune import figure, wallclock
+    from hyqjax.studies.tune import figure, wallclock, wallclock_results
 
     cfg = args.wallclock_config
     what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
@@ -432,7 +432,7 @@ def _run_wallclock(args) -> int:
     print(f"held-out ({n} instances): start point {f(ho['start'])}; Table I, paper crawl {f(ho['table1'])}")
     for m in cfg.methods:
         for d in cfg.dims:
-            k = wallclock.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
+            k = wallclock_results.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
             if k in ho:
                 print(f"held-out ({n} instances): {k} (returned) {f(ho[k])}")
     if not args.study:
@@ -462,7 +462,7 @@ def _run_wallclock(args) -> int:
                   f"({sel['wall_s']:.0f} s, {sel['physics_steps']:,} physics steps of its budget); returned: "
                   f"iteration {pt.get('selected_iteration', 0)}, validation clean "
                   f"{pt.get('validation_clean', float('nan')):.3f}")
-    w = wallclock.winner(res, cfg.wall_minutes[-1])
+    w = wallclock_results.winner(res, cfg.wall_minutes[-1])
     if args.study and w and not w["others"]:
         print(f"only run at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; no other "
               f"method or parameterisation in this directory to compare with)")

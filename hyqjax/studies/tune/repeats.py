@@ -76,7 +76,7 @@ def collect(results: list[dict], names: list[str], minutes: float) -> dict:
     """Per member (``method/dim``, and ``start``, ``table1``): the held-out clean and completed rate of every run
     at ``minutes`` (with the run's name and seed) and :func:`over_runs` of both."""
     check_comparable(results, names)
-    from hyqjax.studies.tune.wallclock import member_key
+    from hyqjax.studies.tune.wallclock_results import member_key
 
     rows: dict[str, list] = {}
     for res, name in zip(results, names):

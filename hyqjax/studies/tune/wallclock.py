@@ -47,15 +47,15 @@ import threading
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
 from hyqjax.sim import backend
-from hyqjax.studies import statistics, stepdown
-from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.tune import forward, schedule, search
+from hyqjax.studies.tune.gradient_programs import (WINDOW_SEED_OFFSET, GradientPrograms,
+                                                  diagnostic_iterates, gradient_diagnostics)
+from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, summarize
 from hyqjax.studies.tune import space as spmod
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
@@ -85,10 +85,6 @@ def heartbeat(log, message, every: float = 5.0):
 def generation_seed(seed: int, dim: str) -> int:
     """The seed of the training scenarios of the search methods on parameterisation ``dim``."""
     return seed + 1 + 1000 * list(schedule.NAMES).index(dim)
-
-
-#: Offset of the seed of the gradient's snapshot scenarios.
-WINDOW_SEED_OFFSET = 11
 
 
 def training_seeds(seed: int) -> tuple:
@@ -255,111 +251,8 @@ def _methods_union(*lists) -> list:
     return [m for m in search.METHODS if m in seen]
 
 
-class _Gradient:
-    """The gradient's programs (MJX-JAX), built once: windows at the start point, ``jacfwd`` step, forward window
-    value of a batch of candidates; their one-off costs go into ``charges``."""
-
-    def __init__(self, cfg: WallClockConfig, base, charges: search.Charges, log):
-        from hyqjax.studies.tune import evaluate, objective, windows
-
-        self.cfg, self.base = cfg, base
-        self.su = windows.setup()
-        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
-                                   params=base)
-        spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
-        self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
-            windows.make_windows(sc, spec, self.su)))
-        self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
-        self.fns: dict = {}
-        self.exact_fns: dict = {}
-        self.value_fns: dict = {}
-        self.charges = charges
-        log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
-            f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
-
-    def step_name(self, param) -> str:
-        """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents) or the forward gradient with
-        ``K = grad_directions`` tangents (:func:`.objective.make_value_and_forward_gradient`)."""
-        k = self.cfg.grad_directions
-        return f"jacfwd/{param.name}" if not k else f"forward_gradient_{k}/{param.name}"
-
-    def exact(self, param):
-        """The jitted exact ``jacfwd`` step of ``param`` (built on first use)."""
-        from hyqjax.studies.tune import objective
-
-        if param.name not in self.exact_fns:
-            self.exact_fns[param.name] = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
-        return self.exact_fns[param.name]
-
-    def programs(self, param: schedule.Parameterisation):
-        """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
-        from hyqjax.studies.tune import objective
-
-        if param.name not in self.fns:
-            k_dir = self.cfg.grad_directions
-            if k_dir:
-                fg = objective.make_value_and_forward_gradient(self.base, param, self.obj, self.su, k_dir)
-                keys = iter(range(1 << 30))
-                key0 = jax.random.key(self.cfg.seed + 17)
-
-                def vj(t, win):  # a new set of directions every step
-                    return fg(t, win, jax.random.fold_in(key0, next(keys)))
-            else:
-                vj = self.exact(param)
-            fval = objective.make_value(self.base, param, self.obj, self.su)
-            self.value_fns[param.name] = fval
-            th = jnp.asarray(param.theta_of(self.base), jnp.float32)
-            k = 6  # c = 0 and the five line-search scales of search.run_gradient
-            cands = jnp.tile(th[None], (k, 1))
-            with self.charges.track(self.step_name(param)):
-                jax.block_until_ready(vj(th, self.win))
-            with self.charges.track(f"window_value/{param.name}"):
-                jax.block_until_ready(fval(cands, self.win))
-            n_win = self.win.size
-            cost = (objective.physics_steps(n_win, self.obj, k_dir or param.size)
-                    + k * objective.physics_steps(n_win, self.obj))
-            self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
-                                    lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
-        return self.fns[param.name]
-
-    def charge_names(self, param) -> list:
-        return ["gradient_windows", self.step_name(param), f"window_value/{param.name}"]
-
-    def exact_step(self, param):
-        """``theta -> dict`` of the exact ``jacfwd`` step on the windows (the diagnostics' SNR)."""
-        return lambda t: self.exact(param)(jnp.asarray(t, jnp.float32), self.win)
-
-    def step_cost(self, param, reps: int = 3) -> dict:
-        """Wall seconds (median of ``reps``, after compiles) of one tuning step on the windows (value and
-        Jacobian, exact ``jacfwd`` and, with ``grad_directions``, the forward gradient) and of one forward
-        evaluation of the same windows for one candidate (:func:`.objective.make_value`), all on MJX-JAX;
-        the ratios are the step's cost in forward windows (the target: <= 5)."""
-        th = jnp.asarray(param.theta_of(self.base), jnp.float32)
-        self.programs(param)
-
-        def timed(fn):
-            jax.block_until_ready(fn())  # compiles (if new) and warms
-            ts = []
-            for _ in range(reps):
-                t = time.perf_counter()
-                jax.block_until_ready(fn())
-                ts.append(time.perf_counter() - t)
-            return float(np.median(ts))
-
-        value = timed(lambda: self.value_fns[param.name](th[None], self.win))
-        jac = timed(lambda: self.exact(param)(th, self.win))
-        out = dict(windows=int(self.win.size), ticks=int(self.obj.ticks), tangents=int(param.size),
-                   window_value_s=value, jacfwd_s=jac, jacfwd_over_value=jac / value, reps=int(reps))
-        if self.cfg.grad_directions:
-            fg = self.fns[param.name][0]
-            fgs = timed(lambda: fg(th))
-            out.update(forward_gradient_directions=int(self.cfg.grad_directions), forward_gradient_s=fgs,
-                       forward_gradient_over_value=fgs / value)
-        return out
-
-
 def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConfig, evaluator: forward.SuccessEvaluator,
-               charges: search.Charges, grad: _Gradient | None, base, log=print) -> dict:
+               charges: search.Charges, grad: GradientPrograms | None, base, log=print) -> dict:
     """One method on one parameterisation under the wall-clock budget: its checkpoints and log."""
     theta0 = dict(cfg.start_from).get(run_key(method, param.name))
     theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
@@ -462,10 +355,6 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
                             progress=progress)
 
 
-def member_key(method: str, dim: str, seconds: float) -> str:
-    return f"{method}/{dim}@{seconds / 60.0:g}min"
-
-
 def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     """Run (or resume) the study into ``out_dir`` (module docstring); returns the results dict."""
     t_start = time.time()
@@ -500,7 +389,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     if any(m in search.GRADIENT_METHODS for m, _ in todo):
         log("snapshot windows for the gradient (MJX-JAX) ...")
         with heartbeat(log, lambda t0=time.perf_counter(): f"  snapshot windows: {time.perf_counter() - t0:.0f} s"):
-            grad = _Gradient(cfg, base, charges, log)
+            grad = GradientPrograms(cfg, base, charges, log)
     for m, d in todo:
         log(f"{run_key(m, d)} ({params[d].size} parameters): {cfg.wall_minutes} min budget")
         r = run_method(m, params[d], cfg, evaluator, charges, grad, base, log)
@@ -546,7 +435,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     if due:
         if grad is None:
             log("snapshot windows for the gradient diagnostics (MJX-JAX) ...")
-            grad = _Gradient(cfg, base, search.Charges(), log)
+            grad = GradientPrograms(cfg, base, search.Charges(), log)
         for d in due:
             with heartbeat(log, lambda t0=time.perf_counter(), d=d: f"  gradient diagnostics on {d}: "
                            f"{time.perf_counter() - t0:.0f} s"):
@@ -566,49 +455,6 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     return res
 
 
-def diagnostic_iterates(res: dict, members: dict, dim: str) -> list:
-    """The held-out-evaluated iterates of parameterisation ``dim`` the diagnostics rank (start point included)."""
-    return [k for k, (p, _, _) in members.items() if p.name == dim and k in res["heldout"] and k != "table1"]
-
-
-def gradient_diagnostics(cfg: WallClockConfig, res: dict, params: dict, base, grad: _Gradient, members: dict) -> dict:
-    """What decides whether the gradient can pay, per parameterisation with a gradient run:
-
-    * the gradient's signal-to-noise ratio across windows at the start point, ``|mean| / (std / sqrt(W))`` per
-      coordinate (:func:`.study.gradient_stats`), and the median per-window gradient norm;
-    * how well the window objective ranks held-out success: Spearman's rank correlation between the window
-      objective ``L`` (lower is better) and held-out clean success over every iterate of that parameterisation
-      that was evaluated (a useful objective gives a clearly negative correlation).
-    """
-    from scipy import stats
-
-    from hyqjax.studies.tune import study
-
-    out = {}
-    for d, param in params.items():
-        if param.name not in grad.fns:
-            continue
-        _, evaluate, _ = grad.fns[param.name]
-        r0 = grad.exact_step(param)(param.theta_of(base))
-        gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
-        snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
-        keys = diagnostic_iterates(res, members, d)
-        thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])
-        k6 = 6  # the window program's batch (search.run_gradient's line search)
-        vals = []
-        for a in range(0, len(thetas), k6):
-            chunk = thetas[a:a + k6]
-            pad = np.concatenate([chunk, np.repeat(chunk[-1:], k6 - len(chunk), 0)])
-            vals.extend(np.asarray(evaluate(pad), np.float64)[: len(chunk)].tolist())
-        clean = [res["heldout"][k]["clean"] for k in keys]
-        rho = stats.spearmanr(vals, clean).statistic if len(set(clean)) > 1 and len(set(vals)) > 1 else float("nan")
-        out[d] = dict(snr_mean=float(np.nanmean(snr)), snr_median=float(np.nanmedian(snr)),
-                      snr_above_2=float(np.mean(snr > 2.0)), median_window_grad_norm=gs["median_norm"],
-                      windows=int(np.sum(np.asarray(r0["ok"]))), objective_vs_heldout_spearman=float(rho),
-                      iterates=keys, window_objective=vals, heldout_clean=clean)
-    return out
-
-
 def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict:
     """Name -> (parameterisation, theta, base CrawlParams) of every set the held-out evaluation runs."""
     p0 = params[cfg.dims[0]]
@@ -619,47 +465,3 @@ def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict
     return out
 
 
-def summarize(heights, cols: dict) -> dict:
-    """Clean / completed success with Wilson 95% intervals, per height, and the failure counts of one set."""
-    clean, comp = np.asarray(cols["clean"], bool), np.asarray(cols["completed"], bool)
-    n = int(clean.size)
-    per = []
-    for a, b in zip(statistics.success_curve(heights, clean), statistics.success_curve(heights, comp)):
-        per.append(dict(height=a["height"], n=a["n"], clean=a["rate"], clean_ci95=a["ci95"], completed=b["rate"],
-                        completed_ci95=b["ci95"]))
-    return dict(n=n, clean=float(clean.mean()), clean_ci95=list(stepdown.wilson_interval(int(clean.sum()), n)),
-                completed=float(comp.mean()), completed_ci95=list(stepdown.wilson_interval(int(comp.sum()), n)),
-                failure_counts={k: int(np.sum(cols[k])) for k in so.FAILURE_REASONS}, per_height=per)
-
-
-def budget_curves(res: dict) -> list:
-    """Per (method, dim): held-out clean / completed at every checkpoint, with the wall-clock and physics steps."""
-    out = []
-    for key, r in res["runs"].items():
-        pts = []
-        for pt in r["points"]:
-            h = res["heldout"].get(member_key(r["method"], r["dim"], pt["seconds"]))
-            if h is None:
-                continue
-            pts.append(dict(minutes=pt["seconds"] / 60.0, physics_steps=pt["physics_steps"], clean=h["clean"],
-                            clean_ci95=h["clean_ci95"], completed=h["completed"], completed_ci95=h["completed_ci95"]))
-        out.append(dict(method=r["method"], dim=r["dim"], size=r["size"], points=pts))
-    return out
-
-
-def winner(res: dict, minutes: float) -> dict | None:
-    """The (method, dim) with the highest held-out clean success at ``minutes`` (ties: higher completed), how many
-    other (method, dim) runs it was compared with (``others``), and whether its 95% interval is clear of every
-    other's (False when there is no other: a lone run wins nothing)."""
-    rows = []
-    for c in res.get("budget_curves", []):
-        p = next((p for p in c["points"] if abs(p["minutes"] - minutes) < 1e-9), None)
-        if p:
-            rows.append((p["clean"], p["completed"], c["method"], c["dim"], p))
-    if not rows:
-        return None
-    rows.sort(key=lambda r: (r[0], r[1]), reverse=True)
-    best = rows[0]
-    clear = len(rows) > 1 and all(best[4]["clean_ci95"][0] > r[4]["clean_ci95"][1] for r in rows[1:])
-    return dict(method=best[2], dim=best[3], clean=best[0], completed=best[1], clean_ci95=best[4]["clean_ci95"],
-                others=len(rows) - 1, clear_of_all_others=bool(clear))

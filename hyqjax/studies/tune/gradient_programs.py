@@ -1,0 +1,174 @@
+"""The gradient's programs in the equal-wall-clock study (:mod:`.wallclock`), and what decides whether it can pay.
+
+:class:`GradientPrograms` builds, once per study process, on MJX-JAX: the snapshot windows at the start point
+(:mod:`.windows`: a forward run per training scenario keeps the state one tick before the body phase of each leg
+about to step over the edge), and per parameterisation the tuning step (exact ``jax.jacfwd`` of the closed-loop
+window objective, :mod:`.objective`, or the forward-gradient estimate with ``grad_directions`` random tangents)
+and the forward evaluation of a batch of candidates on the same windows (the line search). Their one-off costs
+(compile and, for the windows, the forward run) go into the study's compile charges (:class:`.search.Charges`),
+so a gradient method pays them as a stand-alone run would.
+
+:func:`gradient_diagnostics`, outside every clock: the gradient's signal-to-noise ratio across windows at the
+start point, and Spearman's rank correlation of the window objective with held-out clean success over the
+evaluated iterates (:func:`diagnostic_iterates`). ``GradientPrograms.step_cost`` times one step against one
+forward evaluation of the same windows.
+"""
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hyqjax.studies.tune import forward, schedule, search
+
+#: Offset of the seed of the gradient's snapshot scenarios.
+WINDOW_SEED_OFFSET = 11
+
+
+class GradientPrograms:
+    """The gradient's programs (MJX-JAX), built once: windows at the start point, ``jacfwd`` step, forward window
+    value of a batch of candidates; their one-off costs go into ``charges``. ``cfg`` is the study's
+    :class:`.wallclock.WallClockConfig` (its seed and gradient settings), ``base`` the start point's parameters."""
+
+    def __init__(self, cfg, base, charges: search.Charges, log):
+        from hyqjax.studies.tune import evaluate, objective, windows
+
+        self.cfg, self.base = cfg, base
+        self.su = windows.setup()
+        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
+                                   params=base)
+        spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
+        self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
+            windows.make_windows(sc, spec, self.su)))
+        self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
+        self.fns: dict = {}
+        self.exact_fns: dict = {}
+        self.value_fns: dict = {}
+        self.charges = charges
+        log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
+            f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
+
+    def step_name(self, param) -> str:
+        """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents) or the forward gradient with
+        ``K = grad_directions`` tangents (:func:`.objective.make_value_and_forward_gradient`)."""
+        k = self.cfg.grad_directions
+        return f"jacfwd/{param.name}" if not k else f"forward_gradient_{k}/{param.name}"
+
+    def exact(self, param):
+        """The jitted exact ``jacfwd`` step of ``param`` (built on first use)."""
+        from hyqjax.studies.tune import objective
+
+        if param.name not in self.exact_fns:
+            self.exact_fns[param.name] = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
+        return self.exact_fns[param.name]
+
+    def programs(self, param: schedule.Parameterisation):
+        """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
+        from hyqjax.studies.tune import objective
+
+        if param.name not in self.fns:
+            k_dir = self.cfg.grad_directions
+            if k_dir:
+                fg = objective.make_value_and_forward_gradient(self.base, param, self.obj, self.su, k_dir)
+                keys = iter(range(1 << 30))
+                key0 = jax.random.key(self.cfg.seed + 17)
+
+                def vj(t, win):  # a new set of directions every step
+                    return fg(t, win, jax.random.fold_in(key0, next(keys)))
+            else:
+                vj = self.exact(param)
+            fval = objective.make_value(self.base, param, self.obj, self.su)
+            self.value_fns[param.name] = fval
+            th = jnp.asarray(param.theta_of(self.base), jnp.float32)
+            k = 6  # c = 0 and the five line-search scales of search.run_gradient
+            cands = jnp.tile(th[None], (k, 1))
+            with self.charges.track(self.step_name(param)):
+                jax.block_until_ready(vj(th, self.win))
+            with self.charges.track(f"window_value/{param.name}"):
+                jax.block_until_ready(fval(cands, self.win))
+            n_win = self.win.size
+            cost = (objective.physics_steps(n_win, self.obj, k_dir or param.size)
+                    + k * objective.physics_steps(n_win, self.obj))
+            self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
+                                    lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
+        return self.fns[param.name]
+
+    def charge_names(self, param) -> list:
+        return ["gradient_windows", self.step_name(param), f"window_value/{param.name}"]
+
+    def exact_step(self, param):
+        """``theta -> dict`` of the exact ``jacfwd`` step on the windows (the diagnostics' SNR)."""
+        return lambda t: self.exact(param)(jnp.asarray(t, jnp.float32), self.win)
+
+    def step_cost(self, param, reps: int = 3) -> dict:
+        """Wall seconds (median of ``reps``, after compiles) of one tuning step on the windows (value and
+        Jacobian, exact ``jacfwd`` and, with ``grad_directions``, the forward gradient) and of one forward
+        evaluation of the same windows for one candidate (:func:`.objective.make_value`), all on MJX-JAX;
+        the ratios are the step's cost in forward windows (the target: <= 5)."""
+        th = jnp.asarray(param.theta_of(self.base), jnp.float32)
+        self.programs(param)
+
+        def timed(fn):
+            jax.block_until_ready(fn())  # compiles (if new) and warms
+            ts = []
+            for _ in range(reps):
+                t = time.perf_counter()
+                jax.block_until_ready(fn())
+                ts.append(time.perf_counter() - t)
+            return float(np.median(ts))
+
+        value = timed(lambda: self.value_fns[param.name](th[None], self.win))
+        jac = timed(lambda: self.exact(param)(th, self.win))
+        out = dict(windows=int(self.win.size), ticks=int(self.obj.ticks), tangents=int(param.size),
+                   window_value_s=value, jacfwd_s=jac, jacfwd_over_value=jac / value, reps=int(reps))
+        if self.cfg.grad_directions:
+            fg = self.fns[param.name][0]
+            fgs = timed(lambda: fg(th))
+            out.update(forward_gradient_directions=int(self.cfg.grad_directions), forward_gradient_s=fgs,
+                       forward_gradient_over_value=fgs / value)
+        return out
+
+
+def diagnostic_iterates(res: dict, members: dict, dim: str) -> list:
+    """The held-out-evaluated iterates of parameterisation ``dim`` the diagnostics rank (start point included)."""
+    return [k for k, (p, _, _) in members.items() if p.name == dim and k in res["heldout"] and k != "table1"]
+
+
+def gradient_diagnostics(cfg, res: dict, params: dict, base, grad: GradientPrograms, members: dict) -> dict:
+    """What decides whether the gradient can pay, per parameterisation with a gradient run:
+
+    * the gradient's signal-to-noise ratio across windows at the start point, ``|mean| / (std / sqrt(W))`` per
+      coordinate (:func:`.study.gradient_stats`), and the median per-window gradient norm;
+    * how well the window objective ranks held-out success: Spearman's rank correlation between the window
+      objective ``L`` (lower is better) and held-out clean success over every iterate of that parameterisation
+      that was evaluated (a useful objective gives a clearly negative correlation).
+    """
+    from scipy import stats
+
+    from hyqjax.studies.tune import study
+
+    out = {}
+    for d, param in params.items():
+        if param.name not in grad.fns:
+            continue
+        _, evaluate, _ = grad.fns[param.name]
+        r0 = grad.exact_step(param)(param.theta_of(base))
+        gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
+        snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
+        keys = diagnostic_iterates(res, members, d)
+        thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])
+        k6 = 6  # the window program's batch (search.run_gradient's line search)
+        vals = []
+        for a in range(0, len(thetas), k6):
+            chunk = thetas[a:a + k6]
+            pad = np.concatenate([chunk, np.repeat(chunk[-1:], k6 - len(chunk), 0)])
+            vals.extend(np.asarray(evaluate(pad), np.float64)[: len(chunk)].tolist())
+        clean = [res["heldout"][k]["clean"] for k in keys]
+        rho = stats.spearmanr(vals, clean).statistic if len(set(clean)) > 1 and len(set(vals)) > 1 else float("nan")
+        out[d] = dict(snr_mean=float(np.nanmean(snr)), snr_median=float(np.nanmedian(snr)),
+                      snr_above_2=float(np.mean(snr > 2.0)), median_window_grad_norm=gs["median_norm"],
+                      windows=int(np.sum(np.asarray(r0["ok"]))), objective_vs_heldout_spearman=float(rho),
+                      iterates=keys, window_objective=vals, heldout_clean=clean)
+    return out
