@@ -169,8 +169,8 @@ def run(args) -> int:
           f"{int(round(args.duration / 0.002))} ticks", flush=True)
     t0 = time.time()
     with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
-        cfg = TASK.config(duration=args.duration, record_every=10, impl=args.impl)
-        _, res = TASK.rollout(cfg).run(batch, progress=progress)
+        rollout = TASK.rollout(TASK.config(duration=args.duration, record_every=10, impl=args.impl))
+        _, res = rollout.run(batch, progress=progress)
     trace = jax.tree_util.tree_map(np.asarray, res.trace)
     wall = time.time() - t0
     status = progress.status
@@ -182,7 +182,7 @@ def run(args) -> int:
                             instances=[p.to_dict() for p in per])
     opts = user_options(args)
     n_ticks = int(round(args.duration / 0.002))
-    out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=TASK.rollout(cfg).setup.impl,
+    out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=rollout.setup.impl,
                wall_time_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
                env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                batches=status.timings, groups=groups)

@@ -152,12 +152,13 @@ def run(args) -> int:
     cfg = TASK.config(duration=args.duration, record_every=record_every, impl=args.impl)
     n = scenario.batch_size
     n_ticks = cfg.sim_config().n_ticks
-    impl = stepdown.setup(cfg).impl
+    rollout = TASK.rollout(cfg)
+    impl = rollout.setup.impl
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
           f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
     t0 = time.time()
     with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
-        outcome, res = TASK.rollout(cfg).run(scenario, progress=progress)
+        outcome, res = rollout.run(scenario, progress=progress)
     out = stepdown_outcome.to_columns(outcome)
     trace = jax.tree_util.tree_map(np.asarray, res.trace) if record_every else None
     wall = time.time() - t0
