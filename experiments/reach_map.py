@@ -45,6 +45,8 @@ import time
 
 import numpy as np
 
+from hyqjax.crawl import presets
+
 HEIGHTS = tuple(round(0.14 + 0.02 * i, 2) for i in range(9))
 SPREADS = {
     "narrow": dict(friction=(0.7, 1.0), payload=(0.0, 10.0), start_distance=(0.0, 0.04), lateral=(-0.03, 0.03),
@@ -52,21 +54,9 @@ SPREADS = {
     "wide": dict(friction=(0.4, 1.0), payload=(0.0, 15.0), start_distance=(0.0, 0.15), lateral=(-0.05, 0.05),
                  yaw=(-0.1, 0.1)),
 }
-REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
-#: name -> (CrawlParams.make overrides, description). ``tuned`` is built from a tuning study's results.json.
-VARIANTS = {
-    "paper_off": (dict(use_reflex=False), "reflex off (the no-reflex baseline)"),
-    "default": (dict(), "CrawlParams.make(): the reflex, trunk at 30% of the feet plane"),
-    "remedy": (REMEDY, "--remedy: shin remedy, trunk at 80% of the feet plane"),
-    "start": (dict(shin_remedy=True), "the tuner's start point: Table I, shin remedy, trunk at 30%"),
-    "tuned": (None, "the tuning study's selected parameters (--tuned, --tuned-method)"),
-    "remedy_fwd_0.10": (dict(REMEDY, search_forward_limit=0.10), "remedy, forward search saturating at 10 cm"),
-    "remedy_lower_0.05": (dict(REMEDY, step_down_lowering=0.05), "remedy, trunk 5 cm lower during a step down"),
-    "adaptive": (dict(shin_remedy=True, terrain_adaptation=0.3, terrain_adaptation_step=5.0 / 7.0),
-                 "shin remedy, trunk at 30% of the feet plane, 80% during a step down"),
-    "remedy_all": (dict(REMEDY, search_forward_limit=0.10, step_down_lowering=0.05),
-                   "remedy, saturating forward search and lower trunk during a step down"),
-}
+#: name -> (CrawlParams.make overrides, description): the hand-set presets (``hyqjax.crawl.presets``) and ``tuned``,
+#: built from a tuning study's results.json.
+VARIANTS = {**presets.HAND_SET, "tuned": (None, "the tuning study's selected parameters (--tuned, --tuned-method)")}
 DEFAULT_VARIANTS = ("paper_off", "default", "remedy", "start", "tuned", "remedy_fwd_0.10", "remedy_lower_0.05",
                     "adaptive", "remedy_all")
 DEFAULT_TUNED = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "results",

@@ -200,6 +200,32 @@ def test_windows_follow_the_remedy_leg_order(cl64):
 
 
 @pytest.mark.slow
+def test_windows_retaken_under_a_parameterised_crawl(cl64):
+    """Windows re-taken at an iterate (``make_windows(..., param=, theta=)``, the hybrid's ``--retake-windows``)
+    are the windows of the plain crawl run with that iterate's parameters, and differ from the start point's."""
+    from hyqjax.studies.tune import evaluate, schedule
+
+    _, sp, _, _, base, _, both = cl64
+    with jax.enable_x64(True):
+        su = windows.setup(dtype="float64")
+        th = np.asarray(sp.theta_of(base))
+        th[sp.names.index("body_height")] -= 1.0  # a lower trunk: another gait, other snapshot states
+        spec = windows.WindowSpec(per_scenario=2, lead=6.0, offset=190)
+        sc0, _ = evaluate.scenarios([0.24], 1, 3, params=base)
+        retaken = windows.make_windows(sc0, spec, su, param=schedule.Parameterisation("shared", sp), theta=th)
+        sc1, _ = evaluate.scenarios([0.24], 1, 3, params=sp.crawl_params(jnp.asarray(th), base))
+        plain = windows.make_windows(sc1, spec, su)
+    assert np.asarray(retaken.valid).all()
+    for a, b in ((retaken.leg, plain.leg), (retaken.tick, plain.tick)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_allclose(np.asarray(retaken.data.qpos), np.asarray(plain.data.qpos), rtol=0, atol=1e-9)
+    for a, b in zip(jax.tree_util.tree_leaves(retaken.ctrl), jax.tree_util.tree_leaves(plain.ctrl)):
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(b, np.float64), rtol=0, atol=1e-9)
+    moved = np.abs(np.asarray(retaken.data.qpos) - np.asarray(both.data.qpos)).max()
+    assert moved > 1e-3 or not np.array_equal(np.asarray(retaken.tick), np.asarray(both.tick)), moved
+
+
+@pytest.mark.slow
 def test_closed_loop_gradient_matches_central_differences_per_robot(cl64):
     """The closed-loop window objective's jacfwd against central differences (along random directions and along
     the remedy's forward search alone), per robot: each robot's loss and gradient depend on its own parameters

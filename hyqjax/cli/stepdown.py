@@ -91,9 +91,6 @@ def validate(args) -> None:
 
 
 #: What ``--remedy`` sets (docs/stepdown.md).
-REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
-
-
 def _crawl_settings(args) -> dict:
     """``CrawlParams.make`` settings of ``--remedy`` and ``--crawl`` (the latter wins), checked against the declared
     ranges (JAX's parameter classes only, no MJX)."""
@@ -114,6 +111,8 @@ def _crawl_settings(args) -> dict:
                 specs[key].check(np.asarray(value, np.float64), "CrawlParams")
             except ParameterError as e:
                 raise ValueError(f"--crawl: {e}") from None
+    from hyqjax.crawl.presets import REMEDY
+
     return {**(REMEDY if args.remedy else {}), **extra}
 
 

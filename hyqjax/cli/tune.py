@@ -51,7 +51,7 @@ GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "train_heights", "pr
                        "success_instances", "success_duration", "curve_instances", "baseline_wall_s",
                        "offset", "checkpoint_every")
 #: Options only the default tuner and --study use: refused with --gradient-study.
-WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "cold_compile")
+WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "cold_compile", "retake_windows")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -87,6 +87,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="compile every program cold: JAX's persistent cache and Warp's kernel cache in a fresh empty "
                         "directory of this process, so a method run in its own process (--methods one,name) pays the "
                         "compile a first run pays; runs of one study may be split over processes into one --out")
+    g.add_argument("--retake-windows", action="store_true",
+                   help="the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts "
+                        "from (paid from its clock), instead of descending from the start point's gait")
     g.add_argument("--select-every-s", type=float, default=0.0,
                    help="selection: also validate the iterate when this many seconds of the method's clock have "
                         "passed since the last validation (0: by iterations only, --select-every)")
@@ -319,7 +322,7 @@ def _validate_wallclock(args) -> None:
             charge_compile=not args.no_compile_charge, cold_compile=args.cold_compile,
             select_instances=args.select_instances, select_every=args.select_every,
             select_every_s=args.select_every_s, select_seed=args.select_seed, grad_directions=args.grad_directions,
-            start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
+            retake_windows=args.retake_windows, start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)
         opt = msg.split(" ")[0].replace("_", "-")

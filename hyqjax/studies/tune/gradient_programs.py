@@ -40,8 +40,10 @@ class GradientPrograms:
         sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
                                    params=base)
         spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
+        self.sc, self.spec = sc, spec
         self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
             windows.make_windows(sc, spec, self.su)))
+        self.win_start = self.win  # the start point's windows (the diagnostics' SNR reads these)
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
         self.fns: dict = {}
         self.exact_fns: dict = {}
@@ -49,6 +51,21 @@ class GradientPrograms:
         self.charges = charges
         log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
             f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
+
+    def retake(self, param: schedule.Parameterisation, theta) -> int:
+        """Re-take the windows on the same scenarios under the crawl ``theta`` schedules (:func:`.windows.make_windows`
+        with ``param``), so that a gradient started from ``theta`` (the hybrid's, after its search) descends from
+        states its own gait visits, not the start point's. Same shapes: the step and value programs do not
+        recompile (the capture does, once per parameterisation). Returns the physics steps of the forward run;
+        :meth:`restore` goes back to the start point's windows."""
+        from hyqjax.studies.tune import windows
+
+        self.win = jax.block_until_ready(windows.make_windows(self.sc, self.spec, self.su, param=param, theta=theta))
+        return int(self.sc.batch_size * round(self.spec.lead / float(self.su.m.opt.timestep)))
+
+    def restore(self) -> None:
+        """Back to the start point's windows (after a run that re-took them)."""
+        self.win = self.win_start
 
     def step_name(self, param) -> str:
         """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents) or the forward gradient with

@@ -40,12 +40,22 @@ def load(directory: str) -> dict:
     return res
 
 
+def _settings(config: dict) -> dict:
+    """A run's settings but the free ones; a setting its study predates counts at its default (the behaviour the
+    run had)."""
+    from hyqjax.studies.tune.wallclock import WallClockConfig
+
+    out = {k: v for k, v in WallClockConfig.defaults().items() if k not in config}
+    out.update(config)
+    return {k: v for k, v in out.items() if k not in FREE_SETTINGS}
+
+
 def check_comparable(results: list[dict], names: list[str]) -> None:
     """Refuse runs of different configurations (but for their seed and methods) or held-out sets."""
     ref, ref_name = results[0], names[0]
-    fixed = {k: v for k, v in ref["config"].items() if k not in FREE_SETTINGS}
+    fixed = _settings(ref["config"])
     for res, name in zip(results[1:], names[1:]):
-        other = {k: v for k, v in res["config"].items() if k not in FREE_SETTINGS}
+        other = _settings(res["config"])
         for k in sorted(set(fixed) | set(other)):
             if fixed.get(k) != other.get(k):
                 raise ValueError(f"{name} differs from {ref_name} in {k}: {other.get(k)!r} against {fixed.get(k)!r}")

@@ -123,6 +123,9 @@ class WallClockConfig:
     #: times the variance of one window's gradient)
     grad_directions: int = 0
     hybrid_split: float = 0.5
+    #: the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts from (in its
+    #: clock: the capture's compile and forward run), instead of descending from the start point's gait
+    retake_windows: bool = False
     # held-out
     heldout: int = 2000
     heldout_seed: int = 7777
@@ -168,7 +171,7 @@ class WallClockConfig:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
         if "open_es" in self.methods and self.popsize % 2:
             raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
-        for k in ("charge_compile", "cold_compile"):
+        for k in ("charge_compile", "cold_compile", "retake_windows"):
             if not isinstance(getattr(self, k), bool):
                 raise ValueError(f"{k} must be True or False, got {getattr(self, k)!r}")
         for k, lo, hi in (("select_instances", 0, 10**6), ("select_every", 0, 10**5), ("select_seed", 0, 2**31 - 1)):
@@ -217,6 +220,12 @@ class WallClockConfig:
 
     def to_dict(self) -> dict:
         return json.loads(json.dumps(dataclasses.asdict(self), default=list))
+
+    @staticmethod
+    def defaults() -> dict:
+        """Every setting's default, as :meth:`to_dict` writes it (no checks run)."""
+        fields = {f.name: f.default for f in dataclasses.fields(WallClockConfig)}
+        return json.loads(json.dumps(fields, default=list))
 
 
 def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:
@@ -351,8 +360,18 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
         step_fn, evaluate, cost = grad.programs(param)
         for name in grad.charge_names(param):
             charge(charges.seconds[name])
-        search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
-                            progress=progress)
+        retaken = method == "hybrid" and cfg.retake_windows
+        if retaken:
+            t = clock.elapsed()
+            clock.physics_steps += grad.retake(param, theta_start)
+            log(f"  hybrid: windows re-taken at the gradient's start iterate ({clock.elapsed() - t:.1f} s, "
+                f"{int(np.asarray(grad.win.valid).sum())} of {grad.win.size} triggered)")
+        try:
+            search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
+                                progress=progress)
+        finally:
+            if retaken:
+                grad.restore()
 
 
 def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:

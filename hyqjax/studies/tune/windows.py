@@ -72,12 +72,16 @@ def setup(control_dt: float = 0.002, dtype: str = "float32") -> Setup:
     return Setup(m, mx, ids, Slots(shin, trunk, feet))
 
 
-def tick(mx: mjx.Model, ids: hmodel.ModelIds, p: crawl.CrawlParams, d: mjx.Data, cs, tau_prev, dt: float):
+def tick(mx: mjx.Model, ids: hmodel.ModelIds, p, d: mjx.Data, cs, tau_prev, dt: float, step=None):
     """One control tick of the step-down closed loop (what ``sim.rollout`` does, without the divergence
-    freeze): observe, crawl + reflex + joint impedance, torque limits, one ``mjx.step``.
-    Returns ``(d, cs, tau, info)``."""
+    freeze): observe, crawl + reflex + joint impedance, torque limits, one ``mjx.step``. ``step(p, cs, obs)``
+    is the controller's step (default: the crawl, ``p`` its ``CrawlParams``; a parameterisation's scheduled
+    crawl, ``p`` its ``Scheduled``). Returns ``(d, cs, tau, info)``."""
     obs = sim.observe(ids, d, tau_prev, mx)
-    cs, tau, info = crawl.crawl_step(p, cs, obs, dt)
+    if step is None:
+        cs, tau, info = crawl.crawl_step(p, cs, obs, dt)
+    else:
+        cs, tau, info = step(p, cs, obs)
     tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
     d = mjx.step(mx, d.replace(ctrl=tau))
     return d, cs, tau, info
@@ -160,11 +164,14 @@ def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
     return Windows(model=model, **rest), Windows(model=axes, **zeros)
 
 
-def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
-    """Forward run of ONE scenario; returns the snapshot slots, their validity, leg and tick."""
+def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float, controller=None):
+    """Forward run of ONE scenario; returns the snapshot slots, their validity, leg and tick. ``controller``
+    (a :class:`hyqjax.core.types.Controller`, ``p`` its parameters) replaces the crawl with ``CrawlParams`` ``p``."""
     sites = np.asarray(ids.foot_sites)
     tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
-    cs0 = crawl.crawl_init(p, sim.observe(ids, d0, tau0, mx))
+    obs0 = sim.observe(ids, d0, tau0, mx)
+    cs0 = crawl.crawl_init(p, obs0) if controller is None else controller.init(p, obs0)
+    step = None if controller is None else controller.step
     k_slots = spec.per_scenario
     stack = lambda x: jnp.broadcast_to(x, (k_slots,) + jnp.shape(x))
     snaps0 = jax.tree_util.tree_map(stack, (d0, cs0, tau0))
@@ -174,7 +181,7 @@ def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
 
     def body(carry, k):
         d, cs, tau, snaps, (valid, legs, ticks), count, pending, pend_leg = carry
-        d1, cs1, tau1, info = tick(mx, ids, p, d, cs, tau, dt)
+        d1, cs1, tau1, info = tick(mx, ids, p, d, cs, tau, dt, step)
         new_body = (cs.phase == crawl.PHASE_SWING) & (cs1.phase == crawl.PHASE_BODY)
         leg = cs1.sequence[cs1.seq_index]  # the remedy may have brought the other front leg forward
         foot_x = d.site_xpos[sites][leg, 0]
@@ -199,8 +206,11 @@ def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
     return carry[3], carry[4]
 
 
-def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), su: Setup | None = None) -> Windows:
-    """Snapshots of a step-down batch (``stepdown.make_scenarios``, reflex on) under its own parameters."""
+def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), su: Setup | None = None,
+                 param=None, theta=None) -> Windows:
+    """Snapshots of a step-down batch (``stepdown.make_scenarios``, reflex on) under its own parameters, or, with
+    ``param`` (a :class:`.schedule.Parameterisation`) and ``theta``, under the crawl that ``theta`` schedules on
+    top of them (the gait an iterate of a tuner walks: windows re-taken where a tuning run has moved to)."""
     su = su or setup()
     dt = float(su.m.opt.timestep)
     b = scenario.batch_size
@@ -210,8 +220,15 @@ def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), s
     params = jax.tree_util.tree_map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
                                     scenario.params)
     n_ticks = int(round(spec.lead / dt))
+    controller = None
+    if param is not None:
+        th = jnp.asarray(np.asarray(theta, np.float64), dtype)
+        sched = param.scheduled(th, params)
+        params = dataclasses.replace(sched, table=jnp.broadcast_to(sched.table, (b,) + sched.table.shape),
+                                     cond=jnp.broadcast_to(sched.cond, (b,) + sched.cond.shape))
+        controller = param.controller(dt)
     axes = hmodel.model_in_axes(mb)
-    fn = jax.jit(jax.vmap(lambda mm, pp, dd: _capture(mm, su.ids, pp, dd, spec, n_ticks, dt),
+    fn = jax.jit(jax.vmap(lambda mm, pp, dd: _capture(mm, su.ids, pp, dd, spec, n_ticks, dt, controller),
                           in_axes=(axes, 0, 0)))
     (dd, cc, tt), (valid, legs, ticks) = fn(mb, params, d0)
     k = spec.per_scenario

@@ -1,0 +1,35 @@
+"""Hand-set crawl configurations: one home for the named ``CrawlParams.make`` settings that the CLI's ``--remedy``,
+the reach map (``experiments/reach_map.py``) and the tuning study's hand-set comparison
+(``experiments/tune_handset.py``) run.
+
+Every preset is a dict of ``CrawlParams.make`` overrides and a one-line description; none is tuned on data: the
+shin remedy (``crawl.remedy``) and its trunk at 80% of the feet plane (``terrain_adaptation``) come from the
+narrow-spread remedy study (docs/stepdown.md), the other settings are its options.
+"""
+from __future__ import annotations
+
+#: ``--remedy``: the shin-strike remedy with the trunk at 80% of the feet plane.
+REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
+
+#: name -> (``CrawlParams.make`` overrides, description).
+HAND_SET = {
+    "paper_off": (dict(use_reflex=False), "reflex off (the no-reflex baseline)"),
+    "default": (dict(), "CrawlParams.make(): the reflex, trunk at 30% of the feet plane"),
+    "remedy": (REMEDY, "--remedy: shin remedy, trunk at 80% of the feet plane"),
+    "start": (dict(shin_remedy=True), "the tuner's start point: Table I, shin remedy, trunk at 30%"),
+    "remedy_fwd_0.10": (dict(REMEDY, search_forward_limit=0.10), "remedy, forward search saturating at 10 cm"),
+    "remedy_lower_0.05": (dict(REMEDY, step_down_lowering=0.05), "remedy, trunk 5 cm lower during a step down"),
+    "adaptive": (dict(shin_remedy=True, terrain_adaptation=0.3, terrain_adaptation_step=5.0 / 7.0),
+                 "shin remedy, trunk at 30% of the feet plane, 80% during a step down"),
+    "remedy_all": (dict(REMEDY, search_forward_limit=0.10, step_down_lowering=0.05),
+                   "remedy, saturating forward search and lower trunk during a step down"),
+}
+
+
+def make(name: str):
+    """``CrawlParams`` of preset ``name`` (a ``ValueError`` naming the presets for any other name)."""
+    if name not in HAND_SET:
+        raise ValueError(f"preset must be one of {list(HAND_SET)}, got {name!r}")
+    from hyqjax.crawl.params import CrawlParams
+
+    return CrawlParams.make(**HAND_SET[name][0])
