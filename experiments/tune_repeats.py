@@ -34,7 +34,8 @@ def main(argv=None) -> int:
         return 2
     print(repeats.table(summary, args.minutes))
     if args.out:
-        atomic.write_json(args.out, dict(minutes=args.minutes, dirs=list(args.dirs), members=summary))
+        atomic.write_json(args.out, dict(minutes=args.minutes, dirs=list(args.dirs), members=summary,
+                                         differences=repeats.differences(summary)))
         print(f"wrote {args.out}")
     return 0
 

@@ -947,6 +947,11 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
     assert out["cma_es/shared"]["apart_from"] == ["random_search/shared", "start"]
     assert "random_search/shared" not in out["start"]["apart_from"]
     assert "cma_es/shared" in repeats.table(out, 10.0)
+    d = repeats.differences(out)["cma_es/shared - random_search/shared"]
+    welch = stats.ttest_ind([0.60, 0.62, 0.58], [0.50, 0.52, 0.49], equal_var=False)
+    assert d["mean"] == pytest.approx(0.0966667) and d["p_two_sided"] == pytest.approx(welch.pvalue)
+    ci = welch.confidence_interval(0.95)
+    assert d["ci95"] == pytest.approx([ci.low, ci.high])
     one = repeats.collect(res[:1], ["a"], 10.0)
     assert one["cma_es/shared"]["clean"]["ci95"] is None and one["cma_es/shared"]["apart_from"] == []
     other = study(3, 0.6, 0.5)

@@ -112,6 +112,39 @@ def collect(results: list[dict], names: list[str], minutes: float) -> dict:
     return out
 
 
+def difference(a: list[float], b: list[float]) -> dict | None:
+    """The difference of two members' mean clean rates over runs, ``m_a - m_b``, with Welch's 95% interval
+    ``(m_a - m_b) +- t_{0.975, nu} sqrt(s_a^2 / n_a + s_b^2 / n_b)`` (Welch-Satterthwaite ``nu``) and the two-sided
+    p-value of Welch's t-test (``scipy.stats.ttest_ind``, ``equal_var=False``); None with fewer than 2 runs of
+    either or no spread in both. A weaker claim than :func:`collect`'s ``apart_from`` (two intervals over runs
+    that do not overlap), which is what the study's targets ask for."""
+    from scipy import stats
+
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if a.size < 2 or b.size < 2:
+        return None
+    va, vb = a.var(ddof=1) / a.size, b.var(ddof=1) / b.size
+    if va + vb == 0.0:
+        return None
+    nu = (va + vb) ** 2 / (va ** 2 / (a.size - 1) + vb ** 2 / (b.size - 1))
+    d = float(a.mean() - b.mean())
+    half = float(stats.t.ppf(0.975, nu)) * math.sqrt(va + vb)
+    p = float(stats.ttest_ind(a, b, equal_var=False).pvalue)
+    return dict(mean=d, ci95=[d - half, d + half], df=float(nu), p_two_sided=p)
+
+
+def differences(summary: dict) -> dict:
+    """:func:`difference` of every ordered pair of tuned members (``method/dim``), the higher mean first."""
+    keys = sorted((k for k in summary if "/" in k), key=lambda k: -summary[k]["clean"]["mean"])
+    out = {}
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            d = difference([r["clean"] for r in summary[a]["runs"]], [r["clean"] for r in summary[b]["runs"]])
+            if d is not None:
+                out[f"{a} - {b}"] = d
+    return out
+
+
 def table(summary: dict, minutes: float) -> str:
     """A markdown table of :func:`collect`'s summary, best mean clean first."""
     lines = [f"held-out clean success at {minutes:g} min over runs (95% t-interval of the mean over runs)", "",
@@ -124,4 +157,11 @@ def table(summary: dict, minutes: float) -> str:
         per = ", ".join(f"{r['clean']:.3f}" for r in row["runs"])
         lines.append(f"| {key} | {c['n']} | {per} | {c['mean']:.3f} {ci} | {sd} | {row['completed']['mean']:.3f} | "
                      f"{', '.join(row['apart_from']) or '–'} |")
+    diffs = differences(summary)
+    if diffs:
+        lines += ["", "difference of means over runs (Welch's 95% interval; weaker than 'apart from')", "",
+                  "| difference | mean [95% Welch] | df | p (two-sided) |", "|---|---|---:|---:|"]
+        for k, d in diffs.items():
+            lines.append(f"| {k} | {d['mean']:+.3f} [{d['ci95'][0]:+.3f}, {d['ci95'][1]:+.3f}] | {d['df']:.1f} | "
+                         f"{d['p_two_sided']:.3f} |")
     return "\n".join(lines)
