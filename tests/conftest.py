@@ -11,13 +11,7 @@ import tempfile
 import textwrap
 import warnings
 
-# The suite is bound by XLA:CPU compiles of programs that then run for seconds: LLVM's backend optimisation is off
-# for it (the same programs, compiled faster, run slower; benchmarks/RESULTS.md has the suite's time both ways). A
-# level the user set is kept; subprocesses inherit it. Users' runs keep XLA's default.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0").strip()
-
-import hyqjax  # noqa: E402,F401  (sets the XLA:CPU flags before jax is imported)
+import hyqjax  # noqa: F401  (sets the XLA:CPU flags before jax is imported)
 import jax
 import numpy as np
 import pytest
