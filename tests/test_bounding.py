@@ -239,12 +239,12 @@ def test_stored_cycle_is_periodic(cycle_check):
 @pytest.mark.slow
 def test_levenberg_marquardt_returns_to_the_cycle():
     """optimistix's LM with forward-mode Jacobians, from the stored cycle with its vertical impulses moved by
-    +-15 N: three LM moves shrink the periodicity residual (Eq. C2) by more than 10x."""
+    +-15 N: three LM steps shrink the periodicity residual (Eq. C2) by more than 10x."""
     params = bd.default_params(apex_feedback=False, stance_feedback=False)
     u0 = bc.stored_cycle() + np.array([15.0, -15.0, 0, 0, 0, 0, 0, 0])
-    res = bc.optimise_cycle(params, u0[None], iterations=4, progress=False)
+    res = bc.optimise_cycle(params, u0[None], iterations=3, progress=False)
     r0, r1 = res.residual_history[0, 0], res.residual_norm[0]  # at the guess, at the last accepted iterate
-    assert res.history.shape == (4, 1) and np.isfinite(r1)
+    assert res.history.shape == (3, 1) and np.isfinite(r1)
     assert r0 > 0.1, r0  # the perturbation really breaks periodicity
     assert r1 < 0.1 * r0 and r1 < 0.05, (r0, r1)
     assert np.all(np.diff(res.history[:, 0]) <= 1e-6 * res.history[0, 0])  # LM accepts only steps lowering Eq. C2
