@@ -836,6 +836,17 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert "random_search / shared (14)" in figure.wallclock_markdown(again)
     with pytest.raises(RuntimeError, match="another configuration"):
         wallclock.run_wallclock_study(dataclasses_replace(cfg, seed=5), str(tmp_path), log=lambda s: None)
+    # Hand-set presets on the study's held-out set (experiments/tune_handset.py): the start point and the default
+    # crawl (Table I) reproduce the study's own held-out results for those two members, instance for instance.
+    from hyqjax.studies.tune import handset
+
+    hs = handset.evaluate_presets(again, ["start", "default"], log=lambda s: None)
+    for preset, member in (("start", "start"), ("default", "table1")):
+        for k in ("n", "clean", "completed", "failure_counts", "per_height"):
+            assert hs[preset][k] == again["heldout"][member][k], (preset, k)
+    assert handset.best(hs)[0] in ("start", "default")
+    with pytest.raises(ValueError, match="presets must be among"):
+        handset.check_names(["start", "trunk_at_90"])
 
 
 def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
