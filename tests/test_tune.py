@@ -981,3 +981,26 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
     (tmp_path / "results.json").write_text(_json.dumps(dict(kind="gradient")))
     with pytest.raises(ValueError, match="not an equal-wall-clock study"):
         repeats.load(str(tmp_path))
+
+
+def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
+    """The window-objective ranking (experiments/tune_objective_ranking.py) reads back the configuration a study
+    ran with and collects the start point once and every held-out-evaluated checkpoint of every run, with its
+    held-out clean rate; the stored 10-minute runs give 1 + 2 x 2 iterates."""
+    import json as _json
+
+    from hyqjax.studies.tune import ranking
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    d = os.path.join(repo, "docs", "results", "tune_repeats_h100_10min")
+    res = [_json.load(open(os.path.join(d, r, "results.json"))) for r in ("cma_es_s1", "random_search_s1")]
+    from hyqjax.studies.tune.wallclock import WallClockConfig
+
+    # a setting the run predates (retake_windows) comes back at its default
+    assert ranking.study_config(res[0]).to_dict() == {**WallClockConfig.defaults(), **res[0]["config"]}
+    rows = ranking.iterates(res, ["a", "b"])
+    assert [r["name"] for r in rows].count("start") == 1 and len(rows) == 5
+    for r in rows:
+        if r["name"] != "start":
+            run, key = r["name"].split(":")
+            assert r["clean"] == res["ab".index(run)]["heldout"][key]["clean"] and len(r["theta"]) == 14
