@@ -447,6 +447,10 @@ def _run_wallclock(args) -> int:
         got = res["runs"][f"{m}/{d}"]["params"]
         print("returned parameters (start in brackets): " + ", ".join(
             f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))
+        if got.get("stability_number", 0.0) >= 1.0:
+            print(f"note: the returned reflex gains have stability number {got['stability_number']:.3g} >= 1, outside "
+                  f"the step-size condition ReflexParams.validate(dt) enforces (the batched rollouts above ran them; "
+                  f"reflex_step with concrete parameters refuses them; docs/tuning.md)")
     for d, g in res.get("diagnostics", {}).items():
         print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
               f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
