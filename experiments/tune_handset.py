@@ -32,7 +32,7 @@ def main(argv=None) -> int:
         names = handset.check_names(args.presets)
         with open(os.path.join(args.dir, "results.json")) as f:
             res = json.load(f)
-        handset.study_config(res)
+        handset.check_study(res)
     except (OSError, ValueError) as e:
         print(f"tune_handset: {e}", file=sys.stderr)
         return 2

@@ -22,6 +22,8 @@ def main(argv=None) -> int:
     p.add_argument("dirs", nargs="+", help="study directories with a held-out evaluation")
     p.add_argument("--out", default=None, help="JSON file for the result")
     args = p.parse_args(argv)
+    from hyqjax.studies.tune import handset
+
     results = []
     for d in args.dirs:
         try:
@@ -30,9 +32,10 @@ def main(argv=None) -> int:
         except (OSError, ValueError) as e:
             print(f"tune_objective_ranking: {d}: no readable results.json ({e})", file=sys.stderr)
             return 2
-        if res.get("kind") != "wallclock" or "heldout_set" not in res:
-            print(f"tune_objective_ranking: {d}: not an equal-wall-clock study with a held-out evaluation",
-                  file=sys.stderr)
+        try:
+            handset.check_study(res)
+        except ValueError as e:
+            print(f"tune_objective_ranking: {d}: {e}", file=sys.stderr)
             return 2
         results.append(res)
     from hyqjax.io import atomic

@@ -985,7 +985,7 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
 
 def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
     """The window-objective ranking (experiments/tune_objective_ranking.py) reads back the configuration a study
-    ran with and collects the start point once and every held-out-evaluated checkpoint of every run, with its
+    ran with (``WallClockConfig.from_dict``) and collects the start point once and every held-out-evaluated checkpoint of every run, with its
     held-out clean rate; the stored 10-minute runs give 1 + 2 x 2 iterates."""
     import json as _json
 
@@ -997,7 +997,7 @@ def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
     from hyqjax.studies.tune.wallclock import WallClockConfig
 
     # a setting the run predates (retake_windows) comes back at its default
-    assert ranking.study_config(res[0]).to_dict() == {**WallClockConfig.defaults(), **res[0]["config"]}
+    assert WallClockConfig.from_dict(res[0]["config"]).to_dict() == {**WallClockConfig.defaults(), **res[0]["config"]}
     rows = ranking.iterates(res, ["a", "b"])
     assert [r["name"] for r in rows].count("start") == 1 and len(rows) == 5
     for r in rows:

@@ -27,6 +27,7 @@ import os
 import sys
 import time
 
+from hyqjax.crawl import presets
 from hyqjax.studies import tasks
 
 NAME = "stepdown"
@@ -90,7 +91,6 @@ def validate(args) -> None:
     args.options_checked = True
 
 
-#: What ``--remedy`` sets (docs/stepdown.md).
 def _crawl_settings(args) -> dict:
     """``CrawlParams.make`` settings of ``--remedy`` and ``--crawl`` (the latter wins), checked against the declared
     ranges (JAX's parameter classes only, no MJX)."""
@@ -111,9 +111,7 @@ def _crawl_settings(args) -> dict:
                 specs[key].check(np.asarray(value, np.float64), "CrawlParams")
             except ParameterError as e:
                 raise ValueError(f"--crawl: {e}") from None
-    from hyqjax.crawl.presets import REMEDY
-
-    return {**(REMEDY if args.remedy else {}), **extra}
+    return {**(presets.REMEDY if args.remedy else {}), **extra}
 
 
 #: The start distance range of the randomised instances (m), as ``stepdown.make_scenarios`` draws it.

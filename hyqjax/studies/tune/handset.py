@@ -12,28 +12,26 @@ from __future__ import annotations
 from hyqjax.crawl import presets
 
 
-def study_config(res: dict) -> dict:
-    """The settings of a study's ``results.json`` the held-out evaluation needs (a ``ValueError`` if it has no
-    held-out set yet)."""
-    if "heldout_set" not in res:
-        raise ValueError("the study has no held-out set yet (run it to its held-out evaluation first)")
-    cfg = res["config"]
-    return dict(groups=tuple(cfg["groups"]), dim=cfg["dims"][0], heldout=int(cfg["heldout"]),
-                heldout_seed=int(cfg["heldout_seed"]), heldout_duration=float(cfg["heldout_duration"]),
-                chunk=int(cfg["heldout_chunk"]), impl=str(res.get("impl", cfg["impl"])))
+def check_study(res: dict) -> None:
+    """Refuse a ``results.json`` without a held-out evaluation (one line)."""
+    if res.get("kind") != "wallclock" or "heldout_set" not in res:
+        raise ValueError("not an equal-wall-clock study with a held-out evaluation (run it to its held-out evaluation "
+                         "first)")
 
 
 def evaluate_presets(res: dict, names: list, done=None, log=print) -> dict:
     """Every preset in ``names`` on the held-out set of study ``res``: name -> summary; ``done(name, summary)`` after
     each (to store it)."""
     from hyqjax.studies.tune import forward, schedule
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig
     from hyqjax.studies.tune.wallclock_results import summarize
 
-    sc_cfg = study_config(res)
-    param = schedule.make(sc_cfg["dim"], sc_cfg["groups"])
+    check_study(res)
+    cfg = WallClockConfig.from_dict(res["config"])
+    param = schedule.make(cfg.dims[0], cfg.groups)
     bases = [presets.make(n) for n in names]
-    sc, heights = forward.heldout_scenarios(sc_cfg["heldout"], sc_cfg["heldout_seed"])
-    ev = forward.SuccessEvaluator(param, bases[0], sc_cfg["heldout_duration"], sc_cfg["impl"])
+    sc, heights = forward.heldout_scenarios(cfg.heldout, cfg.heldout_seed)
+    ev = forward.SuccessEvaluator(param, bases[0], cfg.heldout_duration, res.get("impl", cfg.impl))
     members = [(param, param.theta_of(b), b) for b in bases]
     out = {}
 
@@ -42,7 +40,7 @@ def evaluate_presets(res: dict, names: list, done=None, log=print) -> dict:
         if done is not None:
             done(names[i], out[names[i]])
 
-    forward.evaluate_sets(ev, members, sc, sc_cfg["chunk"], done=finished,
+    forward.evaluate_sets(ev, members, sc, cfg.heldout_chunk, done=finished,
                           progress=lambda a, n, w: log(f"  hand-set {a}/{n} ({w:.1f} s)"))
     return out
 

@@ -12,19 +12,7 @@ away from closed-loop success. MJX-JAX (``impl="jax"``) on any machine.
 """
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
-
-
-def study_config(res: dict):
-    """The :class:`.wallclock.WallClockConfig` a ``results.json`` was run with (lists back to tuples)."""
-    from hyqjax.studies.tune.wallclock import WallClockConfig
-
-    names = {f.name for f in dataclasses.fields(WallClockConfig)}
-    kw = {k: (tuple(tuple(x) if isinstance(x, list) else x for x in v) if isinstance(v, list) else v)
-          for k, v in res["config"].items() if k in names}
-    return WallClockConfig(**kw)
 
 
 def iterates(results: list[dict], names: list[str]) -> list[dict]:
@@ -56,8 +44,9 @@ def rank_iterates(results: list[dict], names: list[str], log=print) -> dict:
 
     from hyqjax.studies.tune import objective, schedule, search, wallclock
     from hyqjax.studies.tune.gradient_programs import GradientPrograms
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
-    cfg = study_config(results[0])
+    cfg = WallClockConfig.from_dict(results[0]["config"])
     base = wallclock.start_params(cfg)
     grad = GradientPrograms(cfg, base, search.Charges(), log)
     win, su, obj = grad.win, grad.su, grad.obj
@@ -67,10 +56,10 @@ def rank_iterates(results: list[dict], names: list[str], log=print) -> dict:
     for row in rows:
         dim = row["dim"] or cfg.dims[0]
         param = schedule.make(dim, cfg.groups)
-        if dim not in programs:
-            programs[dim] = jax.jit(lambda th, param=param: objective.window_losses(th, win, base, param, obj, su))
+        if dim not in programs:  # the windows are an argument, not constants folded into the program
+            programs[dim] = jax.jit(lambda th, w, param=param: objective.window_losses(th, w, base, param, obj, su))
         theta = param.theta_of(base) if row["theta"] is None else np.asarray(row["theta"], np.float64)
-        loss, terms, finite = programs[dim](jnp.asarray(theta, jnp.float32))
+        loss, terms, finite = programs[dim](jnp.asarray(theta, jnp.float32), win)
         ok = np.asarray(win.valid & finite)
         n = max(int(ok.sum()), 1)
         row["windows"] = int(ok.sum())

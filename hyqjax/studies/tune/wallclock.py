@@ -40,7 +40,6 @@ programs) composes into one results file.
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import json
 import os
 import threading
@@ -51,12 +50,11 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
-from hyqjax.sim import backend
 from hyqjax.studies.tune import forward, schedule, search
-from hyqjax.studies.tune.gradient_programs import (WINDOW_SEED_OFFSET, GradientPrograms,
+from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
+from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
 from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, summarize
-from hyqjax.studies.tune import space as spmod
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
 #: the choice is stated).
@@ -82,150 +80,8 @@ def heartbeat(log, message, every: float = 5.0):
         th.join()
 
 
-def generation_seed(seed: int, dim: str) -> int:
-    """The seed of the training scenarios of the search methods on parameterisation ``dim``."""
-    return seed + 1 + 1000 * list(schedule.NAMES).index(dim)
-
-
-def training_seeds(seed: int) -> tuple:
-    """Every seed the training draws of a study with ``seed`` use (the validation seed must be none of them)."""
-    return (seed, seed + WINDOW_SEED_OFFSET) + tuple(generation_seed(seed, d) for d in schedule.NAMES)
-
-
 def run_key(method: str, dim: str) -> str:
     return f"{method}/{dim}"
-
-
-@dataclasses.dataclass(frozen=True)
-class WallClockConfig:
-    """Settings of the study (module docstring); every field is checked at construction (one line naming it)."""
-
-    methods: tuple = search.METHODS
-    dims: tuple = ("shared", "per_leg_cond")
-    wall_minutes: tuple = (1.0, 3.0, 10.0)
-    groups: tuple = spmod.DEFAULT_GROUPS
-    remedy: bool = True
-    seed: int = 0
-    # success-driven search
-    popsize: int = 16
-    train_instances: int = 32
-    train_duration: float = 24.0
-    sigma: float = 0.3
-    completed_weight: float = 0.1
-    # gradient (MJX-JAX)
-    grad_train_per_height: int = 2
-    windows_per_scenario: int = 2
-    window_lead: float = 10.0
-    window_ticks: int = 500
-    lr: float = 0.1
-    #: tangents of the tuning step: 0 = exact ``jacfwd`` (``P``); ``K > 0`` = the forward-gradient estimate from
-    #: ``K`` random directions (:func:`.objective.make_value_and_forward_gradient`, unbiased, ``(P + 1) / K``
-    #: times the variance of one window's gradient)
-    grad_directions: int = 0
-    hybrid_split: float = 0.5
-    #: the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts from (in its
-    #: clock: the capture's compile and forward run), instead of descending from the start point's gait
-    retake_windows: bool = False
-    # held-out
-    heldout: int = 2000
-    heldout_seed: int = 7777
-    heldout_duration: float = 24.0
-    heldout_chunk: int = 8
-    #: MJX implementation of the forward runs (search, held-out); the gradient always runs under impl jax
-    impl: str = "auto"
-    #: warm starts: ``(("method/dim", theta), ...)``, the start of that method on that parameterisation
-    start_from: tuple = ()
-    #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
-    charge_compile: bool = True
-    #: compile every program cold: JAX's persistent compilation cache and Warp's kernel cache in fresh empty
-    #: directories of this process (:func:`hyqjax.io.cache.use_cold_caches`), so no process profits from another's
-    cold_compile: bool = False
-    #: closed-loop validation selection (:class:`.search.Selection`): every method returns its best iterate by
-    #: clean success on ``select_instances`` fixed validation scenarios (drawn like training from ``select_seed``),
-    #: validated every ``select_every`` iterations and / or ``select_every_s`` seconds, paid from its clock.
-    #: The default, (16 + 1) x 32 = 544, is the rows of a default generation: the selection runs on the forward
-    #: program the search already compiled. 0: no selection (the last iterate is returned)
-    select_instances: int = 544
-    select_every: int = 5
-    select_every_s: float = 0.0
-    select_seed: int = 5555
-
-    def __post_init__(self):
-        backend.validate_impl(self.impl)
-        bad = [m for m in self.methods if m not in search.METHODS]
-        if bad or not self.methods or len(set(self.methods)) != len(self.methods):
-            raise ValueError(f"methods must be distinct names among {list(search.METHODS)}, got {list(self.methods)}")
-        bad = [d for d in self.dims if d not in schedule.NAMES]
-        if bad or not self.dims or len(set(self.dims)) != len(self.dims):
-            raise ValueError(f"dims must be distinct names among {list(schedule.NAMES)}, got {list(self.dims)}")
-        spmod.ParamSpace.make(self.groups)
-        wm = tuple(self.wall_minutes)
-        if not wm or any(not (0.0 < float(x) <= 600.0) for x in wm) or list(wm) != sorted(set(wm)):
-            raise ValueError(f"wall_minutes must be increasing values in (0, 600] minutes, got {list(wm)}")
-        for k, lo, hi in (("popsize", 2, 4096), ("train_instances", 4, 100000), ("grad_train_per_height", 1, 1000),
-                          ("windows_per_scenario", 1, 8), ("window_ticks", 1, 20000), ("heldout", 1, 10**6),
-                          ("grad_directions", 0, 4096),
-                          ("heldout_chunk", 1, 4096), ("seed", 0, 2**31 - 1), ("heldout_seed", 0, 2**31 - 1)):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        if "open_es" in self.methods and self.popsize % 2:
-            raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
-        for k in ("charge_compile", "cold_compile", "retake_windows"):
-            if not isinstance(getattr(self, k), bool):
-                raise ValueError(f"{k} must be True or False, got {getattr(self, k)!r}")
-        for k, lo, hi in (("select_instances", 0, 10**6), ("select_every", 0, 10**5), ("select_seed", 0, 2**31 - 1)):
-            v = getattr(self, k)
-            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        if not 0.0 <= float(self.select_every_s) <= 3600.0:
-            raise ValueError(f"select_every_s must be in [0, 3600] s, got {self.select_every_s}")
-        if self.select_instances % len(forward.TRAIN_HEIGHTS):
-            raise ValueError(f"select_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
-                             f"training height; 0: no selection), got {self.select_instances}")
-        if self.select_instances and not (self.select_every > 0 or self.select_every_s > 0):
-            raise ValueError("select_every (iterations) or select_every_s (seconds) must be > 0 with "
-                             f"select_instances {self.select_instances}")
-        if self.select_seed in training_seeds(self.seed) or self.select_seed == self.heldout_seed:
-            raise ValueError(f"select_seed must differ from heldout_seed ({self.heldout_seed}) and the training "
-                             f"draws' seeds ({', '.join(map(str, training_seeds(self.seed)))}), got {self.select_seed}")
-        if self.train_instances % len(forward.TRAIN_HEIGHTS):
-            raise ValueError(f"train_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
-                             f"training height), got {self.train_instances}")
-        if self.heldout_seed == self.seed:
-            raise ValueError(f"heldout_seed must differ from seed (held-out scenarios), got {self.heldout_seed}")
-        for k, lo, hi in (("train_duration", 0.1, 120.0), ("heldout_duration", 0.1, 120.0), ("window_lead", 0.1, 60.0)):
-            if not (lo <= float(getattr(self, k)) <= hi):
-                raise ValueError(f"{k} must be in [{lo}, {hi}] s, got {getattr(self, k)}")
-        for k, lo, hi in (("sigma", 0.0, 5.0), ("lr", 0.0, 1.0), ("hybrid_split", 0.0, 1.0)):
-            if not (lo < float(getattr(self, k)) < hi or (k != "hybrid_split" and float(getattr(self, k)) == hi)):
-                end = ")" if k == "hybrid_split" else "]"
-                raise ValueError(f"{k} must be in ({lo}, {hi}{end}, got {getattr(self, k)}")
-        if not (0.0 <= self.completed_weight <= 10.0):
-            raise ValueError(f"completed_weight must be in [0, 10], got {self.completed_weight}")
-        if not isinstance(self.remedy, bool):
-            raise ValueError(f"remedy must be True or False, got {self.remedy!r}")
-        for key, theta in self.start_from:
-            m, _, d = str(key).partition("/")
-            if m not in self.methods or d not in self.dims:
-                raise ValueError(f"start_from names {key!r}, not a run of this study ({list(self.methods)} on "
-                                 f"{list(self.dims)})")
-            size = schedule.make(d, self.groups).size
-            if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
-                raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
-
-    @property
-    def checkpoints_s(self) -> tuple:
-        return tuple(60.0 * float(m) for m in self.wall_minutes)
-
-    def to_dict(self) -> dict:
-        return json.loads(json.dumps(dataclasses.asdict(self), default=list))
-
-    @staticmethod
-    def defaults() -> dict:
-        """Every setting's default, as :meth:`to_dict` writes it (no checks run)."""
-        fields = {f.name: f.default for f in dataclasses.fields(WallClockConfig)}
-        return json.loads(json.dumps(fields, default=list))
 
 
 def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:

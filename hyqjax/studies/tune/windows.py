@@ -164,14 +164,12 @@ def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
     return Windows(model=model, **rest), Windows(model=axes, **zeros)
 
 
-def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float, controller=None):
-    """Forward run of ONE scenario; returns the snapshot slots, their validity, leg and tick. ``controller``
-    (a :class:`hyqjax.core.types.Controller`, ``p`` its parameters) replaces the crawl with ``CrawlParams`` ``p``."""
+def _capture(mx, ids, controller, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
+    """Forward run of ONE scenario under ``controller`` (a :class:`hyqjax.core.types.Controller`, ``p`` its
+    parameters); returns the snapshot slots, their validity, leg and tick."""
     sites = np.asarray(ids.foot_sites)
     tau0 = jnp.zeros(robot.N_JOINTS, d0.qpos.dtype)
-    obs0 = sim.observe(ids, d0, tau0, mx)
-    cs0 = crawl.crawl_init(p, obs0) if controller is None else controller.init(p, obs0)
-    step = None if controller is None else controller.step
+    cs0 = controller.init(p, sim.observe(ids, d0, tau0, mx))
     k_slots = spec.per_scenario
     stack = lambda x: jnp.broadcast_to(x, (k_slots,) + jnp.shape(x))
     snaps0 = jax.tree_util.tree_map(stack, (d0, cs0, tau0))
@@ -181,7 +179,7 @@ def _capture(mx, ids, p, d0, spec: WindowSpec, n_ticks: int, dt: float, controll
 
     def body(carry, k):
         d, cs, tau, snaps, (valid, legs, ticks), count, pending, pend_leg = carry
-        d1, cs1, tau1, info = tick(mx, ids, p, d, cs, tau, dt, step)
+        d1, cs1, tau1, info = tick(mx, ids, p, d, cs, tau, dt, controller.step)
         new_body = (cs.phase == crawl.PHASE_SWING) & (cs1.phase == crawl.PHASE_BODY)
         leg = cs1.sequence[cs1.seq_index]  # the remedy may have brought the other front leg forward
         foot_x = d.site_xpos[sites][leg, 0]
@@ -220,7 +218,7 @@ def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), s
     params = jax.tree_util.tree_map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
                                     scenario.params)
     n_ticks = int(round(spec.lead / dt))
-    controller = None
+    controller = crawl.crawl_controller(dt)
     if param is not None:
         th = jnp.asarray(np.asarray(theta, np.float64), dtype)
         sched = param.scheduled(th, params)
@@ -228,7 +226,7 @@ def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), s
                                      cond=jnp.broadcast_to(sched.cond, (b,) + sched.cond.shape))
         controller = param.controller(dt)
     axes = hmodel.model_in_axes(mb)
-    fn = jax.jit(jax.vmap(lambda mm, pp, dd: _capture(mm, su.ids, pp, dd, spec, n_ticks, dt, controller),
+    fn = jax.jit(jax.vmap(lambda mm, pp, dd: _capture(mm, su.ids, controller, pp, dd, spec, n_ticks, dt),
                           in_axes=(axes, 0, 0)))
     (dd, cc, tt), (valid, legs, ticks) = fn(mb, params, d0)
     k = spec.per_scenario
