@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import kinematics, robot, spatial
+from hyqjax.core.scan_carry import tie_carry
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import params as rparams
 from hyqjax.sim import contacts
@@ -144,7 +145,7 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
                  mobility=sd * jnp.sum(info.mobility), sd=sd, x=d1.qpos[robot.QPOS_BASE_POS][0])
         return (d1, cs1, tau1), y
 
-    _, ys = jax.lax.scan(body, (d, cs, tau), None, length=obj.ticks)
+    _, ys = jax.lax.scan(body, tie_carry((d, cs, tau), theta), None, length=obj.ticks)
     if sched:
         rows = [space.params_at(sp, leg, jnp.zeros(len(schedule.FEATURES), theta.dtype)).reflex for leg in range(4)]
         sigma = jnp.max(jnp.stack([rparams.stability_number(r, dt) for r in rows]))
