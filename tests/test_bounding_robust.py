@@ -95,22 +95,24 @@ def test_stored_parameters_round_trip_and_bad_files(tmp_path):
         rb.params_from_values(dict(k_speed=-5.0))
 
 
-def test_shipped_robust_preset_is_the_measured_gradient_result():
-    """The ``robust`` preset holds the gradient's parameters of the H100 study (docs/results/bounding_robust_h100)
-    exactly, inside every declared range, and builds a controller that differs from the default only in the 22
-    optimised coordinates."""
+@pytest.mark.parametrize("preset, study, file", [("robust", "bounding_robust_h100", "params_gradient.json"),
+                                                  ("robust_8s", "bounding_robust_h100_8s", "params_cma_es.json")])
+def test_shipped_robust_presets_are_the_measured_results(preset, study, file):
+    """Each shipped preset holds the parameters of its H100 study (``robust``: the gradient's of
+    docs/results/bounding_robust_h100; ``robust_8s``: CMA-ES's of docs/results/bounding_robust_h100_8s) exactly,
+    inside every declared range, and builds a controller that differs from the default only in the 22 optimised
+    coordinates."""
     import os
 
-    vals = rb.load_params("robust")
-    assert rb.load_params(rb.preset_path("robust")) == vals
-    measured = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "bounding_robust_h100",
-                            "params_gradient.json")
+    vals = rb.load_params(preset)
+    assert rb.load_params(rb.preset_path(preset)) == vals
+    measured = os.path.join(os.path.dirname(__file__), "..", "docs", "results", study, file)
     if os.path.exists(measured):  # a source checkout
         assert rb.load_params(measured) == vals
     assert set(vals) == {c[0] for c in rb.COORDS}
     for name, _, lo, hi in rb.COORDS:
         assert lo <= vals[name] <= hi, name
-    p = rb.preset_params("robust", speed=0.5, yaw_rate=0.3)
+    p = rb.preset_params(preset, speed=0.5, yaw_rate=0.3)
     d = bp.default_params(speed=0.5, yaw_rate=0.3)
     assert p.validate() is p
     sp = rb.RobustSpace.make(d)

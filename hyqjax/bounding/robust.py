@@ -28,8 +28,9 @@ whole command envelope instead:
 The optimised parameters are stored as JSON (:func:`save_params`, :func:`load_params`);
 ``params_from_values(load_params(path), speed=...)`` rebuilds the controller. :data:`PRESETS` names the sets
 shipped with the package: ``"robust"`` is the gradient's result of the study on one H100 recorded in
-``docs/bounding.md`` (``preset_params("robust", speed=0.8, yaw_rate=0.5)``); :func:`default_params` stays the
-paper's reference cycle with its hand-set gains.
+``docs/bounding.md`` (``preset_params("robust", speed=0.8, yaw_rate=0.5)``), ``"robust_8s"`` CMA-ES's result of
+the study trained on 8 s rollouts, the one with no held-out fall; :func:`default_params` stays the paper's
+reference cycle with its hand-set gains.
 """
 from __future__ import annotations
 
@@ -69,8 +70,10 @@ FORMAT = "hyqjax.bounding.robust/1"
 #: Parameter files shipped with the package, by name (files next to this module; :func:`load_params` takes the
 #: name in place of a path). ``robust``: the gradient's parameters of ``experiments.bounding_robust`` on one H100
 #: (2026-11-25; ``docs/results/bounding_robust_h100/params_gradient.json``): 10 falls in 4,096 held-out
-#: instances against 692 with the default gains.
-PRESETS = {"robust": "robust_params.json"}
+#: instances against 692 with the default gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
+#: 8 s rollouts (2026-11-26; ``docs/results/bounding_robust_h100_8s/params_cma_es.json``): 0 falls in the same
+#: 4,096 held-out instances (default gains: 708), worst yaw error 3.24 deg.
+PRESETS = {"robust": "robust_params.json", "robust_8s": "robust_8s_params.json"}
 
 
 @dataclasses.dataclass(frozen=True)

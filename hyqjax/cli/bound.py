@@ -59,9 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--friction", type=float, nargs=2, default=(0.7, 1.0), metavar=("LO", "HI"),
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
-    p.add_argument("--params", metavar="FILE|robust", default=None,
-                   help="impulse amplitudes and gains from a file of hyqjax.bounding.robust.save_params, or the "
-                        "shipped set 'robust' (optimised over commands, friction and payload; docs/bounding.md); "
+    p.add_argument("--params", metavar="FILE|robust|robust_8s", default=None,
+                   help="impulse amplitudes and gains from a file of hyqjax.bounding.robust.save_params, or a "
+                        "shipped set: 'robust' (the gradient's) or 'robust_8s' (CMA-ES's on 8 s rollouts; no fall "
+                        "in 4,096 held-out runs), optimised over commands, friction and payload (docs/bounding.md); "
                         "default: the paper's reference cycle with the default gains")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     from hyqjax.cli.common import add_impl_argument
