@@ -322,7 +322,8 @@ def _validate_wallclock(args) -> None:
             charge_compile=not args.no_compile_charge, cold_compile=args.cold_compile,
             select_instances=args.select_instances, select_every=args.select_every,
             select_every_s=args.select_every_s, select_seed=args.select_seed, grad_directions=args.grad_directions,
-            retake_windows=args.retake_windows, start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
+            retake_windows=args.retake_windows,
+            start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)
         opt = msg.split(" ")[0].replace("_", "-")

@@ -53,17 +53,17 @@ def best(summaries: dict) -> tuple[str, dict]:
 
 def table(summaries: dict, study: dict | None = None) -> str:
     """Markdown table of the presets (and of the study's own ``start`` and ``table1``, re-evaluated there)."""
-    rows = ["| parameters | clean [95%] | completed [95%] | diverged |", "|---|---|---|---:|"]
+    rows = ["| parameters | clean [95%] | completed [95%] | not completed | diverged |", "|---|---|---|---:|---:|"]
     fmt = lambda s, k: f"{s[k]:.3f} [{s[k + '_ci95'][0]:.3f}, {s[k + '_ci95'][1]:.3f}]"  # noqa: E731
+    counts = lambda s: (f"{round(s['n'] * (1.0 - s['completed']))} | "  # noqa: E731
+                        f"{s['failure_counts'].get('diverged', 0)}")
     for k in sorted(summaries, key=lambda k: -summaries[k]["clean"]):
         s = summaries[k]
-        rows.append(f"| {k}: {presets.HAND_SET[k][1]} | {fmt(s, 'clean')} | {fmt(s, 'completed')} | "
-                    f"{s['failure_counts'].get('diverged', 0)} |")
+        rows.append(f"| {k}: {presets.HAND_SET[k][1]} | {fmt(s, 'clean')} | {fmt(s, 'completed')} | {counts(s)} |")
     for k in ("start", "table1"):
         s = (study or {}).get("heldout", {}).get(k)
         if s:
-            rows.append(f"| study's {k} | {fmt(s, 'clean')} | {fmt(s, 'completed')} | "
-                        f"{s['failure_counts'].get('diverged', 0)} |")
+            rows.append(f"| study's {k} | {fmt(s, 'clean')} | {fmt(s, 'completed')} | {counts(s)} |")
     return "\n".join(rows)
 
 

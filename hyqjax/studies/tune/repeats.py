@@ -43,7 +43,7 @@ def load(directory: str) -> dict:
 def _settings(config: dict) -> dict:
     """A run's settings but the free ones; a setting its study predates counts at its default (the behaviour the
     run had)."""
-    from hyqjax.studies.tune.wallclock import WallClockConfig
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     out = {k: v for k, v in WallClockConfig.defaults().items() if k not in config}
     out.update(config)
