@@ -446,9 +446,9 @@ def test_waiting_tune_run_then_refused_for_other_settings_before_any_compile(tmp
     args = ["tune", "--gradient-study", "--out", d, "--no-progress", "--no-cache"]
     cfg = app.build_parser().parse_args(args + ["--seed", "0"])
     cfg.validate_command(cfg)
-    from hyqjax.cli import tune as tune_cmd
+    from hyqjax.cli import tune_gradient_study
 
-    check_or_record(d, study.fingerprint(tune_cmd._config(cfg)), "tuning study")
+    check_or_record(d, study.fingerprint(tune_gradient_study.config(cfg)), "tuning study")
     lock = DirLock(d).acquire()
     threading.Thread(target=lambda: (time.sleep(1.0), lock.release()), daemon=True).start()
     traced = len(TRACED)

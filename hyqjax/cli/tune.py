@@ -20,13 +20,15 @@ from __future__ import annotations
 
 import argparse
 
+from hyqjax.cli import tune_gradient_study as gradient_study
+from hyqjax.cli.tune_gradient_study import BASELINES, split_names
+
 NAME = "tune"
 HELP = "tune the height reflex and crawl on the closed-loop step-down (search, gradient, equal-wall-clock study)"
 ORDER = 30
 
 #: The baselines (the names of :data:`hyqjax.studies.tune.study.METHODS` after the gradient), checked here before
 #: anything heavy is imported.
-BASELINES = ("cma_es", "random_search", "cma_es_success", "random_search_success")
 
 
 def _floats(s):
@@ -37,8 +39,6 @@ def _ints(s):
     return tuple(int(x) for x in s.split(",") if x.strip())
 
 
-def _names(s):
-    return tuple(x.strip() for x in s.split(",") if x.strip())
 
 
 #: Settings of ``--quick`` (a CPU-sized default run; every value can still be given explicitly).
@@ -63,10 +63,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="a small version of the default tuner for a CPU: %s" % ", ".join(
                        f"--{k.replace('_', '-')} {' '.join(map(str, v)) if isinstance(v, tuple) else v}"
                        for k, v in QUICK.items()))
-    g.add_argument("--methods", type=_names, default=None,
+    g.add_argument("--methods", type=split_names, default=None,
                    help="--study: methods, comma-separated, from cma_es, snes, open_es, random_search, gradient, "
                         "hybrid (default: all); default tuner: one method (default: the study's winner)")
-    g.add_argument("--dims", type=_names, default=None,
+    g.add_argument("--dims", type=split_names, default=None,
                    help="parameterisations, comma-separated, from shared (14), per_leg (56), per_leg_cond (68), "
                         "per_leg_cond_all (98) (--study default: shared,per_leg_cond)")
     g.add_argument("--wall-minutes", type=float, nargs="+", default=None,
@@ -173,67 +173,8 @@ def validate(args) -> None:
         raise UsageError("--quick is a small version of the default tuner; it does not combine with --study or "
                          "--gradient-study")
     if args.gradient_study:
-        return _validate_gradient_study(args)
+        return gradient_study.validate(args, {k: getattr(_defaults(), k) for k in WALLCLOCK_ONLY})
     return _validate_wallclock(args)
-
-
-def _validate_gradient_study(args) -> None:
-    from hyqjax.cli.common import UsageError, check_all, check_impl, check_out_free, check_range, prepare_out
-
-    for opt, val in (("--methods", args.methods), ("--dims", args.dims), ("--wall-minutes", args.wall_minutes),
-                     ("--start-from", args.start_from or None)):
-        if val is not None:
-            raise UsageError(f"{opt} belongs to the default tuner and --study, not to --gradient-study")
-    args.window_ticks = 750 if args.window_ticks is None else args.window_ticks
-    args.sigma = 0.5 if args.sigma is None else args.sigma
-    args.heldout = 36 if args.heldout is None else args.heldout
-    args.select_instances = 16 if args.select_instances is None else args.select_instances
-    check_impl(args.impl)
-    defaults = _defaults()
-    for k in WALLCLOCK_ONLY:
-        if getattr(args, k) != getattr(defaults, k):
-            raise UsageError(f"--{k.replace('_', '-')} belongs to the default tuner and --study, not to "
-                             f"--gradient-study")
-
-    check_range("--steps", args.steps, 0, 100000, integer=True)
-    check_range("--lr", args.lr, 0.0, 1.0, lo_open=True)
-    for c in args.line_search:
-        check_range("--line-search", c, 0.0, 10.0, lo_open=True)
-    check_range("--seed", args.seed, 0, 2**32 - 1, integer=True)
-    check_all("--train-heights", args.train_heights, 0.0, 0.45, "m")
-    check_range("--train-per-height", args.train_per_height, 1, 100000, integer=True)
-    check_range("--windows-per-scenario", args.windows_per_scenario, 1, 8, integer=True)
-    check_range("--lead", args.lead, 0.0, 60.0, "s", lo_open=True)
-    check_range("--window-ticks", args.window_ticks, 1, 20000, integer=True)
-    for n in args.prefixes:
-        check_range("--prefixes", n, 1, 20000, integer=True)
-    check_range("--warm-start", args.warm_start, 0, 10000, integer=True)
-    check_range("--sigma", args.sigma, 0.0, 5.0, lo_open=True)
-    check_range("--success-instances", args.success_instances, 1, 100000, integer=True)
-    check_range("--success-duration", args.success_duration, 1.0, 120.0, "s")
-    check_range("--heldout", args.heldout, 0, 10**6, integer=True)
-    check_range("--heldout-seed", args.heldout_seed, 0, 2**32 - 1, integer=True)
-    check_range("--heldout-duration", args.heldout_duration, 1.0, 120.0, "s")
-    check_range("--curve-instances", args.curve_instances, 0, 10**6, integer=True)
-    check_range("--baseline-wall-s", args.baseline_wall_s, 0.0, 1e7, "s")
-    check_range("--offset", args.offset, 0, 5000, integer=True)
-    check_range("--select-instances", args.select_instances, 0, 100000, integer=True)
-    check_range("--select-every", args.select_every, 1, 100000, integer=True)
-    check_range("--checkpoint-every", args.checkpoint_every, 1, 100000, integer=True)
-    bad = [b for b in _names(args.baselines) if b not in BASELINES]
-    if bad:
-        raise ValueError(f"--baselines must be a subset of {list(BASELINES)}, got {bad}")
-    from hyqjax.studies.tune import space  # the groups' declarations (JAX's parameter classes, no MJX)
-
-    try:
-        space.ParamSpace.make(_names(args.groups))
-    except ValueError as e:
-        raise ValueError(f"--groups: {e}") from None
-    check_out_free(args.out)
-    prepare_out(args.out)
-    args.options_checked = True
-
-
 
 
 def _validate_wallclock(args) -> None:
@@ -301,7 +242,7 @@ def _validate_wallclock(args) -> None:
     check_range("--grad-directions", args.grad_directions, 0, 4096, integer=True)
     if args.heldout_seed == args.seed:
         raise UsageError(f"--heldout-seed must differ from --seed (the held-out scenarios), got {args.heldout_seed}")
-    groups = _names(args.groups)
+    groups = split_names(args.groups)
     from hyqjax.studies.tune import space  # the groups' declarations (JAX's parameter classes, no MJX)
 
     try:
@@ -378,33 +319,6 @@ def _start_from(path: str, methods, dims, groups) -> tuple:
     return tuple(out)
 
 
-def _config(args):
-    """The study configuration; its own checks (groups, baselines, ...) name the option that was given."""
-    from hyqjax.studies.tune import objective, optimize, study, windows
-
-    groups, base_list = _names(args.groups), _names(args.baselines)
-    try:
-        return study.StudyConfig(
-            objective=args.objective, groups=groups, seed=args.seed, train_per_height=args.train_per_height,
-            train_heights=tuple(args.train_heights),
-            window=windows.WindowSpec(per_scenario=args.windows_per_scenario, lead=args.lead, offset=args.offset),
-            loss=objective.ClosedLoopObjective(ticks=args.window_ticks,
-                                               prefixes=tuple(n for n in args.prefixes if n < args.window_ticks)),
-            adam=optimize.AdamConfig(steps=args.steps, lr=args.lr, checkpoint_every=args.checkpoint_every,
-                                     line_search=tuple(args.line_search)),
-            warm_start=args.warm_start, baselines=base_list, sigma=args.sigma,
-            success_instances=args.success_instances, success_duration=args.success_duration,
-            heldout=args.heldout, heldout_seed=args.heldout_seed, heldout_duration=args.heldout_duration,
-            curve_instances=args.curve_instances, baseline_wall_s=args.baseline_wall_s, impl=args.impl,
-            remedy=not args.paper_crawl, select_instances=args.select_instances, select_every=args.select_every)
-    except ValueError as e:
-        msg = str(e)
-        for field in ("groups", "baselines", "objective"):
-            if field in msg.split(" ")[0] or msg.startswith(field):
-                raise ValueError(f"--{field}: {msg}") from None
-        raise ValueError(f"invalid tuning setting: {msg}") from None
-
-
 def run(args) -> int:
     if not getattr(args, "options_checked", False):
         validate(args)
@@ -413,7 +327,7 @@ def run(args) -> int:
     # The run directory's lock first, before anything heavy is imported: a second run stops (or waits) at once.
     with DirLock(args.out, wait=args.wait, what="tune run"):
         if args.gradient_study:
-            return _run_gradient_study(args)
+            return gradient_study.run(args)
         return _run_wallclock(args)
 
 
@@ -478,26 +392,4 @@ def _run_wallclock(args) -> int:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
               f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
-    return 0
-
-
-def _run_gradient_study(args) -> int:
-    from hyqjax.cli.common import UsageError
-
-    try:
-        cfg = args.study_config = _config(args)
-    except ValueError as e:
-        raise UsageError(str(e)) from None
-    groups, base_list = cfg.groups, cfg.baselines
-    from hyqjax.studies.tune import figure, study
-
-    print(f"hyqjax tune: {cfg.objective} objective, {cfg.adam.steps} steps, groups {list(groups)}, "
-          f"baselines {list(base_list)}, out {args.out}", flush=True)
-    res = study.run_study(cfg, args.out, progress=not args.no_progress, log=lambda s: print(s, flush=True),
-                          locked=True)
-    import os
-
-    fig = figure.plot_study(res, os.path.join(args.out, "tuning.png"))
-    print(figure.summary_markdown(res))
-    print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s)")
     return 0
