@@ -106,16 +106,37 @@ def test_saturating_forward_search_is_the_linear_one_below_its_limit_and_straigh
     step = jnp.asarray([0.3, 0.0, 0.0])
     assert np.asarray(remedy.search_forward_unit(p, 1, n, step)).tolist() == [1.0, 0.0, 0.0]
     assert np.asarray(remedy.search_forward_unit(p, 3, n, step)).tolist() == [0.0, 0.0, 0.0]  # hind leg
-    assert float(remedy.search_forward_excess(p, jnp.float32(0.4))) == 0.0  # the default never saturates
+    # the default never saturates
+    assert float(remedy.search_forward_excess(p, jnp.float32(0.4), p.search_forward_limit)) == 0.0
     sat = p.replace(search_forward_limit=jnp.float32(0.1))
     d, u = remedy.search_direction(sat, 1, n, step), remedy.search_forward_unit(sat, 1, n, step)
 
     def foot(s):  # the search's foot offset from the foothold at depth s, as crawl.swing plans it
-        return np.asarray(-s * d - remedy.search_forward_excess(sat, jnp.float32(s)) * u)
+        return np.asarray(-s * d - remedy.search_forward_excess(sat, jnp.float32(s), sat.search_forward_limit) * u)
 
     np.testing.assert_allclose(foot(0.1), [0.05, 0.0, -0.1], atol=1e-6)  # linear: 0.5 m forward per m
     np.testing.assert_allclose(foot(0.3), [0.10, 0.0, -0.3], atol=1e-6)  # saturated at 10 cm ahead
     np.testing.assert_allclose(foot(0.5), [0.10, 0.0, -0.5], atol=1e-6)
+
+
+def test_forward_search_counting_the_drop_below_lift_off_keeps_the_total_offset_under_the_limit():
+    """With ``search_forward_lift = w`` a nominal foothold ``drop`` below the lift-off is moved ``w * 0.5 * drop``
+    forward before the search; the search's own forward part then saturates so that the two together stay at
+    ``search_forward_limit`` ahead of the nominal foothold. At ``w = 0`` the offset is exactly 0."""
+    p = CrawlParams.make(shin_remedy=True, search_forward=0.5, search_forward_limit=0.1)
+    lift, target = jnp.asarray([0.0, 0.1, 0.0]), jnp.asarray([0.3, 0.1, -0.08])
+    assert float(remedy.lift_drop_offset(p, lift, target)) == 0.0
+    q = p.replace(search_forward_lift=jnp.float32(1.0))
+    off = float(remedy.lift_drop_offset(q, lift, target))
+    np.testing.assert_allclose(off, 0.04, atol=1e-7)
+    assert float(remedy.lift_drop_offset(q, lift, jnp.asarray([0.3, 0.1, 0.05]))) == 0.0  # a foothold above: none
+    left = q.search_forward_limit - off
+    for s, fwd in ((0.05, 0.025), (0.12, 0.06), (0.4, 0.06)):  # searched depth -> the search's forward part
+        part = 0.5 * s - float(remedy.search_forward_excess(q, jnp.float32(s), left))
+        np.testing.assert_allclose(part, fwd, atol=1e-6)
+        assert off + part <= 0.1 + 1e-6
+    deep = float(remedy.lift_drop_offset(q, lift, jnp.asarray([0.3, 0.1, -0.5])))  # 0.25 m asked, 0.1 allowed
+    np.testing.assert_allclose(deep, 0.1, atol=1e-7)
 
 
 @pytest.mark.slow

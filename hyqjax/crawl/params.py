@@ -68,6 +68,10 @@ class CrawlParams:
       search_forward_limit: the remedy's forward search saturates at this many metres ahead of the nominal
         foothold (below that depth the foot searches straight down), so a deep search stays inside the leg's
         workspace; the default (1.5 m) is beyond any search (``search_forward * max_search_depth <= 1.2 m``).
+      search_forward_lift: share of the nominal foothold's drop below the foot's lift-off height that the
+        remedy's forward search also counts (0: only the depth searched below the nominal foothold, the remedy
+        as first built; 1: the whole depth below the lift-off). The second front leg's nominal foothold already
+        lies on the feet plane that the first one tilted, so without it that leg lands close to the edge.
       step_down_lowering: while a step down is under way (a leg's last swing found one, ``deep_search``), body
         phases hold the trunk this much lower (m): workspace for the legs that still have to reach down.
       terrain_adaptation_step: while a step down is under way, the trunk follows this extra fraction of the tilt
@@ -110,6 +114,8 @@ class CrawlParams:
     search_forward: jax.Array = param_field(0.5, 0.0, 2.0, "m/m", "forward search per metre searched (remedy)")
     deep_search: jax.Array = param_field(0.05, 0.0, 0.5, "m", "a swing searching deeper found a step down")
     search_forward_limit: jax.Array = param_field(1.5, 0.0, 1.5, "m", "forward search saturates this far ahead")
+    search_forward_lift: jax.Array = param_field(0.0, 0.0, 1.0, "", "share of the foothold's drop below lift-off "
+                                                 "counted by the forward search")
     step_down_lowering: jax.Array = param_field(0.0, 0.0, 0.2, "m", "trunk lowered while a step down is under way")
     terrain_adaptation_step: jax.Array = param_field(0.0, 0.0, 1.0, "", "extra tilt followed during a step down")
     velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
@@ -133,7 +139,8 @@ class CrawlParams:
              max_step_length=0.3, body_height=0.56, stability_margin=0.07, touchdown_force=30.0,
              search_speed=0.15, max_search_depth=0.4, max_leg_extension=0.678, terrain_adaptation=0.3,
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS,
-             search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, step_down_lowering=0.0,
+             search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, search_forward_lift=0.0,
+             step_down_lowering=0.0,
              terrain_adaptation_step=0.0, velocity_feedforward=0.0, joint_margin=0.0,
              joint_speed_limit=robot.VELOCITY_LIMIT, stance_min_force=0.0, weight_qp=False,
              foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
@@ -148,7 +155,8 @@ class CrawlParams:
                      max_leg_extension=max_leg_extension, terrain_adaptation=terrain_adaptation, max_tilt=max_tilt,
                      mu=mu, k_com=k_com, d_com=d_com, k_rot=k_rot, d_rot=d_rot, mass=mass,
                      search_forward=search_forward, deep_search=deep_search,
-                     search_forward_limit=search_forward_limit, step_down_lowering=step_down_lowering,
+                     search_forward_limit=search_forward_limit, search_forward_lift=search_forward_lift,
+                     step_down_lowering=step_down_lowering,
                      terrain_adaptation_step=terrain_adaptation_step,
                      velocity_feedforward=velocity_feedforward, joint_margin=joint_margin,
                      joint_speed_limit=joint_speed_limit, stance_min_force=stance_min_force)

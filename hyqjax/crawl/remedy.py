@@ -22,7 +22,10 @@ their shins do not reach the edge):
   rather than along the tilted normal, so the foothold lands further past the edge; the reflex's squat gives
   the leg the reach this needs. The forward part saturates at ``search_forward_limit`` metres
   (:func:`search_forward_excess`): deeper, the foot searches straight down, so a deep search does not carry the
-  foot out of the leg's workspace (off by default).
+  foot out of the leg's workspace (off by default). With ``search_forward_lift = w > 0`` the forward search
+  also counts ``w`` times the nominal foothold's drop below the lift-off height (:func:`lift_drop_offset`):
+  once one front foot is below, the feet plane tilts and the other front leg's nominal foothold lies below its
+  lift-off already, so the depth it searches, and its forward offset, shrink (off by default).
 """
 from __future__ import annotations
 
@@ -65,11 +68,21 @@ def search_forward_unit(p: CrawlParams, leg, n, step_vec):
     return jnp.where(on, u, jnp.zeros_like(u))
 
 
-def search_forward_excess(p: CrawlParams, search):
-    """How far the linear forward search ``search_forward * s`` has gone past ``search_forward_limit`` at depth
-    ``s`` (m; 0 below the limit). The swing takes it back along the forward unit, so the forward offset is
-    ``min(search_forward * s, search_forward_limit)``; below the limit the plan is exactly the linear one."""
-    return jnp.maximum(p.search_forward * search - p.search_forward_limit, 0.0)
+def lift_drop_offset(p: CrawlParams, lift, target):
+    """Forward offset (m) of the nominal foothold for its drop below the lift-off height:
+    ``min(search_forward * search_forward_lift * max(z_lift - z_target, 0), search_forward_limit)`` (H0's z is
+    vertical). The caller applies it along :func:`search_forward_unit`, zero where the remedy's search does not
+    apply; it is exactly 0 at ``search_forward_lift = 0``."""
+    drop = jnp.maximum(lift[2] - target[2], 0.0)
+    return jnp.minimum(p.search_forward * p.search_forward_lift * drop, p.search_forward_limit)
+
+
+def search_forward_excess(p: CrawlParams, search, left):
+    """How far the linear forward search ``search_forward * s`` has gone past ``left`` at depth ``s`` (m; 0
+    below it), ``left`` the forward offset still allowed this swing: ``search_forward_limit`` less the foothold's
+    :func:`lift_drop_offset`. The swing takes it back along the forward unit, so the forward offset is
+    ``min(search_forward * s, left)``; below it the plan is exactly the linear one."""
+    return jnp.maximum(p.search_forward * search - left, 0.0)
 
 
 def partner(leg):

@@ -53,6 +53,7 @@ class CrawlState:
     normal_h0: jax.Array  # (3,) terrain normal in H0 sampled at the swing start (Eq. 7)
     search_dir: jax.Array  # (3,) the search moves the foot along -search_dir per metre of depth (H0)
     search_fwd: jax.Array  # (3,) unit of the remedy's forward search (H0; zero where it does not apply)
+    search_forward_left: jax.Array  # forward search still allowed this swing before it saturates (m)
     search_depth: jax.Array  # depth searched past the nominal foothold (m)
     stance: jax.Array  # (4,) 1.0 for stance legs
     loaded: jax.Array  # (4,) bool: the foot has pressed above stance_min_force since its last touchdown
@@ -122,6 +123,8 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> Crawl
                  @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg])
     lift = feet[leg]
     target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
+    lift_offset = remedy.lift_drop_offset(p, lift, target)
+    target = target + lift_offset * remedy.search_forward_unit(p, leg, n, target - lift)
     target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
     search_dir = remedy.search_direction(p, leg, n, target - lift)
     search_fwd = remedy.search_forward_unit(p, leg, n, target - lift)
@@ -129,6 +132,7 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> Crawl
     return dataclasses.replace(st, loaded=st.loaded.at[leg].set(False), phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
                                normal_h0=n, search_dir=search_dir, search_fwd=search_fwd,
+                               search_forward_left=p.search_forward_limit - lift_offset,
                                search_depth=jnp.zeros_like(st.search_depth),
                                stance=stance)
 
@@ -142,7 +146,8 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     st = CrawlState(
         phase=jnp.asarray(PHASE_BODY), seq_index=jnp.asarray(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
-        normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype), search_depth=z, stance=jnp.ones(4, dtype),
+        normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype),
+        search_forward_left=jnp.asarray(p.search_forward_limit, dtype), search_depth=z, stance=jnp.ones(4, dtype),
         loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool),
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
