@@ -51,7 +51,8 @@ def parse(argv):
     # training
     ap.add_argument("--train", type=int, default=128, help="training instances")
     ap.add_argument("--train-duration", type=float, default=8.0,
-                    help="training rollout (s), a multiple of 0.4 (8 s: as long as the held-out runs; 3.2 s overfit the training horizon, docs/bounding.md)")
+                    help="training rollout (s), a multiple of 0.4 (8 s: as long as the held-out runs; 3.2 s "
+                         "overfit the training horizon, docs/bounding.md)")
     ap.add_argument("--train-speed", type=float, nargs=2, default=(0.0, 1.1), metavar=("LO", "HI"))
     ap.add_argument("--train-yaw-rate", type=float, nargs=2, default=(-0.9, 0.9), metavar=("LO", "HI"))
     ap.add_argument("--train-lateral", type=float, nargs=2, default=(-0.2, 0.2), metavar=("LO", "HI"))

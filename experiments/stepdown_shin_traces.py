@@ -88,8 +88,6 @@ def main(argv=None) -> int:
     except (ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    import mujoco  # noqa: F401
-
     from hyqjax.io import atomic
     from hyqjax.sim import model as hmodel
 

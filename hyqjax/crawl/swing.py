@@ -45,7 +45,8 @@ def _feet_at(p: CrawlParams, st: CrawlState, t, search, rp_meas):
     s_tan, z_n, _ = trajectories.swing_profile(t / p.t_swing, p.step_height)
     start = st.feet_h0[leg]
     swing_pos = start + s_tan * (st.swing_target - start) + z_n * st.normal_h0 - search * st.search_dir
-    swing_pos = swing_pos - remedy.search_forward_excess(p, search, st.search_forward_left) * st.search_fwd  # saturating forward search
+    # the remedy's saturating forward search
+    swing_pos = swing_pos - remedy.search_forward_excess(p, search, st.search_forward_left) * st.search_fwd
     x_b = jnp.einsum("ji,lj->li", r_des, st.feet_h0 - p_des)
     x_sw_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]).T @ (swing_pos - p_des)
     x_b = jnp.where((~in_body) & (jnp.arange(4) == leg)[:, None], x_sw_b[None, :], x_b)
