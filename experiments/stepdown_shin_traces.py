@@ -21,17 +21,6 @@ import numpy as np
 LEGS = ("LF", "RF", "LH", "RH")
 
 
-def parse_crawl(text: str) -> dict:
-    """``field=value,...`` -> ``CrawlParams.make`` keyword arguments (``True``/``False`` or floats)."""
-    out = {}
-    for part in filter(None, (p.strip() for p in text.split(","))):
-        if "=" not in part:
-            raise ValueError(f"--crawl: expected field=value, got {part!r}")
-        k, v = part.split("=", 1)
-        out[k.strip()] = v.strip() == "True" if v.strip() in ("True", "False") else float(v)
-    return out
-
-
 def _rounded(x) -> list[float]:
     return [round(float(v), 3) for v in np.ravel(x)]
 
@@ -83,7 +72,9 @@ def main(argv=None) -> int:
         for lo, hi in starts:
             if not 0.0 <= lo <= hi <= 1.5:
                 raise ValueError(f"--starts must satisfy 0 <= LO <= HI <= 1.5 (m), got {lo} {hi}")
-        params = hyqjax.CrawlParams.make(**parse_crawl(args.crawl))
+        from hyqjax.crawl.params import parse_settings
+
+        params = hyqjax.CrawlParams.make(**parse_settings(args.crawl, "--crawl"))
         cfg = hyqjax.StepdownConfig(duration=args.duration, impl=args.impl, record_every=5)
     except (ValueError, TypeError) as e:
         print(f"error: {e}", file=sys.stderr)
