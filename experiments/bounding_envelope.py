@@ -8,8 +8,8 @@ command with friction in ``--friction`` and payload in ``--payload`` (the same d
 ``--duration`` s each as one batch (``--impl warp`` on a GPU), and writes ``OUT/NAME.json`` (per command: failures
 and reasons, fall rate with its Wilson interval, worst / 95th-percentile yaw error, rate above 4 deg; the area
 of the map with a fall rate below 1%; provenance) and ``OUT/NAME.png``. ``--params FILE`` runs the controller
-with stored optimised parameters (:func:`hyqjax.bounding.robust.save_params`; ``--params robust``: the shipped
-preset, :data:`hyqjax.bounding.robust.PRESETS`). Bad options: one line naming
+with stored optimised parameters (:func:`hyqjax.bounding.robust.save_params`; ``--params robust`` or
+``robust_8s``: a shipped preset, :data:`hyqjax.bounding.robust.PRESETS`). Bad options: one line naming
 the option, exit code 2, before anything compiles.
 """
 from __future__ import annotations
@@ -93,9 +93,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.bounding_envelope", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(ap)
-    ap.add_argument("--params", metavar="FILE|robust",
-                    help="optimised parameters (a file of hyqjax.bounding.robust.save_params, or the shipped preset "
-                         "'robust')")
+    ap.add_argument("--params", metavar="FILE|PRESET",
+                    help="optimised parameters (a file of hyqjax.bounding.robust.save_params, or a preset shipped in "
+                         "hyqjax.bounding.robust.PRESETS: robust, robust_8s)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
     ap.add_argument("--out", default="docs/results")
