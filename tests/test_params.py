@@ -144,3 +144,22 @@ def test_reparameterisation_roundtrip_float64(x64):
     for name, spec in SPECS.items():
         back = float(spec.constrain(jnp.asarray(spec.unconstrain(spec.default), jnp.float64)))
         np.testing.assert_allclose(back, spec.default, rtol=1e-6, err_msg=name)
+
+
+@pytest.mark.parametrize("shape, pattern, ok", [
+    ((4, 3), (4, 3), True), ((4, 3), (3, 4), False), ((4, 3), (4,), False), ((4, 3), (None, 3), True),
+    ((4, 3), (..., 3), True), ((2, 5, 4, 3), (..., 4, 3), True), ((2, 5, 4, 3), (..., 5, 3), False),
+    ((12,), (..., 12), True), ((), (...,), True), ((3,), (..., 4, 3), False), ((7, 1, 12), (7, ..., 12), True),
+    ((7, 12), (7, ..., 1, 12), False)])
+def test_shape_patterns_match_as_chex_assert_shape(shape, pattern, ok):
+    """hyqjax.core.params.shape_matches against chex.assert_shape's rule for the same patterns."""
+    import chex
+
+    from hyqjax.core.params import shape_matches
+
+    try:
+        chex.assert_shape(np.zeros(shape), pattern)
+        ref = True
+    except AssertionError:
+        ref = False
+    assert shape_matches(shape, pattern) == ref == ok

@@ -13,18 +13,19 @@ from hyqjax.studies import statistics as S
 
 @settings(max_examples=200, deadline=None)
 @given(st.integers(1, 5000).flatmap(lambda n: st.tuples(st.integers(0, n), st.just(n))))
-def test_wilson_matches_closed_form(kn):
-    """The Wilson score interval's closed form, with the exact normal quantile."""
+def test_wilson_matches_scipy(kn):
+    """The closed form against SciPy's Wilson interval (``binomtest(k, n).proportion_ci(method="wilson")``)."""
+    from scipy import stats
+
     k, n = kn
-    z = 1.959963984540054
-    p = k / n
-    den = 1 + z * z / n
-    centre = (p + z * z / (2 * n)) / den
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    ref = stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
     lo, hi = S.wilson_interval(k, n)
-    assert lo == pytest.approx(max(0.0, centre - half), abs=1e-12)
-    assert hi == pytest.approx(min(1.0, centre + half), abs=1e-12)
-    assert lo <= p <= hi
+    assert lo == pytest.approx(max(0.0, ref.low), abs=1e-12)
+    assert hi == pytest.approx(min(1.0, ref.high), abs=1e-12)
+    assert lo <= k / n <= hi
+    lo99, hi99 = S.wilson_interval(k, n, confidence=0.99)
+    ref99 = stats.binomtest(k, n).proportion_ci(confidence_level=0.99, method="wilson")
+    assert (lo99, hi99) == pytest.approx((max(0.0, ref99.low), min(1.0, ref99.high)), abs=1e-12)
 
 
 def test_wilson_edge_cases():

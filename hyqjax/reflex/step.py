@@ -202,7 +202,7 @@ def reflex_step(
 
     Args:
       state: :class:`ReflexState` (``(12,)`` fields); its dtype sets the computation precision.
-      inputs: :class:`ReflexInputs` of one robot (shapes checked with chex when traced).
+      inputs: :class:`ReflexInputs` of one robot (shapes checked when traced).
       params: :class:`ReflexParams`; if concrete they are checked with ``validate(dt=dt)``.
       dt: control period (s) in ``(0, 0.02]``, e.g. ``1e-3``; checked if concrete.
       shape: damping-schedule blend, ``"smoothstep"`` or ``"linear"`` (static).

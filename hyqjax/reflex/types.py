@@ -125,7 +125,7 @@ def planned_terrain_normal(x_des: jax.Array, swing_leg: jax.Array, up: jax.Array
 
 
 def check_shapes(state: ReflexState, inputs: ReflexInputs) -> None:
-    """Single-instance shapes of the state and inputs (chex, at trace time; ``vmap`` for batches)."""
+    """Single-instance shapes of the state and inputs (at trace time; ``vmap`` for batches)."""
     for owner, name, x, shape in (("ReflexState", "q_r", state.q_r, (12,)), ("ReflexState", "qd_r", state.qd_r, (12,)),
                                   ("ReflexInputs", "x_des", inputs.x_des, (4, 3)),
                                   ("ReflexInputs", "swing_leg", inputs.swing_leg, ()),
