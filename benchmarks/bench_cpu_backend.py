@@ -74,7 +74,10 @@ def first_command(out_dir: str) -> dict:
         r = subprocess.run([sys.executable, "-c", "from hyqjax.cli.app import main; raise SystemExit(main())",
                             "stepdown", "--instances", "3", "--out", out_dir], capture_output=True, text=True, env=env)
         wall = time.perf_counter() - t
-    num = lambda pattern: float(m.group(1)) if (m := re.search(pattern, r.stdout)) else None  # noqa: E731
+    def num(pattern):
+        m = re.search(pattern, r.stdout)
+        return float(m.group(1)) if m else None
+
     sim = re.search(r"simulator (\w+)", r.stdout)
     return dict(rc=r.returncode, wall_s=wall, batch_wall_s=num(r"wall ([0-9.]+) s in all"),
                 simulate_s=num(r"simulating ([0-9.]+) s"), compile_s=num(r"compile ([0-9.]+) s"),

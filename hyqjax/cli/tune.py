@@ -27,9 +27,6 @@ NAME = "tune"
 HELP = "tune the height reflex and crawl on the closed-loop step-down (search, gradient, equal-wall-clock study)"
 ORDER = 30
 
-#: The baselines (the names of :data:`hyqjax.studies.tune.study.METHODS` after the gradient), checked here before
-#: anything heavy is imported.
-
 
 def _floats(s):
     return tuple(float(x) for x in s.split(",") if x.strip())
@@ -37,8 +34,6 @@ def _floats(s):
 
 def _ints(s):
     return tuple(int(x) for x in s.split(",") if x.strip())
-
-
 
 
 #: Settings of ``--quick`` (a CPU-sized default run; every value can still be given explicitly).

@@ -3,7 +3,10 @@ its option checks, its configuration and its run. The default tuner and ``--stud
 which defines every option of the command."""
 from __future__ import annotations
 
-#: Baselines of the gradient study (``--baselines``).
+import os
+
+#: Baselines of the gradient study (``--baselines``: the names of :data:`hyqjax.studies.tune.study.METHODS` after
+#: the gradient), checked before anything heavy is imported.
 BASELINES = ("cma_es", "random_search", "cma_es_success", "random_search_success")
 
 
@@ -112,8 +115,6 @@ def run(args) -> int:
           f"baselines {list(base_list)}, out {args.out}", flush=True)
     res = study.run_study(cfg, args.out, progress=not args.no_progress, log=lambda s: print(s, flush=True),
                           locked=True)
-    import os
-
     fig = figure.plot_study(res, os.path.join(args.out, "tuning.png"))
     print(figure.summary_markdown(res))
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s)")
