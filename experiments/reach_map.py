@@ -84,7 +84,9 @@ def parse_custom(text: str) -> tuple[str, dict]:
 
 def tuned_params(path: str, method: str):
     """The ``CrawlParams`` a tuning study (``hyqjax tune``) selected: ``method``'s ``theta`` on the study's
-    ``ParamSpace`` and start point (``results.json``)."""
+    ``ParamSpace`` and start point (``results.json``). Both layouts: the gradient study's (``res[method]``) and
+    the equal-wall-clock study's (``res["runs"]["method/shared"]``, the parameterisation that is one
+    ``CrawlParams``; ``method`` may also name the run, ``cma_es/shared``)."""
     from hyqjax.crawl import controller as crawl
     from hyqjax.studies.tune import space as tspace
 
@@ -93,12 +95,19 @@ def tuned_params(path: str, method: str):
             res = json.load(f)
     except (OSError, ValueError) as e:
         raise UsageError(f"--tuned {path}: cannot read a tuning results.json ({e})") from None
-    if method not in res or "theta" not in res.get(method, {}):
+    runs = res.get("runs", {}) if isinstance(res.get("runs"), dict) else {}
+    run = runs.get(method if "/" in method else f"{method}/shared")
+    if run is not None and "theta" in run:
+        theta = run["theta"]
+    elif method in res and "theta" in res.get(method, {}):
+        theta = res[method]["theta"]
+    else:
         found = [k for k, v in res.items() if isinstance(v, dict) and "theta" in v]
-        raise UsageError(f"--tuned-method {method!r}: not in {path} (methods: {', '.join(found)})")
+        found += [k for k, v in runs.items() if k.endswith("/shared") and "theta" in v]
+        raise UsageError(f"--tuned-method {method!r}: not in {path} (methods: {', '.join(found) or 'none'})")
     cfg = res["config"]
     base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)))
-    return tspace.ParamSpace.make(cfg["groups"]).concrete(np.asarray(res[method]["theta"], np.float64), base)
+    return tspace.ParamSpace.make(cfg["groups"]).concrete(np.asarray(theta, np.float64), base)
 
 
 def variant_params(names, custom: dict, tuned_path: str, tuned_method: str) -> dict:
