@@ -52,6 +52,26 @@ def test_tuned_variant_is_the_study_selected_parameters():
     assert float(p.shin_remedy) == 1.0
 
 
+def test_tuned_variant_reads_what_the_default_tuner_hands_back(tmp_path):
+    """The equal-wall-clock study's layout (``runs["cma_es/shared"]``): its ``theta`` gives exactly the parameters
+    the study stored next to it; a method the file lacks is one line naming what it has."""
+    src = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", "cma_es_s1",
+                       "results.json")
+    with open(src) as f:
+        res = json.load(f)
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(dict(config=res["config"], runs=res["runs"])))
+    want = res["runs"]["cma_es/shared"]["params"]
+    for method in ("cma_es", "cma_es/shared"):
+        p = reach_map.tuned_params(str(path), method)
+        assert float(p.reflex.k_base) == pytest.approx(want["k_base"], rel=1e-5)
+        assert float(p.reflex.d_st_max) == pytest.approx(want["d_st_max"], rel=1e-5)
+        assert float(p.max_step_length) == pytest.approx(want["max_step_length"], rel=1e-5)
+        assert float(p.terrain_adaptation) == pytest.approx(want["terrain_adaptation"], rel=1e-5)
+    with pytest.raises(reach_map.UsageError, match="cma_es/shared"):
+        reach_map.tuned_params(str(path), "snes")
+
+
 @pytest.mark.slow
 def test_tiny_cpu_map_writes_resumes_and_counts_every_instance(tmp_path):
     out = tmp_path / "map"
