@@ -110,15 +110,27 @@ def tuned_params(path: str, method: str):
     return tspace.ParamSpace.make(cfg["groups"]).concrete(np.asarray(theta, np.float64), base)
 
 
-def variant_params(names, custom: dict, tuned_path: str, tuned_method: str) -> dict:
-    """``CrawlParams`` of every variant (validated before anything compiles)."""
+def parse_tuned_run(text: str) -> tuple[str, tuple[str, str]]:
+    """``NAME:PATH:METHOD`` of ``--tuned-run`` -> ``(NAME, (PATH, METHOD))``."""
+    parts = text.split(":")
+    if len(parts) != 3 or not all(parts) or parts[0] in VARIANTS:
+        raise UsageError(f"--tuned-run {text!r}: must be NAME:PATH:METHOD with a new variant name")
+    return parts[0], (parts[1], parts[2])
+
+
+def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tuned_runs: dict | None = None) -> dict:
+    """``CrawlParams`` of every variant (validated before anything compiles); ``tuned_runs`` maps further variant
+    names to a tuning study's ``(results.json, method)``."""
     from hyqjax.core.params import ParameterError
     from hyqjax.crawl import controller as crawl
 
+    tuned_runs = tuned_runs or {}
     out = {}
     for name in names:
         try:
-            if name == "tuned":
+            if name in tuned_runs:
+                out[name] = tuned_params(*tuned_runs[name])
+            elif name == "tuned":
                 out[name] = tuned_params(tuned_path, tuned_method)
             else:
                 out[name] = crawl.CrawlParams.make(**(custom[name] if name in custom else VARIANTS[name][0]))
@@ -352,6 +364,8 @@ def main(argv=None) -> int:
                     help="a variant of CrawlParams.make settings (repeatable)")
     ap.add_argument("--tuned", default=DEFAULT_TUNED, help="a tuning study's results.json (variant 'tuned')")
     ap.add_argument("--tuned-method", default="gradient", help="which of its methods (e.g. gradient)")
+    ap.add_argument("--tuned-run", action="append", default=[], metavar="NAME:PATH:METHOD",
+                    help="a further variant NAME: METHOD's parameters from the tuning results.json PATH (repeatable)")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run")
     ap.add_argument("--chunk", type=int, default=0,
@@ -431,12 +445,14 @@ def check(args) -> dict:
     if args.chunk < 0:
         raise UsageError(f"--chunk {args.chunk}: must be >= 0 (0: automatic)")
     custom = dict(parse_custom(c) for c in args.custom)
-    unknown = [v for v in args.variants if v not in VARIANTS and v not in custom]
+    tuned_runs = dict(parse_tuned_run(t) for t in args.tuned_run)
+    unknown = [v for v in args.variants if v not in VARIANTS and v not in custom and v not in tuned_runs]
     if unknown:
-        raise UsageError(f"--variants {unknown[0]!r}: not one of {', '.join(VARIANTS)} nor a --custom name")
+        raise UsageError(f"--variants {unknown[0]!r}: not one of {', '.join(VARIANTS)} nor a --custom or "
+                         "--tuned-run name")
     if len(set(args.variants)) != len(args.variants):
         raise UsageError("--variants: a variant is named twice")
-    params = variant_params(args.variants, custom, args.tuned, args.tuned_method)
+    params = variant_params(args.variants, custom, args.tuned, args.tuned_method, tuned_runs)
     described = {}
     for v in args.variants:
         p = params[v]
@@ -449,6 +465,7 @@ def check(args) -> dict:
                 seed=args.seed, duration=args.duration, terminate=not args.no_terminate,
                 tuned=os.path.abspath(args.tuned) if "tuned" in args.variants else None,
                 tuned_method=args.tuned_method if "tuned" in args.variants else None, custom=args.custom,
+                tuned_runs=args.tuned_run,
                 _params=params)
 
 
