@@ -22,6 +22,9 @@ from experiments import reach_map  # noqa: E402
     (["--instances", "0"], "--instances 0"),
     (["--impl", "cuda"], "--impl 'cuda'"),
     (["--variants", "tuned", "--tuned-method", "nope"], "--tuned-method 'nope'"),
+    (["--tuned-run", "only_a_name"], "--tuned-run 'only_a_name'"),
+    (["--tuned-run", "remedy:x.json:cma_es"], "--tuned-run 'remedy:x.json:cma_es'"),
+    (["--tuned-run", "t1:/no/such/results.json:cma_es", "--variants", "t1"], "/no/such/results.json"),
 ])
 def test_bad_options_are_one_line_and_exit_2_before_compiling(argv, needle, tmp_path, capsys):
     assert reach_map.main(["--out", str(tmp_path / "m"), *argv]) == 2
