@@ -171,7 +171,8 @@ def cl64():
     legs' snapshots, and the jitted per-robot jacfwd objective (``objective.make_per_robot_value_and_jac``) of two
     robots on copies of the window that runs from just before the first front leg's swing is planned into its
     haptic search over the edge (the tuned search direction acts there). Two robots in one call give a central
-    difference in one evaluation."""
+    difference in one evaluation. Built under x64 and returned outside it: the tests turn x64 on where they use
+    them (yielded inside ``enable_x64``, the fixture left x64 on for every later test of this module)."""
     with jax.enable_x64(True):
         su = windows.setup(dtype="float64")
         from hyqjax.studies.tune import evaluate
@@ -186,7 +187,7 @@ def cl64():
         obj = objective.ClosedLoopObjective(ticks=260)
         wins, axes = windows.grouped(win.take([0, 0]), 2)
         pr = objective.make_per_robot_value_and_jac(base, sp, obj, su, axes)
-        yield win, sp, pr, wins, base, obj, both
+    return win, sp, pr, wins, base, obj, both
 
 
 @pytest.mark.slow
