@@ -432,9 +432,15 @@ def test_importing_hyqjax_prints_no_warp_import_failure():
 @pytest.fixture(scope="module")
 def chunked_run(hyq):
     """The scenario through a kept runner in chunks of 2.5 s (progress reported after each): the runner, its inputs,
-    the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced."""
+    the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced. Its
+    batched inputs are host (NumPy) arrays, the form in which the runner hands a padded pass its rows, so that the
+    padded batch below runs the same program (an input on the device is declared with its sharding in the lowered
+    program, a host array is not: the two would be two entries of the persistent compilation cache)."""
     m, ids = hyq
     mxb, d0, push, cfg = scenario(m, ids)
+    mxb = jax.tree_util.tree_map(lambda ax, x: x if ax is None else np.asarray(x), hmodel.model_in_axes(mxb), mxb,
+                                 is_leaf=lambda x: x is None)
+    d0, push = jax.tree_util.tree_map(np.asarray, (d0, push))
     runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
     seen = []
     res = runner(mxb, d0, stand.StandParams.make(), push, progress=lambda done, total: seen.append((done, total)),
