@@ -20,7 +20,14 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # A persistent compilation cache for this test session only (fresh each run, removed at exit): the
 # same program compiled twice (hyqjax.sim.rollout.batch_rollout jits a new closure on every call) is compiled
-# once. Subprocesses started by run_python/start_python share it. A cache set by the user is kept.
+# once. Subprocesses started by run_python/start_python share it. A cache set by the user is kept: JAX's own
+# variable, or hyqjax's (the directory every hyqjax command a test runs, in this process or another, uses; with the
+# session in another directory, a test that ran a command in-process would have moved its worker's programs there).
+if not os.environ.get("JAX_COMPILATION_CACHE_DIR") and os.environ.get("HYQJAX_CACHE_DIR"):
+    from hyqjax.io.cache import cache_dir
+
+    os.makedirs(cache_dir(), exist_ok=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = cache_dir()
 if not os.environ.get("JAX_COMPILATION_CACHE_DIR"):
     _CACHE_DIR = tempfile.mkdtemp(prefix="hyqjax-test-jax-cache-")
     atexit.register(shutil.rmtree, _CACHE_DIR, ignore_errors=True)
