@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
-from conftest import start_python
+from conftest import start_python, user_xla_flags
 from mujoco import mjx
 
 from hyqjax.sim import model as hmodel
@@ -128,9 +128,10 @@ print("OK")
 
 @pytest.fixture(scope="module")
 def two_device_job(tmp_path_factory):
-    """The scenario sharded over a 2-device CPU mesh, twice, in a background subprocess."""
+    """The scenario sharded over a 2-device CPU mesh, twice, in a background subprocess with a user's XLA flags
+    (XLA's default code generator: compared with this session's run, it checks the session's option as well)."""
     out = str(tmp_path_factory.mktemp("two_device") / "result.npz")
-    env = {"XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = {"XLA_FLAGS": (user_xla_flags() + " --xla_force_host_platform_device_count=2").strip()}
     proc = start_python(_TWO_DEVICE_CODE.replace("{out}", out), env=env)
     yield proc, out
     if proc.poll() is None:
@@ -140,8 +141,9 @@ def two_device_job(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def deadlock_job():
-    """``jax.jit(jax.vmap(mjx.step))`` at batch 512, called twice, in a background subprocess."""
-    proc = start_python(_DEADLOCK_CODE)
+    """``jax.jit(jax.vmap(mjx.step))`` at batch 512, called twice, in a background subprocess with a user's XLA
+    flags (hyqjax's, without the test session's code generator option)."""
+    proc = start_python(_DEADLOCK_CODE, env={"XLA_FLAGS": user_xla_flags()})
     yield proc
     if proc.poll() is None:
         proc.kill()
