@@ -446,6 +446,9 @@ def check(args) -> dict:
         raise UsageError(f"--chunk {args.chunk}: must be >= 0 (0: automatic)")
     custom = dict(parse_custom(c) for c in args.custom)
     tuned_runs = dict(parse_tuned_run(t) for t in args.tuned_run)
+    both = sorted(set(custom) & set(tuned_runs))
+    if both:
+        raise UsageError(f"--tuned-run {both[0]!r}: also a --custom name; give each variant one name")
     unknown = [v for v in args.variants if v not in VARIANTS and v not in custom and v not in tuned_runs]
     if unknown:
         raise UsageError(f"--variants {unknown[0]!r}: not one of {', '.join(VARIANTS)} nor a --custom or "

@@ -24,6 +24,7 @@ from experiments import reach_map  # noqa: E402
     (["--variants", "tuned", "--tuned-method", "nope"], "--tuned-method 'nope'"),
     (["--tuned-run", "only_a_name"], "--tuned-run 'only_a_name'"),
     (["--tuned-run", "remedy:x.json:cma_es"], "--tuned-run 'remedy:x.json:cma_es'"),
+    (["--tuned-run", "v:x.json:cma_es", "--custom", "v:terrain_adaptation=0.5"], "--tuned-run 'v'"),
     (["--tuned-run", "t1:/no/such/results.json:cma_es", "--variants", "t1"], "/no/such/results.json"),
 ])
 def test_bad_options_are_one_line_and_exit_2_before_compiling(argv, needle, tmp_path, capsys):
