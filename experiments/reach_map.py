@@ -82,32 +82,16 @@ def parse_custom(text: str) -> tuple[str, dict]:
         raise UsageError(str(e)) from None
 
 
-def tuned_params(path: str, method: str):
+def tuned_params(path: str, method: str, option: str = ""):
     """The ``CrawlParams`` a tuning study (``hyqjax tune``) selected: ``method``'s ``theta`` on the study's
-    ``ParamSpace`` and start point (``results.json``). Both layouts: the gradient study's (``res[method]``) and
-    the equal-wall-clock study's (``res["runs"]["method/shared"]``, the parameterisation that is one
-    ``CrawlParams``; ``method`` may also name the run, ``cma_es/shared``)."""
-    from hyqjax.crawl import controller as crawl
-    from hyqjax.studies.tune import space as tspace
+    ``ParamSpace`` and start point (:func:`hyqjax.studies.tune.tuned.crawl_params`; both layouts, ``method`` a
+    method, ``cma_es``, or a run, ``cma_es/shared``); a problem is one line starting with ``option``."""
+    from hyqjax.studies.tune import tuned
 
     try:
-        with open(path) as f:
-            res = json.load(f)
-    except (OSError, ValueError) as e:
-        raise UsageError(f"--tuned {path}: cannot read a tuning results.json ({e})") from None
-    runs = res.get("runs", {}) if isinstance(res.get("runs"), dict) else {}
-    run = runs.get(method if "/" in method else f"{method}/shared")
-    if run is not None and "theta" in run:
-        theta = run["theta"]
-    elif method in res and "theta" in res.get(method, {}):
-        theta = res[method]["theta"]
-    else:
-        found = [k for k, v in res.items() if isinstance(v, dict) and "theta" in v]
-        found += [k for k, v in runs.items() if k.endswith("/shared") and "theta" in v]
-        raise UsageError(f"--tuned-method {method!r}: not in {path} (methods: {', '.join(found) or 'none'})")
-    cfg = res["config"]
-    base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)))
-    return tspace.ParamSpace.make(cfg["groups"]).concrete(np.asarray(theta, np.float64), base)
+        return tuned.crawl_params(path, method)
+    except ValueError as e:
+        raise UsageError(f"{option or f'--tuned-method {method!r}'}: {e}") from None
 
 
 def parse_tuned_run(text: str) -> tuple[str, tuple[str, str]]:
@@ -129,7 +113,7 @@ def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tune
     for name in names:
         try:
             if name in tuned_runs:
-                out[name] = tuned_params(*tuned_runs[name])
+                out[name] = tuned_params(*tuned_runs[name], option=f"--tuned-run {name}")
             elif name == "tuned":
                 out[name] = tuned_params(tuned_path, tuned_method)
             else:

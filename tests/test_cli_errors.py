@@ -58,6 +58,11 @@ def ws(tmp_path, monkeypatch):
     (other / "manifest.json").write_text(json.dumps(dict(
         schema="hyqjax.sweep/2", spec_hash="0" * 64, spec={}, n_instances=1, chunk_size=1, n_chunks=1, chunks={})))
     (tmp_path / "empty").mkdir()
+    tuned = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", "cma_es_s1",
+                         "results.json")
+    with open(tuned) as f:
+        res = json.load(f)
+    (tmp_path / "tuned.json").write_text(json.dumps(dict(config=res["config"], runs=res["runs"])))
     _v1_store(tmp_path / "v1_sweep")
     return tmp_path
 
@@ -86,6 +91,11 @@ CASES = [
     (["stepdown", "--heights", "0.5"], "--heights"),
     (["stepdown", "--crawl", "stance_min_force=900"], "stance_min_force"),
     (["stepdown", "--crawl", "no_such_field=1"], "no_such_field"),
+    (["stepdown", "--params", "nowhere.json"], "--params"),
+    (["stepdown", "--params", "bad.json"], "--params"),
+    (["stepdown", "--params", "tuned.json", "--remedy"], "--remedy"),
+    (["stepdown", "--params", "tuned.json:snes"], "cma_es/shared"),
+    (["stepdown", "--params", "tuned.json", "--crawl", "terrain_adaptation=0.5"], "terrain_adaptation"),
     (["stepdown", "--crawl", "search_forward_limit=x"], "search_forward_limit"),
     (["stepdown", "--crawl", "shin_remedy=maybe"], "shin_remedy"),
     (["stepdown", "--crawl", "forward_velocity=0.2"], "--speed"),
@@ -148,6 +158,10 @@ CASES = [
     (["tune", "--select-instances", "-2"], "--select-instances"),
     (["tune", "--select-every", "0"], "--select-every"),
     (["tune", "--train-heights", "0.1,0.9"], "--train-heights"),
+    (["tune", "--train-spread", "narrow"], "--train-spread"),
+    (["tune", "--grad-mode", "reverse", "--grad-directions", "2"], "--grad-directions"),
+    (["tune", "--train-heights", "0.24,0.26,0.28", "--select-instances", "64"], "--select-instances"),
+    (["tune", "--gradient-study", "--train-spread", "wide"], "--train-spread"),
     (["tune", "--train-per-height", "0"], "--train-per-height"),
     (["tune", "--windows-per-scenario", "9"], "--windows-per-scenario"),
     (["tune", "--lead", "0"], "--lead"),

@@ -76,6 +76,28 @@ def test_tuned_variant_reads_what_the_default_tuner_hands_back(tmp_path):
         reach_map.tuned_params(str(path), "snes")
 
 
+def test_stepdown_params_are_the_run_s_theta_over_the_user_s_other_settings(tmp_path):
+    """``hyqjax stepdown --params``' reader: the run's tuned values exactly as the study stored them, the user's
+    speed and untuned fields on top, the run's remedy setting kept."""
+    from hyqjax.studies.tune import tuned
+
+    src = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", "snes_s1",
+                       "results.json")
+    with open(src) as f:
+        res = json.load(f)
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps(dict(config=res["config"], runs=res["runs"])))
+    want = res["runs"]["snes/shared"]["params"]
+    p = tuned.crawl_params(str(path), None, forward_velocity=0.07, stance_min_force=1.0)
+    assert float(p.forward_velocity) == pytest.approx(0.07)
+    assert float(p.stance_min_force) == pytest.approx(1.0)
+    assert float(p.shin_remedy) == float(res["config"]["remedy"])
+    for k in ("body_height", "max_step_length", "search_forward", "terrain_adaptation", "step_height"):
+        assert float(getattr(p, k)) == pytest.approx(want[k], rel=1e-5), k
+    for k in ("k_base", "d_st_max", "d_sw_min"):
+        assert float(getattr(p.reflex, k)) == pytest.approx(want[k], rel=1e-5), k
+
+
 @pytest.mark.slow
 def test_tiny_cpu_map_writes_resumes_and_counts_every_instance(tmp_path):
     out = tmp_path / "map"

@@ -1005,3 +1005,28 @@ def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
         if r["name"] != "start":
             run, key = r["name"].split(":")
             assert r["clean"] == res["ab".index(run)]["heldout"][key]["clean"] and len(r["theta"]) == 14
+
+
+def test_training_draws_take_the_configured_heights_and_spread():
+    """``train_heights`` and ``train_spread`` (the reach as the tuning objective): every height gets its share, and
+    the wide spread reaches the start distances, frictions and payloads the training ranges exclude."""
+    from hyqjax.studies.tune import forward, wallclock
+
+    hs = (0.24, 0.26, 0.28, 0.30)
+    wide = forward.train_scenarios(256, 3, 0, hs, "wide")
+    narrow = forward.train_scenarios(256, 3, 0, hs, "train")
+    for sc in (wide, narrow):
+        h, n = np.unique(np.asarray(sc.terrain.platform_height), return_counts=True)
+        np.testing.assert_allclose(h, hs, atol=1e-6)
+        assert set(n) == {64}
+    lo, hi = forward.TRAIN_RANGES["start_distance"]
+    assert np.all((np.asarray(narrow.start_distance) >= lo) & (np.asarray(narrow.start_distance) <= hi))
+    assert np.mean(np.asarray(wide.start_distance) > hi) > 0.2
+    assert np.asarray(wide.terrain.payload_mass).max() > forward.TRAIN_RANGES["payload"][1]
+    assert np.asarray(wide.terrain.friction).min() < forward.TRAIN_RANGES["friction"][0]
+    cfg = wallclock.WallClockConfig(train_heights=hs, train_spread="wide", dims=("shared",), methods=("cma_es",))
+    sel = wallclock.validation_scenarios(cfg)
+    assert sel.batch_size == cfg.select_instances
+    np.testing.assert_allclose(np.unique(np.asarray(sel.terrain.platform_height)), hs, atol=1e-6)
+    with pytest.raises(ValueError, match="train_spread"):
+        wallclock.WallClockConfig(train_spread="narrow")

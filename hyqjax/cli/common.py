@@ -309,7 +309,8 @@ def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | N
 
 
 #: Attributes the command line sets on its parsed options for itself (not options a user gave).
-INTERNAL_OPTIONS = ("options_checked", "run_command", "validate_command", "study_config", "spec_obj", "recorded")
+INTERNAL_OPTIONS = ("options_checked", "run_command", "validate_command", "study_config", "spec_obj", "recorded",
+                    "tuned_params")
 
 
 def user_options(args) -> dict:

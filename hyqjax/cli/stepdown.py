@@ -18,6 +18,7 @@ one shorter than a typical run needs gets a warning.
 Examples:
   hyqjax stepdown --instances 3 --out out/stepdown        # the paper's table at CPU size
   hyqjax stepdown --heights 0.24 --reflex on --remedy      # one height, the shin-strike remedy
+  hyqjax stepdown --params out/tune/results.json           # the crawl and reflex gains `hyqjax tune` returned
   hyqjax render out/stepdown --where height=0.24 reflex=on # a video of one recorded run
 """
 from __future__ import annotations
@@ -55,6 +56,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="more CrawlParams.make settings, after --remedy's, e.g. 'search_forward_limit=0.10,"
                         "stance_min_force=1' (the saturating search and the slip-aware trunk load, docs/stepdown.md); "
                         "forward_velocity is --speed")
+    p.add_argument("--params", default="", metavar="RESULTS[:RUN]",
+                   help="run the crawl and reflex parameters a tuning run returned: its results.json (`hyqjax tune "
+                        "--out DIR` writes DIR/results.json), and with several runs the one to take, e.g. "
+                        "results.json:snes/shared; the run's remedy setting is kept (no --remedy), --crawl may set "
+                        "only fields it did not tune")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
@@ -84,6 +90,7 @@ def validate(args) -> None:
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
     args.crawl_settings = _crawl_settings(args)
+    args.tuned_params = _tuned_params(args) if args.params else None
     check_impl(args.impl, supported=TASK.impls)
     args.recorded = _recorded_instances(args)
     args.duration_warning = _check_duration(args)
@@ -114,6 +121,22 @@ def _crawl_settings(args) -> dict:
     return {**(presets.REMEDY if args.remedy else {}), **extra}
 
 
+def _tuned_params(args):
+    """``CrawlParams`` of ``--params RESULTS[:RUN]`` (:func:`hyqjax.studies.tune.tuned.crawl_params`) with
+    ``--speed`` and ``--crawl``'s settings, checked before anything compiles."""
+    from hyqjax.studies.tune import tuned
+
+    if args.remedy:
+        raise ValueError("--remedy: --params runs the tuned parameters with the remedy setting of their run; give one")
+    path, run = args.params, None
+    if not os.path.exists(path) and ":" in path:
+        path, _, run = path.rpartition(":")
+    try:
+        return tuned.crawl_params(path, run or None, forward_velocity=args.speed, **args.crawl_settings)
+    except ValueError as e:
+        raise ValueError(f"--params {args.params}: {e}") from None
+
+
 #: The start distance range of the randomised instances (m), as ``stepdown.make_scenarios`` draws it.
 START_DISTANCE = (0.0, 0.04)
 
@@ -142,7 +165,7 @@ def run(args) -> int:
     if getattr(args, "duration_warning", None):
         print(f"hyqjax stepdown: {args.duration_warning}", file=sys.stderr, flush=True)
     recorded = args.recorded
-    params = crawl.CrawlParams.make(forward_velocity=args.speed, **args.crawl_settings)
+    params = args.tuned_params or crawl.CrawlParams.make(forward_velocity=args.speed, **args.crawl_settings)
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every

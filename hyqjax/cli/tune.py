@@ -42,11 +42,12 @@ QUICK = dict(wall_minutes=(1.5, 2.5), popsize=3, train_instances=4, heldout=4, h
 
 
 #: Options only the gradient study (--gradient-study) uses: refused elsewhere.
-GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "train_heights", "prefixes", "warm_start", "baselines",
+GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "prefixes", "warm_start", "baselines",
                        "success_instances", "success_duration", "curve_instances", "baseline_wall_s",
                        "offset", "checkpoint_every")
 #: Options only the default tuner and --study use: refused with --gradient-study.
-WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "cold_compile", "retake_windows")
+WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
+                  "train_spread")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -94,6 +95,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--grad-directions", type=int, default=0,
                    help="tangents of the gradient's tuning step: 0 = exact jacfwd (one per parameter); K > 0 = the "
                         "unbiased forward-gradient estimate from K random directions (cheaper, noisier)")
+    g.add_argument("--grad-mode", default="jacfwd", choices=["jacfwd", "reverse"],
+                   help="the exact tuning step: jacfwd (forward mode, one tangent per parameter) or reverse (reverse "
+                        "mode through a fixed-length constraint solver and a checkpointed scan; cost independent of "
+                        "the number of parameters)")
+    g.add_argument("--train-spread", default="train", choices=["train", "wide"],
+                   help="ranges of the training draws: train (start 0-10 cm, friction 0.5-1.0, payload 0-10 kg) or "
+                        "wide (the reach map's wide spread: start 0-15 cm, friction 0.4-1.0, payload 0-15 kg); "
+                        "with --train-heights, e.g. 0.24,0.26,0.28,0.30, the reach as the tuning objective")
     g.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier default run or study; its last iterate of the "
                         "same method and parameterisation is the start")
@@ -112,7 +121,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="scales of the Adam update tried per step (one batched forward evaluation of the windows, "
                         "counted in the budget); the best is taken only if it lowers the objective; '' for plain Adam")
     p.add_argument("--seed", type=int, default=0, help="training seed")
-    p.add_argument("--train-heights", type=_floats, default=(0.16, 0.20, 0.24, 0.28), help="training heights (m)")
+    p.add_argument("--train-heights", type=_floats, default=(0.16, 0.20, 0.24, 0.28),
+                   help="training heights (m), comma-separated (every mode; the search methods draw train-instances / "
+                        "their number per height)")
     p.add_argument("--train-per-height", type=int, default=2, help="training scenarios per height")
     p.add_argument("--windows-per-scenario", type=int, default=2, help="snapshot windows per scenario (legs over the edge)")
     p.add_argument("--lead", type=float, default=10.0, help="forward run that takes the snapshots (s)")
@@ -258,7 +269,8 @@ def _validate_wallclock(args) -> None:
             charge_compile=not args.no_compile_charge, cold_compile=args.cold_compile,
             select_instances=args.select_instances, select_every=args.select_every,
             select_every_s=args.select_every_s, select_seed=args.select_seed, grad_directions=args.grad_directions,
-            retake_windows=args.retake_windows,
+            retake_windows=args.retake_windows, grad_mode=args.grad_mode,
+            train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)

@@ -41,16 +41,20 @@ HELDOUT_HEIGHTS = tuple(round(0.14 + 0.02 * i, 2) for i in range(9))
 #: The held-out set: wider than training in friction, payload and start distance.
 HELDOUT_RANGES = dict(friction=(0.4, 1.0), payload=(0.0, 15.0), start_distance=(0.0, 0.15), lateral=(-0.05, 0.05),
                       yaw=(-0.1, 0.1))
+#: Scenario ranges a training draw may use (``WallClockConfig.train_spread``): the training ranges, or the wide
+#: spread (the held-out ranges, which the reach map's wide spread also uses).
+SPREADS = dict(train=TRAIN_RANGES, wide=HELDOUT_RANGES)
 
 
-def train_scenarios(m: int, seed: int, generation: int, heights=TRAIN_HEIGHTS) -> stepdown.Scenario:
-    """Generation ``generation``'s ``m`` training scenarios (``m`` a multiple of ``len(heights)``; reflex on)."""
+def train_scenarios(m: int, seed: int, generation: int, heights=TRAIN_HEIGHTS,
+                    spread: str = "train") -> stepdown.Scenario:
+    """Generation ``generation``'s ``m`` training scenarios (``m`` a multiple of ``len(heights)``; reflex on), drawn
+    with the ranges ``SPREADS[spread]``."""
     per = m // len(heights)
     if per * len(heights) != m or per < 1:
         raise ValueError(f"train instances must be a positive multiple of {len(heights)}, got {m}")
     gen_seed = int(np.random.SeedSequence([seed, generation]).generate_state(1)[0])
-    sc, _ = stepdown.make_scenarios(heights, [True], per, gen_seed,
-                                    **TRAIN_RANGES)
+    sc, _ = stepdown.make_scenarios(tuple(heights), [True], per, gen_seed, **SPREADS[spread])
     return sc
 
 

@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.studies.tune import forward, schedule, search
+from hyqjax.studies.tune import schedule, search
 
 #: Offset of the seed of the gradient's snapshot scenarios.
 WINDOW_SEED_OFFSET = 11
@@ -37,7 +37,7 @@ class GradientPrograms:
 
         self.cfg, self.base = cfg, base
         self.su = windows.setup()
-        sc, _ = evaluate.scenarios(forward.TRAIN_HEIGHTS, cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
+        sc, _ = evaluate.scenarios(tuple(cfg.train_heights), cfg.grad_train_per_height, cfg.seed + WINDOW_SEED_OFFSET,
                                    params=base)
         spec = windows.WindowSpec(per_scenario=cfg.windows_per_scenario, lead=cfg.window_lead)
         self.sc, self.spec = sc, spec

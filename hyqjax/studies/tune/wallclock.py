@@ -140,7 +140,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
 
     def f_gen(thetas, g):
         with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
-            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g), param=param)
+            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g, cfg.train_heights,
+                                                            cfg.train_spread), param=param)
 
     last = [0.0]
 
@@ -177,8 +178,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
 
 def validation_scenarios(cfg: WallClockConfig):
     """The fixed validation batch of the selection: ``select_instances`` scenarios drawn like training (training
-    heights and ranges) from ``select_seed``; never the held-out set."""
-    return forward.train_scenarios(cfg.select_instances, cfg.select_seed, 0)
+    heights and spread) from ``select_seed``; never the held-out set."""
+    return forward.train_scenarios(cfg.select_instances, cfg.select_seed, 0, cfg.train_heights, cfg.train_spread)
 
 
 def selection_program(cfg: WallClockConfig) -> str:
@@ -281,7 +282,8 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
     sc, heights = forward.heldout_scenarios(cfg.heldout, cfg.heldout_seed)
     res["heldout_set"] = dict(instances=sc.batch_size, seed=cfg.heldout_seed, duration=cfg.heldout_duration,
                               heights=[float(h) for h in forward.HELDOUT_HEIGHTS], ranges=forward.HELDOUT_RANGES,
-                              trained_heights=list(forward.TRAIN_HEIGHTS), train_ranges=forward.TRAIN_RANGES)
+                              trained_heights=[float(h) for h in cfg.train_heights],
+                              train_ranges=forward.SPREADS[cfg.train_spread])
     if left:
         log(f"held-out: {len(left)} parameter sets x {sc.batch_size} instances x {cfg.heldout_duration:g} s "
             f"({len(left) * sc.batch_size * round(cfg.heldout_duration / 0.002):,} physics steps) ...")

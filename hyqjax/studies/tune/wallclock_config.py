@@ -17,6 +17,10 @@ from hyqjax.studies.tune import space as spmod
 from hyqjax.studies.tune.gradient_programs import WINDOW_SEED_OFFSET
 
 
+#: Differentiation modes of the exact tuning step (``WallClockConfig.grad_mode``).
+GRAD_MODES = ("jacfwd", "reverse")
+
+
 def generation_seed(seed: int, dim: str) -> int:
     """The seed of the training scenarios of the search methods on parameterisation ``dim``."""
     return seed + 1 + 1000 * list(schedule.NAMES).index(dim)
@@ -41,6 +45,12 @@ class WallClockConfig:
     popsize: int = 16
     train_instances: int = 32
     train_duration: float = 24.0
+    #: step heights (m) of the training scenarios (and the validation and gradient-window scenarios), each
+    #: ``train_instances / len(train_heights)`` times per generation
+    train_heights: tuple = forward.TRAIN_HEIGHTS
+    #: scenario ranges of every training draw: ``"train"`` (:data:`.forward.TRAIN_RANGES`) or ``"wide"``
+    #: (:data:`.forward.HELDOUT_RANGES`, the reach map's wide spread: start 0-15 cm, friction 0.4-1.0, payload 0-15 kg)
+    train_spread: str = "train"
     sigma: float = 0.3
     completed_weight: float = 0.1
     # gradient (MJX-JAX)
@@ -53,6 +63,10 @@ class WallClockConfig:
     #: ``K`` random directions (:func:`.objective.make_value_and_forward_gradient`, unbiased, ``(P + 1) / K``
     #: times the variance of one window's gradient)
     grad_directions: int = 0
+    #: how the exact tuning step differentiates the windows: ``"jacfwd"`` (forward mode, ``P`` tangents) or
+    #: ``"reverse"`` (reverse mode through a fixed-length constraint solver and a checkpointed scan,
+    #: :func:`.objective.make_value_and_grad_reverse`; cost independent of ``P``)
+    grad_mode: str = "jacfwd"
     hybrid_split: float = 0.5
     #: the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts from (in its
     #: clock: the capture's compile and forward run), instead of descending from the start point's gait
@@ -111,8 +125,19 @@ class WallClockConfig:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
         if not 0.0 <= float(self.select_every_s) <= 3600.0:
             raise ValueError(f"select_every_s must be in [0, 3600] s, got {self.select_every_s}")
-        if self.select_instances % len(forward.TRAIN_HEIGHTS):
-            raise ValueError(f"select_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
+        th = tuple(self.train_heights)
+        if (not th or len(th) > 16 or len(set(th)) != len(th)
+                or any(isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.0 <= float(h) <= 0.4 for h in th)):
+            raise ValueError(f"train_heights must be 1 to 16 distinct heights in [0, 0.4] m, got {list(th)}")
+        if self.train_spread not in forward.SPREADS:
+            raise ValueError(f"train_spread must be one of {list(forward.SPREADS)}, got {self.train_spread!r}")
+        if self.grad_mode not in GRAD_MODES:
+            raise ValueError(f"grad_mode must be one of {list(GRAD_MODES)}, got {self.grad_mode!r}")
+        if self.grad_mode == "reverse" and self.grad_directions:
+            raise ValueError(f"grad_directions must be 0 with grad_mode reverse (the exact reverse-mode step), "
+                             f"got {self.grad_directions}")
+        if self.select_instances % len(th):
+            raise ValueError(f"select_instances must be a multiple of {len(th)} (one share per "
                              f"training height; 0: no selection), got {self.select_instances}")
         if self.select_instances and not (self.select_every > 0 or self.select_every_s > 0):
             raise ValueError("select_every (iterations) or select_every_s (seconds) must be > 0 with "
@@ -120,8 +145,8 @@ class WallClockConfig:
         if self.select_seed in training_seeds(self.seed) or self.select_seed == self.heldout_seed:
             raise ValueError(f"select_seed must differ from heldout_seed ({self.heldout_seed}) and the training "
                              f"draws' seeds ({', '.join(map(str, training_seeds(self.seed)))}), got {self.select_seed}")
-        if self.train_instances % len(forward.TRAIN_HEIGHTS):
-            raise ValueError(f"train_instances must be a multiple of {len(forward.TRAIN_HEIGHTS)} (one share per "
+        if self.train_instances % len(th):
+            raise ValueError(f"train_instances must be a multiple of {len(th)} (one share per "
                              f"training height), got {self.train_instances}")
         if self.heldout_seed == self.seed:
             raise ValueError(f"heldout_seed must differ from seed (held-out scenarios), got {self.heldout_seed}")

@@ -1,0 +1,100 @@
+"""The crawl parameters a tuning run returned, read back from its ``results.json`` as ``CrawlParams``.
+
+Both layouts ``hyqjax tune`` writes are read:
+
+* the default tuner and the equal-wall-clock study (``--study``): ``res["runs"]["<method>/<dim>"]["theta"]``, the
+  iterate the run returned at its last checkpoint (:mod:`.wallclock`);
+* the gradient study (``--gradient-study``): ``res["<method>"]["theta"]`` (:mod:`.study`).
+
+Only the parameterisation that is one ``CrawlParams`` (``shared``, :class:`.space.ParamSpace` over the run's
+``groups``) can be run by the step-down command; the scheduled ones (``per_leg``, ``per_leg_cond``, ...) choose a
+row per swing leg and need their own controller (:class:`.schedule.Parameterisation`), so they are refused here.
+
+``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it) with the caller's
+other settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned
+value would silently replace it.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+#: The parameterisation whose ``theta`` is one ``CrawlParams``.
+SHARED = "shared"
+
+
+def runs_of(res: dict) -> dict:
+    """``{run name: theta}`` of every run in ``res`` whose ``theta`` is one ``CrawlParams`` (both layouts)."""
+    out = {}
+    runs = res.get("runs") if isinstance(res.get("runs"), dict) else {}
+    for key, r in runs.items():
+        if isinstance(r, dict) and "theta" in r and key.endswith("/" + SHARED):
+            out[key] = r["theta"]
+    for key, r in res.items():
+        if key != "runs" and isinstance(r, dict) and "theta" in r:
+            out[key] = r["theta"]
+    return out
+
+
+def read(path: str) -> dict:
+    """``results.json`` at ``path``; a ``ValueError`` naming it when it cannot be read or is not a tuning run's."""
+    try:
+        with open(path) as f:
+            res = json.load(f)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"cannot read a tuning results.json at {path} ({e})") from None
+    if not isinstance(res, dict) or not isinstance(res.get("config"), dict) or "groups" not in res["config"]:
+        raise ValueError(f"{path} is not the results.json of `hyqjax tune` (no config with tuned groups)")
+    return res
+
+
+def pick_run(res: dict, run: str | None, path: str = "results.json") -> str:
+    """The run to take: ``run`` (``cma_es`` means ``cma_es/shared``), or the only one ``res`` has."""
+    found = runs_of(res)
+    if run:
+        key = run if run in found or "/" in run else f"{run}/{SHARED}"
+        if key not in found:
+            other = sorted(k for k in (res.get("runs") or {}) if k not in found)
+            raise ValueError(f"run {run!r} is not a {SHARED} run of {path} (runs: {', '.join(sorted(found)) or 'none'}"
+                             + (f"; not one CrawlParams: {', '.join(other)}" if other else "") + ")")
+        return key
+    if not found:
+        other = sorted(res.get("runs") or {})
+        raise ValueError(f"{path} has no run whose parameters are one CrawlParams (a {SHARED} run)"
+                         + (f"; its runs are scheduled per leg: {', '.join(other)}" if other else ""))
+    if len(found) != 1:
+        raise ValueError(f"{path} has {len(found)} runs with one CrawlParams ({', '.join(sorted(found)) or 'none'}): "
+                         f"name one as PATH:RUN")
+    return next(iter(found))
+
+
+def crawl_params(path: str, run: str | None = None, **settings):
+    """``CrawlParams`` of ``run`` in the tuning results at ``path`` (module docstring): the run's ``theta`` on the
+    ``ParamSpace`` of its ``groups``, over ``CrawlParams.make(shin_remedy=<the run's remedy>, **settings)``. A
+    ``ValueError`` naming the problem (unreadable file, unknown or ambiguous run, a setting the run tuned, a
+    parameter out of its declared range)."""
+    from hyqjax.core.params import ParameterError
+    from hyqjax.crawl import controller as crawl
+    from hyqjax.studies.tune import space as tspace
+
+    res = read(path)
+    key = pick_run(res, run, path)
+    theta = np.asarray(runs_of(res)[key], np.float64)
+    cfg = res["config"]
+    try:
+        space = tspace.ParamSpace.make(cfg["groups"])
+    except (ValueError, TypeError) as e:
+        raise ValueError(f"{path}: its groups are not tunable groups ({e})") from None
+    if theta.shape != (space.size,) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"{path}: run {key} has {theta.size} values, not {space.size} finite ones for its groups")
+    tuned = sorted({c.name for c in space.coords} & set(settings))
+    if tuned:
+        raise ValueError(f"{', '.join(tuned)}: tuned by run {key} of {path}; leave it out")
+    if "shin_remedy" in settings:
+        raise ValueError(f"shin_remedy: set by run {key} of {path} (remedy {bool(cfg.get('remedy', False))})")
+    try:
+        base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)), **settings)
+        return space.concrete(theta, base)
+    except (ParameterError, ValueError, TypeError) as e:
+        raise ValueError(f"run {key} of {path}: {e}") from None
