@@ -143,7 +143,12 @@ def foot_clearance(ci: ContactIds, d) -> jax.Array:
 
     Terrain geoms are the floor plane and boxes (platform, blocks), placed per instance (``d.geom_xpos``).
     """
-    feet = d.geom_xpos[np.asarray(ci.foot_geoms)]  # (4, 3) sphere centres
+    return clearance_of_points(ci, d.geom_xpos[np.asarray(ci.foot_geoms)], d)
+
+
+def clearance_of_points(ci: ContactIds, feet: jax.Array, d) -> jax.Array:
+    """(4,) :func:`foot_clearance` of foot spheres centred at ``feet`` (4, 3) instead of where ``d`` has them
+    (differentiable in ``feet``: its gradient is each foot's outward terrain normal)."""
     terr = np.asarray(ci.terrain_geoms)
     c, rot = d.geom_xpos[terr], d.geom_xmat[terr]  # (G, 3), (G, 3, 3)
     local = jnp.einsum("gji,fgj->fgi", rot, feet[:, None, :] - c[None])  # R^T (p - c), (4, G, 3)
