@@ -33,6 +33,7 @@ from mujoco import mjx
 from hyqjax.core import robot
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import contacts
+from hyqjax.sim import contacts_from_distance as cfdm
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
 from hyqjax.studies import stepdown
@@ -72,11 +73,13 @@ def setup(control_dt: float = 0.002, dtype: str = "float32") -> Setup:
     return Setup(m, mx, ids, Slots(shin, trunk, feet))
 
 
-def tick(mx: mjx.Model, ids: hmodel.ModelIds, p, d: mjx.Data, cs, tau_prev, dt: float, step=None):
+def tick(mx: mjx.Model, ids: hmodel.ModelIds, p, d: mjx.Data, cs, tau_prev, dt: float, step=None, cfd=None):
     """One control tick of the step-down closed loop (what ``sim.rollout`` does, without the divergence
     freeze): observe, crawl + reflex + joint impedance, torque limits, one ``mjx.step``. ``step(p, cs, obs)``
     is the controller's step (default: the crawl, ``p`` its ``CrawlParams``; a parameterisation's scheduled
-    crawl, ``p`` its ``Scheduled``). Returns ``(d, cs, tau, info)``."""
+    crawl, ``p`` its ``Scheduled``). ``cfd`` (a :class:`hyqjax.sim.contacts_from_distance.ContactsFromDistance`,
+    default none) adds the backward-only virtual springs under the feet to the step's derivative (its value is
+    unchanged). Returns ``(d, cs, tau, info)``."""
     obs = sim.observe(ids, d, tau_prev, mx)
     if step is None:
         cs, tau, info = crawl.crawl_step(p, cs, obs, dt)
@@ -84,6 +87,9 @@ def tick(mx: mjx.Model, ids: hmodel.ModelIds, p, d: mjx.Data, cs, tau_prev, dt: 
         cs, tau, info = step(p, cs, obs)
     tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
     d = mjx.step(mx, d.replace(ctrl=tau))
+    if cfd is not None and cfd.active:
+        ci = ids.contacts
+        d = cfdm.apply(cfd, mx, ci, cfdm.foot_bodies(mx, ci), d, dt)
     return d, cs, tau, info
 
 
