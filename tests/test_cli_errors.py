@@ -159,6 +159,7 @@ CASES = [
     (["tune", "--select-every", "0"], "--select-every"),
     (["tune", "--train-heights", "0.1,0.9"], "--train-heights"),
     (["tune", "--train-spread", "narrow"], "--train-spread"),
+    (["tune", "--contacts-from-distance", "-5"], "--contacts-from-distance"),
     (["tune", "--grad-mode", "reverse", "--grad-directions", "2"], "--grad-directions"),
     (["tune", "--train-heights", "0.24,0.26,0.28", "--select-instances", "64"], "--select-instances"),
     (["tune", "--gradient-study", "--train-spread", "wide"], "--train-spread"),

@@ -47,7 +47,7 @@ GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "prefixes", "warm_st
                        "offset", "checkpoint_every")
 #: Options only the default tuner and --study use: refused with --gradient-study.
 WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
-                  "train_spread")
+                  "train_spread", "contacts_from_distance")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -99,6 +99,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the exact tuning step: jacfwd (forward mode, one tangent per parameter) or reverse (reverse "
                         "mode through a fixed-length constraint solver and a checkpointed scan; cost independent of "
                         "the number of parameters)")
+    g.add_argument("--contacts-from-distance", type=float, default=0.0, metavar="N_PER_M",
+                   help="stiffness of the backward-only virtual springs under the feet in the gradient's windows "
+                        "(their values unchanged, their derivative sees the ground 2 cm before touchdown); 0: off")
     g.add_argument("--train-spread", default="train", choices=["train", "wide"],
                    help="ranges of the training draws: train (start 0-10 cm, friction 0.5-1.0, payload 0-10 kg) or "
                         "wide (the reach map's wide spread: start 0-15 cm, friction 0.4-1.0, payload 0-15 kg); "
@@ -270,6 +273,7 @@ def _validate_wallclock(args) -> None:
             select_instances=args.select_instances, select_every=args.select_every,
             select_every_s=args.select_every_s, select_seed=args.select_seed, grad_directions=args.grad_directions,
             retake_windows=args.retake_windows, grad_mode=args.grad_mode,
+            contacts_from_distance=args.contacts_from_distance,
             train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:

@@ -67,6 +67,9 @@ class WallClockConfig:
     #: ``"reverse"`` (reverse mode through a fixed-length constraint solver and a checkpointed scan,
     #: :func:`.objective.make_value_and_grad_reverse`; cost independent of ``P``)
     grad_mode: str = "jacfwd"
+    #: stiffness (N/m) of the backward-only virtual springs under the feet in the gradient's windows
+    #: (:mod:`hyqjax.sim.contacts_from_distance`, reach 2 cm); 0: off
+    contacts_from_distance: float = 0.0
     hybrid_split: float = 0.5
     #: the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts from (in its
     #: clock: the capture's compile and forward run), instead of descending from the start point's gait
@@ -157,6 +160,8 @@ class WallClockConfig:
             if not (lo < float(getattr(self, k)) < hi or (k != "hybrid_split" and float(getattr(self, k)) == hi)):
                 end = ")" if k == "hybrid_split" else "]"
                 raise ValueError(f"{k} must be in ({lo}, {hi}{end}, got {getattr(self, k)}")
+        if isinstance(self.contacts_from_distance, bool) or not 0.0 <= float(self.contacts_from_distance) <= 1e6:
+            raise ValueError(f"contacts_from_distance must be in [0, 1e6] N/m, got {self.contacts_from_distance}")
         if not (0.0 <= self.completed_weight <= 10.0):
             raise ValueError(f"completed_weight must be in [0, 10], got {self.completed_weight}")
         if not isinstance(self.remedy, bool):
