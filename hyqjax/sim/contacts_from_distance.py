@@ -21,7 +21,9 @@ gradient of the signed distance at the foot centre) gives the velocity change of
 (``J_i`` the translational Jacobian of the foot centre on its body, ``M`` the joint-space inertia), and the next
 velocity becomes
 
-.. math:: v_{t+1} \\leftarrow v_{t+1} + \\Delta v - \\mathrm{stop\\_gradient}(\\Delta v):
+.. math:: v_{t+1} \\leftarrow v_{t+1} + \\Delta v - \\mathrm{stop\\_gradient}(\\Delta v)
+
+(written as a custom derivative rule, :func:`with_derivative_of`, so that the value is exactly ``v_{t+1}``):
 
 its value is MJX's exactly (the forward pass, every outcome and every loss value are unchanged), its derivative
 carries ``d(Delta v)``: the derivative of the state that a spring of stiffness ``k`` acting from ``delta`` above
@@ -99,4 +101,19 @@ def apply(cfd: ContactsFromDistance, mx, ci: contacts.ContactIds, bodies, d_next
     if not cfd.active:
         return d_next
     dv = velocity_change(cfd, mx, ci, bodies, d_next, dt)
-    return d_next.replace(qvel=d_next.qvel + (dv - jax.lax.stop_gradient(dv)))
+    return d_next.replace(qvel=with_derivative_of(d_next.qvel, dv))
+
+
+@jax.custom_jvp
+def with_derivative_of(x, dv):
+    """``x`` in value, ``x + dv`` in derivative: ``x + dv - stop_gradient(dv)`` with the value exactly ``x`` (a
+    compiler may round the two copies of ``dv`` differently; here the value never involves ``dv``)."""
+    del dv
+    return x
+
+
+@with_derivative_of.defjvp
+def _with_derivative_of_jvp(primals, tangents):
+    x, _ = primals
+    x_dot, dv_dot = tangents
+    return x, x_dot + dv_dot
