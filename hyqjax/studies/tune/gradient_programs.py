@@ -2,16 +2,18 @@
 
 :class:`GradientPrograms` builds, once per study process, on MJX-JAX: the snapshot windows at the start point
 (:mod:`.windows`: a forward run per training scenario keeps the state one tick before the body phase of each leg
-about to step over the edge), and per parameterisation the tuning step (exact ``jax.jacfwd`` of the closed-loop
-window objective, :mod:`.objective`, or the forward-gradient estimate with ``grad_directions`` random tangents)
+about to step over the edge), and per parameterisation the tuning step (the exact gradient of the closed-loop window
+objective, :mod:`.objective`: ``jax.jacfwd`` with ``P`` tangents, or with ``grad_mode`` ``"reverse"`` reverse mode
+through a fixed-length constraint solver and a checkpointed scan; or the forward-gradient estimate with
+``grad_directions`` random tangents)
 and the forward evaluation of a batch of candidates on the same windows (the line search). Their one-off costs
 (compile and, for the windows, the forward run) go into the study's compile charges (:class:`.search.Charges`),
 so a gradient method pays them as a stand-alone run would.
 
 :func:`gradient_diagnostics`, outside every clock: the gradient's signal-to-noise ratio across windows at the
 start point, and Spearman's rank correlation of the window objective with held-out clean success over the
-evaluated iterates (:func:`diagnostic_iterates`). ``GradientPrograms.step_cost`` times one step against one
-forward evaluation of the same windows.
+evaluated iterates (:func:`diagnostic_iterates`). ``GradientPrograms.step_cost`` times the ``jacfwd`` and the
+reverse-mode steps against one forward evaluation of the same windows.
 """
 from __future__ import annotations
 
@@ -27,8 +29,14 @@ from hyqjax.studies.tune import schedule, search
 WINDOW_SEED_OFFSET = 11
 
 
+def _resource_error(e: BaseException) -> bool:
+    """Whether ``e`` says the device (or host) ran out of memory."""
+    msg = str(e)
+    return isinstance(e, MemoryError) or "RESOURCE_EXHAUSTED" in msg or "out of memory" in msg.lower()
+
+
 class GradientPrograms:
-    """The gradient's programs (MJX-JAX), built once: windows at the start point, ``jacfwd`` step, forward window
+    """The gradient's programs (MJX-JAX), built once: windows at the start point, exact step, forward window
     value of a batch of candidates; their one-off costs go into ``charges``. ``cfg`` is the study's
     :class:`.wallclock.WallClockConfig` (its seed and gradient settings), ``base`` the start point's parameters."""
 
@@ -45,6 +53,8 @@ class GradientPrograms:
             windows.make_windows(sc, spec, self.su)))
         self.win_start = self.win  # the start point's windows (the diagnostics' SNR reads these)
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
+        #: how the exact step differentiates: ``"jacfwd"`` or ``"reverse"`` (``WallClockConfig.grad_mode``)
+        self.grad_mode = getattr(cfg, "grad_mode", "jacfwd")
         self.fns: dict = {}
         self.exact_fns: dict = {}
         self.value_fns: dict = {}
@@ -68,18 +78,39 @@ class GradientPrograms:
         self.win = self.win_start
 
     def step_name(self, param) -> str:
-        """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents) or the forward gradient with
-        ``K = grad_directions`` tangents (:func:`.objective.make_value_and_forward_gradient`)."""
+        """Charge name of the tuning step's program: ``jacfwd`` (``P`` tangents), ``reverse`` (reverse mode,
+        :func:`.objective.make_value_and_grad_reverse`) or the forward gradient with ``K = grad_directions`` tangents
+        (:func:`.objective.make_value_and_forward_gradient`)."""
         k = self.cfg.grad_directions
-        return f"jacfwd/{param.name}" if not k else f"forward_gradient_{k}/{param.name}"
+        if k:
+            return f"forward_gradient_{k}/{param.name}"
+        return f"{self.grad_mode}/{param.name}"
 
-    def exact(self, param):
-        """The jitted exact ``jacfwd`` step of ``param`` (built on first use)."""
+    def exact(self, param, mode: str | None = None, checkpoint: bool = True):
+        """The jitted exact step of ``param`` (built on first use): ``mode`` ``"jacfwd"`` or ``"reverse"`` (default:
+        the study's ``grad_mode``); ``checkpoint``: the reverse-mode step's rematerialised scan."""
         from hyqjax.studies.tune import objective
 
-        if param.name not in self.exact_fns:
-            self.exact_fns[param.name] = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
-        return self.exact_fns[param.name]
+        mode = mode or self.grad_mode
+        key = (mode, bool(checkpoint) if mode == "reverse" else None, param.name)
+        if key not in self.exact_fns:
+            if mode == "reverse":
+                fn = objective.make_value_and_grad_reverse(self.base, param, self.obj, self.su, checkpoint=checkpoint)
+            elif mode == "jacfwd":
+                fn = objective.make_value_and_jac(self.win, self.base, param, self.obj, self.su)
+            else:
+                raise ValueError(f"mode must be 'jacfwd' or 'reverse', got {mode!r}")
+            self.exact_fns[key] = fn
+        return self.exact_fns[key]
+
+    def exact_physics_steps(self, param) -> int:
+        """Physics steps of one exact step on the windows: ``P`` tangents (``jacfwd``) or forward, recompute and
+        backward pass (``reverse``, :func:`.objective.reverse_physics_steps`)."""
+        from hyqjax.studies.tune import objective
+
+        if self.grad_mode == "reverse":
+            return objective.reverse_physics_steps(self.win.size, self.obj)
+        return objective.physics_steps(self.win.size, self.obj, param.size)
 
     def programs(self, param: schedule.Parameterisation):
         """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
@@ -106,8 +137,8 @@ class GradientPrograms:
             with self.charges.track(f"window_value/{param.name}"):
                 jax.block_until_ready(fval(cands, self.win))
             n_win = self.win.size
-            cost = (objective.physics_steps(n_win, self.obj, k_dir or param.size)
-                    + k * objective.physics_steps(n_win, self.obj))
+            step = objective.physics_steps(n_win, self.obj, k_dir) if k_dir else self.exact_physics_steps(param)
+            cost = step + k * objective.physics_steps(n_win, self.obj)
             self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
                                     lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
         return self.fns[param.name]
@@ -116,35 +147,64 @@ class GradientPrograms:
         return ["gradient_windows", self.step_name(param), f"window_value/{param.name}"]
 
     def exact_step(self, param):
-        """``theta -> dict`` of the exact ``jacfwd`` step on the windows (the diagnostics' SNR)."""
+        """``theta -> dict`` of the exact step on the windows (the diagnostics' SNR)."""
         return lambda t: self.exact(param)(jnp.asarray(t, jnp.float32), self.win)
 
     def step_cost(self, param, reps: int = 3) -> dict:
         """Wall seconds (median of ``reps``, after compiles) of one tuning step on the windows (value and
-        Jacobian, exact ``jacfwd`` and, with ``grad_directions``, the forward gradient) and of one forward
-        evaluation of the same windows for one candidate (:func:`.objective.make_value`), all on MJX-JAX;
-        the ratios are the step's cost in forward windows (the target: <= 5)."""
+        Jacobian: exact ``jacfwd``, exact reverse mode with and without the checkpointed scan and, with
+        ``grad_directions``, the forward gradient) and of one forward evaluation of the same windows for one
+        candidate (:func:`.objective.make_value`), all on MJX-JAX; the ratios are the step's cost in forward
+        windows (the target: <= 5). The reverse-mode step without checkpoint keeps every tick's solver residuals:
+        where that does not fit in memory, ``reverse_nocheckpoint_s`` is None and ``reverse_nocheckpoint_error`` says
+        why. ``first_call_s``: each program's first call (its compile, if new, and one run);
+        ``reverse_vs_jacfwd_rel_diff``: the largest difference of the two exact steps' per-window rows over the
+        largest ``jacfwd`` entry (windows both call valid). The programs built only for this measurement are
+        released afterwards."""
         th = jnp.asarray(param.theta_of(self.base), jnp.float32)
         self.programs(param)
+        first: dict = {}
+        last: dict = {}
+        kept = set(self.exact_fns)  # the programs built here for the measurement only are released at the end
 
-        def timed(fn):
+        def timed(name, fn):
+            t = time.perf_counter()
             jax.block_until_ready(fn())  # compiles (if new) and warms
+            first[name] = time.perf_counter() - t
             ts = []
             for _ in range(reps):
                 t = time.perf_counter()
-                jax.block_until_ready(fn())
+                last[name] = jax.block_until_ready(fn())
                 ts.append(time.perf_counter() - t)
             return float(np.median(ts))
 
-        value = timed(lambda: self.value_fns[param.name](th[None], self.win))
-        jac = timed(lambda: self.exact(param)(th, self.win))
+        value = timed("window_value", lambda: self.value_fns[param.name](th[None], self.win))
+        jac = timed("jacfwd", lambda: self.exact(param, "jacfwd")(th, self.win))
+        rev = timed("reverse", lambda: self.exact(param, "reverse")(th, self.win))
         out = dict(windows=int(self.win.size), ticks=int(self.obj.ticks), tangents=int(param.size),
-                   window_value_s=value, jacfwd_s=jac, jacfwd_over_value=jac / value, reps=int(reps))
+                   window_value_s=value, jacfwd_s=jac, jacfwd_over_value=jac / value,
+                   reverse_s=rev, reverse_over_value=rev / value, reps=int(reps))
+        # the two exact steps' rows on the windows both call valid (rounding, amplified through contact events)
+        ok = np.asarray(last["jacfwd"]["ok"]) & np.asarray(last["reverse"]["ok"])
+        g_f, g_r = (np.asarray(last[k]["per_window_grad"], np.float64)[ok] for k in ("jacfwd", "reverse"))
+        scale = float(np.abs(g_f).max()) if g_f.size else 0.0
+        out["reverse_vs_jacfwd_rel_diff"] = float(np.abs(g_r - g_f).max() / scale) if scale > 0 else None
+        try:
+            nock = timed("reverse_nocheckpoint", lambda: self.exact(param, "reverse", checkpoint=False)(th, self.win))
+            out.update(reverse_nocheckpoint_s=nock, reverse_nocheckpoint_over_value=nock / value)
+        except Exception as e:  # noqa: BLE001 (only running out of memory is a result; anything else is raised)
+            if not _resource_error(e):
+                raise
+            out.update(reverse_nocheckpoint_s=None, reverse_nocheckpoint_over_value=None,
+                       reverse_nocheckpoint_error=f"{type(e).__name__}: {str(e).strip().splitlines()[0][:300]}")
         if self.cfg.grad_directions:
             fg = self.fns[param.name][0]
-            fgs = timed(lambda: fg(th))
+            fgs = timed("forward_gradient", lambda: fg(th))
             out.update(forward_gradient_directions=int(self.cfg.grad_directions), forward_gradient_s=fgs,
                        forward_gradient_over_value=fgs / value)
+        out["first_call_s"] = first
+        for key in set(self.exact_fns) - kept:
+            del self.exact_fns[key]
         return out
 
 

@@ -1,4 +1,5 @@
-"""The closed-loop objective: a smooth cost of a step-down window through MJX, differentiable by ``jax.jacfwd``.
+"""The closed-loop objective: a smooth cost of a step-down window through MJX, differentiable by ``jax.jacfwd``
+and, through a fixed-length constraint solver, by reverse mode.
 
 A window (:mod:`.windows`) runs ``n`` control ticks of the full closed loop (crawl + height reflex + joint
 impedance + ``mjx.step``, ``impl=jax``) from a snapshot, with the tuned parameters ``theta`` mapped by
@@ -28,9 +29,26 @@ The window cost is
 windows. A window whose state becomes non-finite gets no gradient and is counted (``non_finite``), never
 silently averaged.
 
-Gradients: ``jax.jacfwd`` over ``theta`` (``P`` tangents; forward mode runs through ``mjx.step``'s
-solver ``while_loop``). The per-window Jacobian rows give the gradient variance across scenarios. The
-crawl's phase switches are ``jnp.where`` selects, so the gradient is that of the current contact /
+Gradients: the per-window Jacobian rows ``dL_w / dtheta`` (``W x P``; they give the gradient variance across
+scenarios), two ways with the same result:
+
+* :func:`make_value_and_jac`: ``jax.jacfwd`` over ``theta``, ``P`` tangents carried with one primal rollout (forward
+  mode runs through ``mjx.step``'s solver ``while_loop``); cost about ``(1 + c P)`` forward windows, ``c`` the cost
+  of one tangent relative to the primal.
+* :func:`make_value_and_grad_reverse`: reverse mode. With the window's tick map ``x_{k+1} = f(x_k, theta)`` and
+  per-tick cost terms ``l_k``, the adjoint ``a_k = dL/dx_k`` runs backwards,
+  ``a_k = dl_k/dx_k + a_{k+1} df/dx (x_k)`` and ``dL/dtheta = sum_k dl_k/dtheta + a_{k+1} df/dtheta (x_k)``: one
+  vector-Jacobian product per tick, whatever ``P``. Windows are independent, so each window's rows come from its own
+  ``jax.jacrev`` (``len(obj.lengths)`` cotangents, one per prefix), ``vmap``-ed over the windows. MJX's constraint
+  solver ``while_loop`` has no transpose; traced inside :func:`hyqjax.sim.reverse_mode.fixed_length_solver` it is a
+  ``lax.scan`` of at most ``m.opt.iterations`` ``lax.cond`` steps with the same early stop (the same primal). The
+  window's tick scan is checkpointed (``jax.checkpoint`` of the per-tick body): the forward pass stores only the
+  carry ``x_k`` of each tick (memory ``O(ticks x state)``, not ``O(ticks x solver residuals)``), and the backward
+  pass recomputes each tick from its carry before its vector-Jacobian product. Cost: one forward pass, one
+  recomputation and one backward pass (:func:`reverse_physics_steps` counts ``3`` physics steps per window tick),
+  independent of ``P``.
+
+The crawl's phase switches are ``jnp.where`` selects, so the gradient is that of the current contact /
 phase sequence: it ignores how ``theta`` moves the switching times (the bias of any pathwise gradient of
 a hybrid system); short windows keep the number of switches small.
 """
@@ -102,10 +120,12 @@ def _sp(x, s):
 
 
 def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpace, obj: ClosedLoopObjective,
-                 su: wmod.Setup) -> dict[str, jax.Array]:
+                 su: wmod.Setup, checkpoint: bool = False) -> dict[str, jax.Array]:
     """Terms of ONE window (``vmap`` over windows; ``mx`` that window's model). ``space`` is a
     :class:`.space.ParamSpace` (one parameter set) or a :class:`.schedule.Parameterisation` (parameters selected
-    per tick by swing leg and features; the stability term is the largest over the legs' rows)."""
+    per tick by swing leg and features; the stability term is the largest over the legs' rows). ``checkpoint``:
+    the per-tick body is ``jax.checkpoint``-ed (rematerialised), so reverse mode keeps only each tick's carry and
+    recomputes the tick in the backward pass (the values are the same)."""
     from hyqjax.studies.tune import schedule
 
     sched = isinstance(space, schedule.Parameterisation)  # static
@@ -145,6 +165,8 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
                  mobility=sd * jnp.sum(info.mobility), sd=sd, x=d1.qpos[robot.QPOS_BASE_POS][0])
         return (d1, cs1, tau1), y
 
+    if checkpoint:
+        body = jax.checkpoint(body, prevent_cse=False)  # in a scan, CSE across ticks cannot undo the remat
     _, ys = jax.lax.scan(body, tie_carry((d, cs, tau), theta), None, length=obj.ticks)
     if sched:
         rows = [space.params_at(sp, leg, jnp.zeros(len(schedule.FEATURES), theta.dtype)).reflex for leg in range(4)]
@@ -173,10 +195,11 @@ def combine(terms: dict, obj: ClosedLoopObjective):
     return sum(w * terms[k] for k, w in obj.weights().items())
 
 
-def window_losses(theta, win: wmod.Windows, base, space, obj, su):
-    """Per-window ``(L, terms, finite)``: ``(W,)`` losses with non-finite ones replaced by 0."""
+def window_losses(theta, win: wmod.Windows, base, space, obj, su, checkpoint: bool = False):
+    """Per-window ``(L, terms, finite)``: ``(W,)`` losses with non-finite ones replaced by 0 (``checkpoint``:
+    :func:`window_terms`'s)."""
     axes = wmod.hmodel.model_in_axes(win.model)
-    terms = jax.vmap(lambda mm, dd, cc, tt: window_terms(theta, mm, dd, cc, tt, base, space, obj, su),
+    terms = jax.vmap(lambda mm, dd, cc, tt: window_terms(theta, mm, dd, cc, tt, base, space, obj, su, checkpoint),
                      in_axes=(axes, 0, 0, 0))(win.model, win.data, win.ctrl, win.tau)
     loss = combine({k: v for k, v in terms.items() if k != "prefix_loss"}, obj)
     finite = jnp.isfinite(loss)
@@ -218,6 +241,46 @@ def make_value_and_jac(win_example: wmod.Windows, base, space: ParamSpace, obj: 
 
         (jac, jac_prefix), (loss, terms, finite) = jax.jacfwd(per_window, has_aux=True)(theta)
         return _step_result(jac, jac_prefix, loss, terms, finite, win)
+
+    return jax.jit(f)
+
+
+def make_value_and_grad_reverse(base, space: ParamSpace, obj: ClosedLoopObjective, su: wmod.Setup,
+                                checkpoint: bool = True):
+    """A jitted ``f(theta, windows)`` with the output of :func:`make_value_and_jac`, differentiated in reverse mode.
+
+    Windows are independent: window ``w`` reads its own copy ``theta_w`` of ``theta``, so one reverse pass through
+    all windows (``jax.vjp`` of the ``vmap``-ed windows' ``prefix_loss``, ``(W, len(obj.lengths))``) with a cotangent
+    of ones on one prefix gives every window's row ``dL_w / dtheta_w`` of that prefix at once (the last prefix is the
+    window's ``L``); one pass per prefix length. MJX's constraint solver is traced as a fixed-length loop
+    (:func:`hyqjax.sim.reverse_mode.fixed_length_solver`: every trace of ``f`` happens inside it), and with
+    ``checkpoint`` the window's per-tick body is rematerialised (:func:`window_terms`). The values are those of the
+    forward pass: the same loss, and the same gradient up to rounding.
+    """
+    from hyqjax.sim import reverse_mode
+
+    def f(theta, win):
+        axes = wmod.hmodel.model_in_axes(win.model)
+        thetas = jnp.broadcast_to(theta, (win.size,) + theta.shape)
+
+        def per_window(ths):
+            terms = jax.vmap(lambda th, mm, dd, cc, tt: window_terms(th, mm, dd, cc, tt, base, space, obj, su,
+                                                                     checkpoint),
+                             in_axes=(0, axes, 0, 0, 0))(ths, win.model, win.data, win.ctrl, win.tau)
+            return terms["prefix_loss"], terms
+
+        with reverse_mode.fixed_length_solver():  # f runs only while jit traces it
+            prefix, pullback, terms = jax.vjp(per_window, thetas, has_aux=True)
+            n = prefix.shape[-1]
+            if n == 1:  # one pass, no batching of the backward program
+                jac_prefix = pullback(jnp.ones_like(prefix))[0][:, None, :]
+            else:
+                cts = jnp.broadcast_to(jnp.eye(n, dtype=prefix.dtype)[:, None, :], (n,) + prefix.shape)
+                jac_prefix = jnp.moveaxis(jax.vmap(pullback)(cts)[0], 0, 1)
+        raw = combine({k: v for k, v in terms.items() if k != "prefix_loss"}, obj)
+        finite = jnp.isfinite(raw)
+        loss = jnp.where(finite, raw, 0.0)
+        return _step_result(jac_prefix[:, -1], jac_prefix, loss, terms, finite, win)
 
     return jax.jit(f)
 
@@ -293,5 +356,17 @@ def make_per_robot_value_and_jac(base, space: ParamSpace, obj: ClosedLoopObjecti
 
 
 def physics_steps(n_windows: int, obj: ClosedLoopObjective, tangents: int = 0) -> int:
-    """Simulation budget of one evaluation: ``windows x ticks x (1 + tangents)`` physics steps."""
+    """Simulation budget of one evaluation: ``windows x ticks x (1 + tangents)`` physics steps (a forward pass
+    and ``tangents`` forward-mode tangents; a reverse-mode step: :func:`reverse_physics_steps`)."""
     return int(n_windows) * obj.ticks * (1 + int(tangents))
+
+
+#: Physics steps per window tick of a reverse-mode step (:func:`make_value_and_grad_reverse`): the forward pass, its
+#: recomputation tick by tick in the backward pass (the checkpointed scan) and the backward pass itself.
+REVERSE_PASSES = 3
+
+
+def reverse_physics_steps(n_windows: int, obj: ClosedLoopObjective) -> int:
+    """Simulation budget of one reverse-mode step: ``windows x ticks x 3`` (:data:`REVERSE_PASSES`: forward,
+    recompute, backward), whatever the number of parameters."""
+    return int(n_windows) * obj.ticks * REVERSE_PASSES
