@@ -144,18 +144,3 @@ def test_reverse_mode_window_rows_equal_jacfwd_with_checkpoint(windows64):
     with jax.enable_x64(True):
         res = _call(objective.make_value_and_grad_reverse(base, sp, obj, su, checkpoint=True), th, win)
     _compare(res, ref, prefixes=True)
-
-
-@pytest.mark.slow
-def test_reverse_mode_window_rows_equal_jacfwd_without_checkpoint(windows64):
-    """Without the checkpointed scan (the window's whole length, one backward pass) the rows are the same."""
-    import dataclasses
-
-    from hyqjax.studies.tune import objective
-
-    win, sp, base, obj, su, th, ref = windows64
-    with jax.enable_x64(True):
-        one = dataclasses.replace(obj, prefixes=())  # the full window's L: jacfwd's per_window_grad
-        res = _call(objective.make_value_and_grad_reverse(base, sp, one, su, checkpoint=False), th, win)
-    assert res["per_window_prefix_grad"].shape == (win.size, 1, sp.size)
-    _compare(res, ref, prefixes=False)

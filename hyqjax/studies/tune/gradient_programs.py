@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hyqjax.sim.contacts_from_distance import ContactsFromDistance
 from hyqjax.studies.tune import schedule, search
 
 #: Offset of the seed of the gradient's snapshot scenarios.
@@ -52,7 +53,8 @@ class GradientPrograms:
         self.win = charges.one_off("gradient_windows", lambda: jax.block_until_ready(
             windows.make_windows(sc, spec, self.su)))
         self.win_start = self.win  # the start point's windows (the diagnostics' SNR reads these)
-        self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks)
+        self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks, contacts_from_distance=ContactsFromDistance(
+            stiffness=float(getattr(cfg, "contacts_from_distance", 0.0))))
         #: how the exact step differentiates: ``"jacfwd"`` or ``"reverse"`` (``WallClockConfig.grad_mode``)
         self.grad_mode = getattr(cfg, "grad_mode", "jacfwd")
         self.fns: dict = {}

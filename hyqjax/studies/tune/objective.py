@@ -65,6 +65,7 @@ from hyqjax.core.scan_carry import tie_carry
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import params as rparams
 from hyqjax.sim import contacts
+from hyqjax.sim import contacts_from_distance as cfdm
 from hyqjax.sim import rollout as sim
 from hyqjax.studies.tune import windows as wmod
 from hyqjax.studies.tune.space import ParamSpace
@@ -91,6 +92,9 @@ class ClosedLoopObjective:
     w_progress: float = 2.0
     w_stability: float = 10.0
     prefixes: tuple = ()
+    #: backward-only virtual springs under the feet (:mod:`hyqjax.sim.contacts_from_distance`; default off): the
+    #: window's values are unchanged, its derivative sees the ground before touchdown
+    contacts_from_distance: cfdm.ContactsFromDistance = cfdm.ContactsFromDistance()
 
     def __post_init__(self):
         if not (isinstance(self.ticks, int) and 1 <= self.ticks <= 20000):
@@ -149,7 +153,7 @@ def window_terms(theta, mx, d, cs, tau, base: crawl.CrawlParams, space: ParamSpa
             pk = space.params_at(sp, cs.sequence[cs.seq_index], schedule.features(cs, obs).astype(theta.dtype))
         else:
             pk = p
-        d1, cs1, tau1, info = wmod.tick(mx, ids, pk, d, cs, tau, dt)
+        d1, cs1, tau1, info = wmod.tick(mx, ids, pk, d, cs, tau, dt, cfd=obj.contacts_from_distance)
         dist = contacts.slot_distances(d1)
         clear = jnp.sum(_sp(obj.clearance - dist[strike_slots], obj.clearance_soft))
         q = d1.qpos[qadr]
