@@ -27,7 +27,7 @@ has zero net drift, not only a periodic speed). The family of cycles has free di
 :func:`optimise_cycle` solves it with ``optimistix.LevenbergMarquardt`` (trust-region damping, QR
 solves) from many initial guesses at once (``vmap``). Its Jacobian is forward mode (``jac="fwd"``):
 the residual carries a ``jax.custom_jvp`` whose rule is one ``jax.jacfwd`` (eight tangents through
-``mjx.step``; reverse mode through MJX's solver ``while_loop`` is not available), so each LM step costs
+``mjx.step``; reverse mode needs :func:`hyqjax.sim.reverse_mode.fixed_length_solver`, not used here), so each LM step costs
 one batched forward-mode return map. :func:`gradient_check` compares the forward-mode Jacobian with
 central finite differences. The linearisation and feedback design are in :mod:`hyqjax.bounding.stability`.
 """

@@ -16,8 +16,8 @@ whole command envelope instead:
   its excess over 3 deg, filtered speed errors, apex height, fall margins, falls) of multi-cycle closed-loop
   runs from randomised apex states, with the command ramped in.
 * the gradient (:func:`make_value_and_jac`): ``jax.jacfwd`` of the per-instance costs with respect to
-  ``theta`` (``P`` tangents carried with one primal run through ``mjx.step``; reverse mode cannot pass MJX's
-  solver ``while_loop``), under MJX's JAX implementation; Adam with a batched line search
+  ``theta`` (``P`` tangents carried with one primal run through ``mjx.step``; reverse mode would need MJX's
+  solver as a fixed-length loop, :mod:`hyqjax.sim.reverse_mode`, not used here), under MJX's JAX implementation; Adam with a batched line search
   (:func:`hyqjax.studies.tune.optimize.run_adam`). It is the pathwise gradient of the current contact
   sequence: it does not see how ``theta`` moves a touchdown in time, nor a fall (a step; the margins are its
   smooth surrogate).
