@@ -70,17 +70,20 @@ def test_one_step_value_unchanged_derivative_gains_the_spring():
     change (negative: lower means a stronger push up), and nothing measurable 20 cm up."""
     from mujoco import mjx
 
-    from hyqjax.studies.tune import windows
-
+    m = hmodel.load_model()
+    ci = hmodel.model_ids(m).contacts
+    bodies = cfdm.foot_bodies(m, ci)
+    dt = float(m.opt.timestep)
+    cfd = cfdm.ContactsFromDistance(stiffness=5000.0, reach=0.02, softness=0.005)
+    dc = mujoco.MjData(m)
+    mujoco.mj_forward(m, dc)  # C MuJoCo: how far the straight legs reach below qpos0's trunk (no MJX compile)
+    view = types.SimpleNamespace(geom_xpos=np.asarray(dc.geom_xpos),
+                                 geom_xmat=np.asarray(dc.geom_xmat).reshape(-1, 3, 3))
+    straight = float(-np.min(np.asarray(contacts.foot_clearance(ci, view))))
     with jax.enable_x64(True):
-        su = windows.setup(dtype="float64")
-        m, mx, ci = su.m, su.mx, su.ids.contacts
-        bodies = cfdm.foot_bodies(m, ci)
-        dt = float(m.opt.timestep)
-        cfd = cfdm.ContactsFromDistance(stiffness=5000.0, reach=0.02, softness=0.005)
+        mx = jax.tree_util.tree_map(lambda x: x.astype(jnp.float64) if hasattr(x, "dtype") and
+                                    jnp.issubdtype(x.dtype, jnp.floating) else x, mjx.put_model(m))
         d0 = mjx.make_data(mx)
-        straight = float(-np.min(np.asarray(contacts.foot_clearance(ci, jax.jit(mjx.forward)(
-            mx, d0.replace(qpos=jnp.asarray(m.qpos0)))))))  # how far the straight legs reach below qpos0's trunk
 
         @jax.jit
         def run(q):
