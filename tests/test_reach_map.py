@@ -56,15 +56,22 @@ def test_tuned_variant_is_the_study_selected_parameters():
     assert float(p.shin_remedy) == 1.0
 
 
-def test_tuned_variant_reads_what_the_default_tuner_hands_back(tmp_path):
-    """The equal-wall-clock study's layout (``runs["cma_es/shared"]``): its ``theta`` gives exactly the parameters
-    the study stored next to it; a method the file lacks is one line naming what it has."""
-    src = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", "cma_es_s1",
+def _study_copy(tmp_path, run: str):
+    """A stored 10-minute run's ``results.json`` (``docs/results/tune_repeats_h100_10min/RUN``) reduced to its
+    configuration and runs, written to ``tmp_path``; returns ``(results, path)``."""
+    src = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", run,
                        "results.json")
     with open(src) as f:
         res = json.load(f)
     path = tmp_path / "results.json"
     path.write_text(json.dumps(dict(config=res["config"], runs=res["runs"])))
+    return res, path
+
+
+def test_tuned_variant_reads_what_the_default_tuner_hands_back(tmp_path):
+    """The equal-wall-clock study's layout (``runs["cma_es/shared"]``): its ``theta`` gives exactly the parameters
+    the study stored next to it; a method the file lacks is one line naming what it has."""
+    res, path = _study_copy(tmp_path, "cma_es_s1")
     want = res["runs"]["cma_es/shared"]["params"]
     for method in ("cma_es", "cma_es/shared"):
         p = reach_map.tuned_params(str(path), method)
@@ -81,12 +88,7 @@ def test_stepdown_params_are_the_run_s_theta_over_the_user_s_other_settings(tmp_
     speed and untuned fields on top, the run's remedy setting kept."""
     from hyqjax.studies.tune import tuned
 
-    src = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_repeats_h100_10min", "snes_s1",
-                       "results.json")
-    with open(src) as f:
-        res = json.load(f)
-    path = tmp_path / "results.json"
-    path.write_text(json.dumps(dict(config=res["config"], runs=res["runs"])))
+    res, path = _study_copy(tmp_path, "snes_s1")
     want = res["runs"]["snes/shared"]["params"]
     p = tuned.crawl_params(str(path), None, forward_velocity=0.07, stance_min_force=1.0)
     assert float(p.forward_velocity) == pytest.approx(0.07)

@@ -96,16 +96,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="tangents of the gradient's tuning step: 0 = exact jacfwd (one per parameter); K > 0 = the "
                         "unbiased forward-gradient estimate from K random directions (cheaper, noisier)")
     g.add_argument("--grad-mode", default="jacfwd", choices=["jacfwd", "reverse"],
-                   help="the exact tuning step: jacfwd (forward mode, one tangent per parameter) or reverse (reverse "
-                        "mode through a fixed-length constraint solver and a checkpointed scan; cost independent of "
-                        "the number of parameters)")
+                   help="exact tuning step: jacfwd (a tangent per parameter) or reverse (cost independent of them)")
     g.add_argument("--contacts-from-distance", type=float, default=0.0, metavar="N_PER_M",
-                   help="stiffness of the backward-only virtual springs under the feet in the gradient's windows "
-                        "(their values unchanged, their derivative sees the ground 2 cm before touchdown); 0: off")
+                   help="backward-only springs under the feet in the gradient's windows (2 cm reach); 0: off")
     g.add_argument("--train-spread", default="train", choices=["train", "wide"],
-                   help="ranges of the training draws: train (start 0-10 cm, friction 0.5-1.0, payload 0-10 kg) or "
-                        "wide (the reach map's wide spread: start 0-15 cm, friction 0.4-1.0, payload 0-15 kg); "
-                        "with --train-heights, e.g. 0.24,0.26,0.28,0.30, the reach as the tuning objective")
+                   help="training draws' ranges: train, or wide (the reach map's; with --train-heights 0.24,...,0.30 "
+                        "the reach is the objective)")
     g.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier default run or study; its last iterate of the "
                         "same method and parameterisation is the start")

@@ -144,9 +144,8 @@ def settings_of(config: dict) -> dict:
     """:func:`fingerprint` of a configuration as stored (``StudyConfig.to_dict()``, e.g. in results.json)."""
     s = json.loads(json.dumps(config))
     s.get("adam", {}).pop("checkpoint_every", None)
-    loss = s.get("loss") if isinstance(s.get("loss"), dict) else {}
-    if not (loss.get("contacts_from_distance") or {}).get("stiffness"):  # off: the runs before the option
-        loss.pop("contacts_from_distance", None)
+    if not (s.get("loss", {}).get("contacts_from_distance") or {}).get("stiffness"):  # off: as runs before it
+        s.get("loss", {}).pop("contacts_from_distance", None)
     if s.get("objective") == "kinematic" or s.get("warm_start"):
         s["kinematic"] = dict(scenarios=KINEMATIC_SCENARIOS, objective=dataclasses.asdict(kinematic.Objective()))
     return s
