@@ -54,9 +54,9 @@ class GradientPrograms:
             windows.make_windows(sc, spec, self.su)))
         self.win_start = self.win  # the start point's windows (the diagnostics' SNR reads these)
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks, contacts_from_distance=ContactsFromDistance(
-            stiffness=float(getattr(cfg, "contacts_from_distance", 0.0))))
+            stiffness=float(cfg.contacts_from_distance)))
         #: how the exact step differentiates: ``"jacfwd"`` or ``"reverse"`` (``WallClockConfig.grad_mode``)
-        self.grad_mode = getattr(cfg, "grad_mode", "jacfwd")
+        self.grad_mode = cfg.grad_mode
         self.fns: dict = {}
         self.exact_fns: dict = {}
         self.value_fns: dict = {}
