@@ -32,6 +32,7 @@ from hyqjax.control import trunk as trunk_control
 from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core import spatial
+from hyqjax.crawl import edge
 from hyqjax.crawl import remedy
 from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
@@ -142,10 +143,11 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     # the motion to the stance legs, so the search goes on; without it, an end stop ends the swing (Section IV).
     near = p.joint_margin + 0.01  # the reference is held joint_margin inside the range
     end_stop = jnp.any((q_leg - lo < near) | (hi - q_leg < near)) & ~active
-    depth_limit = search_depth > p.max_search_depth
+    depth_limit = search_depth > edge.max_depth(p, st)
     limit = in_swing & nominal_done & (ext_limit | end_stop | depth_limit)
     limit_kind = jnp.where(ext_limit, LIMIT_EXTENSION, jnp.where(end_stop, LIMIT_END_STOP, LIMIT_DEPTH))
-    limit_kind = jnp.where(limit & ~touchdown, limit_kind, LIMIT_NONE)
+    stop = limit & ~touchdown & ~st.probing  # a probe's end triggers no stance (hyqjax.crawl.edge)
+    limit_kind = jnp.where(stop, limit_kind, LIMIT_NONE)
     swing_end = touchdown | limit
     body_end = (~in_swing) & (t_new >= p.t_body)
 
@@ -157,14 +159,20 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
                                          deep=st.deep.at[leg].set(deep_leg), n_steps=st.n_steps + 1,
                                          n_touchdowns=st.n_touchdowns + touchdown.astype(jnp.int32),
                                          n_limit_stops=st.n_limit_stops + (limit & ~touchdown).astype(jnp.int32))
+    edge_lo, edge_hi, probe_leg = edge.after_swing(p, st, leg, deep_leg, touchdown)
+    st_after_swing = dataclasses.replace(st_after_swing, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg)
+    # A probe's end (touchdown or its depth) starts the leg's full swing from where it is (hyqjax.crawl.edge).
+    st_after_probe = start_swing_phase(p, dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi,
+                                                              probe_leg=probe_leg, probing=False,
+                                                              step_back=edge.step_back(p, touchdown)), obs)
     st_after_swing = start_body_phase(p, st_after_swing, obs)
     st_after_body = start_swing_phase(p, st1, obs)
     pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
-    st_next = pick(swing_end, st_after_swing, pick(body_end, st_after_body, st1))
+    st_next = pick(swing_end, pick(st.probing, st_after_probe, st_after_swing), pick(body_end, st_after_body, st1))
     reflex_failed = (p.use_reflex > 0.5) & rout.failed
     info = CrawlInfo(phase=st.phase, swing_leg=leg, swing_down=swing_down, reflex_active=active, reflex_failed=reflex_failed,
                      mobility=mob, x_plan_b=x_plan, x_cmd_b=x_cmd, q_cmd=q_cmd, qd_cmd=qd_cmd, damping=rout.d_diag,
-                     touchdown=touchdown, limit_stop=limit & ~touchdown, limit_kind=limit_kind,
+                     touchdown=touchdown, limit_stop=stop, limit_kind=limit_kind,
                      search_depth=search_depth, tilt_rp=rp_meas)
     return st_next, tau, info
 

@@ -76,6 +76,13 @@ class CrawlParams:
         phases hold the trunk this much lower (m): workspace for the legs that still have to reach down.
       terrain_adaptation_step: while a step down is under way, the trunk follows this extra fraction of the tilt
         that ``terrain_adaptation`` leaves (``a + s (1 - a)`` of the feet plane's roll/pitch).
+      edge_probe: after a front swing found a step down, the other front leg's next swing is a probing step this
+        long (m) at its lift-off height whose touchdown or miss bounds the edge's position, then a full step
+        (:mod:`hyqjax.crawl.edge`; 0: off).
+      edge_probe_depth: the probe searches at most this far below its lift-off height (m).
+      edge_tilt: with the probe on, the share of the feet plane's roll/pitch a body phase follows while a front
+        hip stays behind the edge's far bound plus ``edge_margin`` (instead of ``terrain_adaptation``).
+      edge_margin: the front hips count as past the edge this far beyond its far bound (m; negative: before it).
       velocity_feedforward: 0..1, gain on the joint velocity references ``qd^d = J^-1 xd`` (0: the PD damps
         toward zero velocity).
       joint_margin: joint references are kept this far inside each joint's range (rad), so that the
@@ -118,6 +125,12 @@ class CrawlParams:
                                                  "counted by the forward search")
     step_down_lowering: jax.Array = param_field(0.0, 0.0, 0.2, "m", "trunk lowered while a step down is under way")
     terrain_adaptation_step: jax.Array = param_field(0.0, 0.0, 1.0, "", "extra tilt followed during a step down")
+    edge_probe: jax.Array = param_field(0.0, 0.0, 0.2, "m", "probing step of the second front leg after a step "
+                                        "down (0: off)")
+    edge_probe_depth: jax.Array = param_field(0.04, 0.0, 0.15, "m", "the probe searches this far below its lift-off")
+    edge_tilt: jax.Array = param_field(0.3, 0.0, 1.0, "", "feet plane share followed while a front hip is behind "
+                                       "the edge (probe on)")
+    edge_margin: jax.Array = param_field(0.0, -0.3, 0.3, "m", "front hips past the edge's far bound by this")
     velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
     joint_speed_limit: jax.Array = param_field(robot.VELOCITY_LIMIT, 1.0, 1000.0, "rad/s",
@@ -141,7 +154,8 @@ class CrawlParams:
              max_tilt=0.35, mu=0.7, k_com=3000.0, d_com=600.0, k_rot=1500.0, d_rot=150.0, mass=robot.TOTAL_MASS,
              search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, search_forward_lift=0.0,
              step_down_lowering=0.0,
-             terrain_adaptation_step=0.0, velocity_feedforward=0.0, joint_margin=0.0,
+             terrain_adaptation_step=0.0, edge_probe=0.0, edge_probe_depth=0.04, edge_tilt=0.3, edge_margin=0.0,
+             velocity_feedforward=0.0, joint_margin=0.0,
              joint_speed_limit=robot.VELOCITY_LIMIT, stance_min_force=0.0, weight_qp=False,
              foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
              gains: impedance.ImpedanceGains | None = None,
@@ -157,7 +171,8 @@ class CrawlParams:
                      search_forward=search_forward, deep_search=deep_search,
                      search_forward_limit=search_forward_limit, search_forward_lift=search_forward_lift,
                      step_down_lowering=step_down_lowering,
-                     terrain_adaptation_step=terrain_adaptation_step,
+                     terrain_adaptation_step=terrain_adaptation_step, edge_probe=edge_probe,
+                     edge_probe_depth=edge_probe_depth, edge_tilt=edge_tilt, edge_margin=edge_margin,
                      velocity_feedforward=velocity_feedforward, joint_margin=joint_margin,
                      joint_speed_limit=joint_speed_limit, stance_min_force=stance_min_force)
         specs = param_ranges(CrawlParams)

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.core import spatial
+from hyqjax.crawl import edge
 from hyqjax.crawl import footholds
 from hyqjax.crawl import remedy
 from hyqjax.crawl.params import COM_OFFSET_B, CrawlParams
@@ -58,6 +59,11 @@ class CrawlState:
     stance: jax.Array  # (4,) 1.0 for stance legs
     loaded: jax.Array  # (4,) bool: the foot has pressed above stance_min_force since its last touchdown
     deep: jax.Array  # (4,) bool: the leg's last swing searched deeper than deep_search (a step down)
+    edge_lo: jax.Array  # bounds on the step-down edge's x in H0 (hyqjax.crawl.edge; +-EDGE_UNKNOWN: none yet)
+    edge_hi: jax.Array
+    probe_leg: jax.Array  # the leg whose next swing probes for the edge (-1: none)
+    probing: jax.Array  # bool: the current swing is the probe
+    step_back: jax.Array  # the next swing's step is this much shorter (m): a probe that missed went this far
     reflex: reflex.ReflexState
     q_cmd: jax.Array  # (12,) last joint reference
     n_steps: jax.Array  # completed swings
@@ -99,6 +105,8 @@ def feet_h(obs: Observation):
 def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
     """Body phase toward the support triangle of the next swing leg, from the actual state."""
     feet, rp = feet_h(obs)
+    edge_lo, edge_hi = edge.carry(st, feet)
+    st = dataclasses.replace(st, edge_lo=edge_lo, edge_hi=edge_hi)
     leg = st.sequence[st.seq_index]
     com_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
     # While a step down is under way (a leg's last swing found one) the options lower the trunk and let it follow
@@ -107,6 +115,7 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlS
     height = p.body_height - p.step_down_lowering * stepping
     adapt = p.terrain_adaptation + p.terrain_adaptation_step * (1.0 - p.terrain_adaptation) * stepping
     delta = footholds.body_target(feet, leg, com_h, p.stability_margin, height)
+    adapt = edge.tilt_share(p, st, adapt, rp, delta)  # adapt itself at edge_probe = 0
     rp_target = jnp.clip(adapt * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
@@ -115,6 +124,7 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlS
 def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
     """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7)."""
     feet, rp = feet_h(obs)
+    edge_lo, edge_hi = edge.carry(st, feet)
     leg = st.sequence[st.seq_index]
     n = reflex.terrain_normal(feet[jnp.asarray(robot.STANCE_LEGS)[leg]])
     t_cycle = 4.0 * (p.t_body + p.t_swing)
@@ -122,19 +132,22 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> Crawl
     nominal_h = (spatial.roll_pitch_to_rot(rp[0], rp[1])
                  @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg])
     lift = feet[leg]
-    target = footholds.swing_foothold(lift, nominal_h, step, p.heading_velocity * t_cycle, n)
+    target = footholds.swing_foothold(lift, nominal_h, step - st.step_back, p.heading_velocity * t_cycle, n)
     lift_offset = remedy.lift_drop_offset(p, lift, target)
     target = target + lift_offset * remedy.search_forward_unit(p, leg, n, target - lift)
     target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
     search_dir = remedy.search_direction(p, leg, n, target - lift)
     search_fwd = remedy.search_forward_unit(p, leg, n, target - lift)
+    probing, target, search_dir, search_fwd = edge.probe_swing(p, st, leg, lift, target, search_dir, search_fwd)
+    lift_offset = jnp.where(probing, 0.0, lift_offset)
     stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
     return dataclasses.replace(st, loaded=st.loaded.at[leg].set(False), phase=jnp.asarray(PHASE_SWING), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
                                normal_h0=n, search_dir=search_dir, search_fwd=search_fwd,
                                search_forward_left=p.search_forward_limit - lift_offset,
                                search_depth=jnp.zeros_like(st.search_depth),
-                               stance=stance)
+                               stance=stance, edge_lo=edge_lo, edge_hi=edge_hi, probing=probing,
+                               step_back=jnp.zeros_like(st.step_back))
 
 
 def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
@@ -148,7 +161,9 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
         normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype),
         search_forward_left=jnp.asarray(p.search_forward_limit, dtype), search_depth=z, stance=jnp.ones(4, dtype),
-        loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool),
+        loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool), edge_lo=jnp.asarray(-edge.EDGE_UNKNOWN, dtype),
+        edge_hi=jnp.asarray(edge.EDGE_UNKNOWN, dtype), probe_leg=jnp.asarray(-1), probing=jnp.asarray(False),
+        step_back=z,
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )
