@@ -4,7 +4,9 @@ the reach map (``experiments/reach_map.py``) and the tuning study's hand-set com
 
 Every preset is a dict of ``CrawlParams.make`` overrides and a one-line description; none is tuned on data: the
 shin remedy (``crawl.remedy``) and its trunk at 80% of the feet plane (``terrain_adaptation``) come from the
-narrow-spread remedy study (docs/stepdown.md), the other settings are its options.
+narrow-spread remedy study (docs/stepdown.md), the other settings are its options (``remedy_probe``: the probing
+step of ``crawl.edge``, its tilt and margin picked among eight settings on 96 CPU runs of the reach map's seed 9494;
+docs/stepdown.md, "Finding the edge").
 """
 from __future__ import annotations
 
@@ -23,6 +25,8 @@ HAND_SET = {
                  "shin remedy, trunk at 30% of the feet plane, 80% during a step down"),
     "remedy_all": (dict(REMEDY, search_forward_limit=0.10, step_down_lowering=0.05),
                    "remedy, saturating forward search and lower trunk during a step down"),
+    "remedy_probe": (dict(REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1),
+                     "remedy, a 10 cm probing step for the edge, trunk at 30% until the front hips pass it"),
 }
 
 
