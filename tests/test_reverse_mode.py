@@ -1,6 +1,6 @@
-"""Reverse mode through MJX (:mod:`hyqjax.sim.reverse_mode`) and the reverse-mode tuning step
-(:func:`hyqjax.studies.tune.objective.make_value_and_grad_reverse`): the fixed-length solver loop keeps the primal and
-is undone on exit; the reverse-mode window rows equal ``jacfwd``'s, with and without the checkpointed scan."""
+"""Reverse mode through MJX (:mod:`hyqjax.sim.reverse_mode`): the fixed-length solver loop keeps the primal, has a
+reverse derivative and is undone on exit. The reverse-mode tuning step's rows against ``jacfwd``'s on step-down
+windows are tested with the tuner's float64 windows (``tests/test_tune.py``)."""
 from __future__ import annotations
 
 import jax
@@ -80,67 +80,3 @@ def test_fixed_length_solver_keeps_the_primal_and_restores_mjx():
         with reverse_mode.fixed_length_solver():
             raise RuntimeError("inside")
     assert (solver.jax, solver.solve) == names and not reverse_mode.is_active()
-
-
-# ------------------------------------------------------------------ the tuning step on step-down windows (slow)
-
-#: The window programs below are compiled at XLA's backend optimisation level 0: the same traced programs (what is
-#: compared), about 40 % less compile time on the CPU.
-FAST_COMPILE = {"xla_backend_optimization_level": 0}
-
-
-def _call(fn, *args):
-    """``fn(*args)`` of a jitted ``fn``, compiled with :data:`FAST_COMPILE`; numpy leaves."""
-    out = fn.lower(*args).compile(compiler_options=FAST_COMPILE)(*args)
-    return jax.tree_util.tree_map(np.asarray, out)
-
-
-@pytest.fixture(scope="module")
-def windows64():
-    """Float64: both front legs' windows of one 24 cm step-down with the shin-strike remedy, started one tick before
-    the leg's body phase (the crawl parameters act at once), 50 ticks (the front feet in contact), a prefix of 25
-    ticks, and the ``jacfwd`` step's result (the reference) for 7 parameters."""
-    from hyqjax.crawl import controller as crawl
-    from hyqjax.studies.tune import evaluate, objective, windows
-    from hyqjax.studies.tune import space as spmod
-
-    with jax.enable_x64(True):
-        su = windows.setup(dtype="float64")
-        start = crawl.CrawlParams.make(shin_remedy=True)
-        sc, _ = evaluate.scenarios([0.24], 1, 3, params=start)
-        win = windows.make_windows(sc, windows.WindowSpec(per_scenario=2, lead=4.0), su)
-        sp = spmod.ParamSpace.make(("damping", "body_height", "step_length", "step_height"))
-        base = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(
-            jnp.asarray(x).dtype, jnp.floating) else x, start)
-        obj = objective.ClosedLoopObjective(ticks=50, prefixes=(25,))
-        th = jnp.asarray(sp.theta_of(base))
-        ref = _call(objective.make_value_and_jac(win, base, sp, obj, su), th, win)
-    return win, sp, base, obj, su, th, ref
-
-
-def _compare(res, ref, prefixes: bool):
-    assert res["ok"].all() and ref["ok"].all()
-    np.testing.assert_allclose(res["per_window_loss"], ref["per_window_loss"], rtol=1e-12)
-    g, g0 = res["per_window_grad"], ref["per_window_grad"]
-    assert np.all(np.abs(g0).max(1) > 1e-6)  # every window's row is not zero (the parameters act)
-    np.testing.assert_allclose(g, g0, rtol=1e-6, atol=1e-9 * np.abs(g0).max())
-    np.testing.assert_allclose(res["grad"], ref["grad"], rtol=1e-6, atol=1e-9 * np.abs(g0).max())
-    np.testing.assert_allclose(res["loss"], ref["loss"], rtol=1e-12)
-    for k, v in ref["terms"].items():
-        np.testing.assert_allclose(res["terms"][k], v, rtol=1e-10, atol=1e-14)
-    if prefixes:  # every prefix's rows, the first (25 ticks) included
-        np.testing.assert_allclose(res["per_window_prefix_grad"], ref["per_window_prefix_grad"], rtol=1e-6,
-                                   atol=1e-9 * np.abs(ref["per_window_prefix_grad"]).max())
-        assert not np.allclose(ref["per_window_prefix_grad"][:, 0], ref["per_window_prefix_grad"][:, 1])
-
-
-@pytest.mark.slow
-def test_reverse_mode_window_rows_equal_jacfwd_with_checkpoint(windows64):
-    """The checkpointed reverse-mode step (two prefix lengths: one backward pass each) gives ``jacfwd``'s
-    per-window rows of both prefixes, the same losses and terms."""
-    from hyqjax.studies.tune import objective
-
-    win, sp, base, obj, su, th, ref = windows64
-    with jax.enable_x64(True):
-        res = _call(objective.make_value_and_grad_reverse(base, sp, obj, su, checkpoint=True), th, win)
-    _compare(res, ref, prefixes=True)

@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from mujoco import mjx
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import step as hreflex
@@ -166,15 +167,22 @@ def test_cli_bad_input_is_one_line():
 
 
 @pytest.fixture(scope="module")
-def cl64():
+def su64():
+    """The step-down's float64 window setup (model, ids, contact slots), shared by this module's window tests."""
+    with jax.enable_x64(True):
+        return windows.setup(dtype="float64")
+
+
+@pytest.fixture(scope="module")
+def cl64(su64):
     """Float64 windows of one 24 cm step-down with the shin-strike remedy (what ``hyqjax tune`` tunes), both front
     legs' snapshots, and the jitted per-robot jacfwd objective (``objective.make_per_robot_value_and_jac``) of two
     robots on copies of the window that runs from just before the first front leg's swing is planned into its
     haptic search over the edge (the tuned search direction acts there). Two robots in one call give a central
     difference in one evaluation. Built under x64 and returned outside it: the tests turn x64 on where they use
     them (yielded inside ``enable_x64``, the fixture left x64 on for every later test of this module)."""
+    su = su64
     with jax.enable_x64(True):
-        su = windows.setup(dtype="float64")
         from hyqjax.studies.tune import evaluate
 
         start = crawl.CrawlParams.make(shin_remedy=True)
@@ -191,24 +199,34 @@ def cl64():
 
 
 @pytest.mark.slow
-def test_windows_follow_the_remedy_leg_order(cl64):
+def test_windows_follow_the_remedy_leg_order(cl64, su64):
     """With the remedy the other front leg swings right after the first one stepped down: both front legs get
     a window (RF first in this scenario's rh-rf-lh-lf cycle, then LF brought forward)."""
     both = cl64[-1]
+    su = su64
+    # The terrain contact slots (read from the collision pass alone): every slot pairs its own geom with the floor or
+    # the platform, and every foot, shin and the trunk has its slots.
+    terrain = {su.ids.floor_geom, su.ids.platform_geom}
+    with jax.enable_x64(True):
+        geom = np.asarray(jax.jit(mjx.collision)(su.mx, mjx.make_data(su.mx))._impl.contact.geom)
+    for rows, own in [(su.slots.trunk, [su.ids.trunk_geom]), (su.slots.shin, su.ids.shin_geoms),
+                      *((f, [g]) for f, g in zip(su.slots.feet, su.ids.foot_geoms))]:
+        assert len(rows) > 0
+        assert all(set(geom[r]) & terrain and set(geom[r]) & set(own) for r in rows)
     assert np.asarray(both.valid).all()
     assert np.asarray(both.leg).tolist() == [1, 0]
     assert int(both.tick[1]) > int(both.tick[0])
 
 
 @pytest.mark.slow
-def test_windows_retaken_under_a_parameterised_crawl(cl64):
+def test_windows_retaken_under_a_parameterised_crawl(cl64, su64):
     """Windows re-taken at an iterate (``make_windows(..., param=, theta=)``, the hybrid's ``--retake-windows``)
     are the windows of the plain crawl run with that iterate's parameters, and differ from the start point's."""
     from hyqjax.studies.tune import evaluate, schedule
 
     _, sp, _, _, base, _, both = cl64
+    su = su64
     with jax.enable_x64(True):
-        su = windows.setup(dtype="float64")
         th = np.asarray(sp.theta_of(base))
         th[sp.names.index("body_height")] -= 1.0  # a lower trunk: another gait, other snapshot states
         spec = windows.WindowSpec(per_scenario=2, lead=6.0, offset=190)
@@ -290,16 +308,51 @@ def test_closed_loop_gradient_steps_lower_objective(cl64):
         assert len(losses) >= 3 and losses[-1] < losses[0]
 
 
+#: The reverse-mode comparison's programs are compiled at XLA's backend optimisation level 0: the same traced
+#: programs (what is compared), about 40 % less compile time on the CPU.
+FAST_COMPILE = {"xla_backend_optimization_level": 0}
+
+
 @pytest.mark.slow
-def test_scheduled_parameterisation_gradient_matches_central_differences(cl64):
+def test_reverse_mode_window_rows_equal_jacfwd_with_checkpoint(cl64, su64):
+    """The reverse-mode tuning step (:func:`objective.make_value_and_grad_reverse`: MJX's solver as a fixed-length
+    loop, the checkpointed tick scan, two prefix lengths with one backward pass each) gives ``jacfwd``'s
+    per-window rows of both front legs' float64 windows and both prefixes, the same losses and terms."""
+    _, sp, _, _, base, _, both = cl64
+
+    def call(fn, *args):
+        out = fn.lower(*args).compile(compiler_options=FAST_COMPILE)(*args)
+        return jax.tree_util.tree_map(np.asarray, out)
+
+    with jax.enable_x64(True):
+        obj = objective.ClosedLoopObjective(ticks=260, prefixes=(130,))
+        th = jnp.asarray(sp.theta_of(base))
+        ref = call(objective.make_value_and_jac(both, base, sp, obj, su64), th, both)
+        res = call(objective.make_value_and_grad_reverse(base, sp, obj, su64, checkpoint=True), th, both)
+    assert res["ok"].all() and ref["ok"].all()
+    np.testing.assert_allclose(res["per_window_loss"], ref["per_window_loss"], rtol=1e-12)
+    g, g0 = res["per_window_grad"], ref["per_window_grad"]
+    assert np.all(np.abs(g0).max(1) > 1e-6)  # every window's row is not zero (the parameters act)
+    np.testing.assert_allclose(g, g0, rtol=1e-6, atol=1e-9 * np.abs(g0).max())
+    np.testing.assert_allclose(res["grad"], ref["grad"], rtol=1e-6, atol=1e-9 * np.abs(g0).max())
+    np.testing.assert_allclose(res["loss"], ref["loss"], rtol=1e-12)
+    for k, v in ref["terms"].items():
+        np.testing.assert_allclose(res["terms"][k], v, rtol=1e-10, atol=1e-14)
+    pg, pg0 = res["per_window_prefix_grad"], ref["per_window_prefix_grad"]  # every prefix's rows, 130 ticks included
+    np.testing.assert_allclose(pg, pg0, rtol=1e-6, atol=1e-9 * np.abs(pg0).max())
+    assert not np.allclose(pg0[:, 0], pg0[:, 1])
+
+
+@pytest.mark.slow
+def test_scheduled_parameterisation_gradient_matches_central_differences(cl64, su64):
     """The window objective through the per-leg, feature-conditioned crawl (parameters selected per tick):
     jacfwd against central differences on the same float64 window, along random directions and along the
     swinging front leg's own K_base row; the hind legs' rows do not act in this window (zero gradient)."""
     from hyqjax.studies.tune import schedule
 
     win, _, _, _, base, obj, _ = cl64
+    su = su64
     with jax.enable_x64(True):
-        su = windows.setup(dtype="float64")
         # K_base per swing leg, conditioned on the 3 features: 7 tangents (both coordinate kinds of a scheduled
         # parameterisation: a per-leg row and a conditioning column).
         sp = spmod.ParamSpace.make(("k_base",))
