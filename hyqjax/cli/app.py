@@ -85,9 +85,9 @@ def _user_errors() -> tuple:
     errs = [UsageError, Busy, SettingsMismatch]
     if "hyqjax.studies.sweep.axes" in sys.modules:
         errs.append(sys.modules["hyqjax.studies.sweep.axes"].SpecError)
-    if "hyqjax.studies.sweep.store" in sys.modules:
-        store = sys.modules["hyqjax.studies.sweep.store"]
-        errs += [store.StoreMismatch, store.StoreCorrupt]
+    if "hyqjax.studies.sweep.manifest" in sys.modules:
+        manifest = sys.modules["hyqjax.studies.sweep.manifest"]
+        errs += [manifest.StoreMismatch, manifest.StoreCorrupt]
     return tuple(errs)
 
 

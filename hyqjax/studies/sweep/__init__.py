@@ -7,7 +7,10 @@ The package, one concept per module:
 * :mod:`~hyqjax.studies.sweep.scenario`: input rows as step-down scenarios, sensor noise and latency;
 * :mod:`~hyqjax.studies.sweep.runner`: the compiled chunk runner and :func:`run_sweep` (local executor);
 * :mod:`~hyqjax.studies.sweep.cluster`: the Ray executor (``hyqjax sweep --executor ray``);
-* :mod:`~hyqjax.studies.sweep.store`: the locked, verified Parquet store and its manifest;
+* :mod:`~hyqjax.studies.sweep.store`: the locked, verified Parquet store;
+  :mod:`~hyqjax.studies.sweep.manifest`: its manifest (schema, records, checks) and the store's errors;
+  :mod:`~hyqjax.studies.sweep.recovery`: what a writer repairs on opening it (temporaries, a lost manifest,
+  unrecorded and damaged chunk files);
   :mod:`~hyqjax.studies.sweep.chunkfile`: a chunk file and its content checksum;
   :mod:`~hyqjax.studies.sweep.verify`: a reader's check of a whole sweep directory (``hyqjax verify``);
   :mod:`~hyqjax.studies.sweep.legacy`: stores of the first format (read as they are);
@@ -30,14 +33,15 @@ _PUBLIC = {
     "sensed_controller": "scenario",
     "AXES": "spec", "Axis": "spec", "SpecError": "spec", "SweepSpec": "spec", "load_spec": "spec",
     "load_spec_dict": "spec",
-    "SCHEMA": "store", "StoreBusy": "store", "StoreCorrupt": "store", "StoreMismatch": "store", "SweepStore": "store",
+    "SCHEMA": "manifest", "StoreCorrupt": "manifest", "StoreMismatch": "manifest",
+    "StoreBusy": "store", "SweepStore": "store",
     "default_chunk_size": "store", "open_store": "store",
     "CHECKSUM": "chunkfile", "ChunkDamaged": "chunkfile", "parquet_to_rows": "chunkfile", "rows_to_parquet": "chunkfile",
     "StoreCheck": "verify", "verify_store": "verify",
     "format_summary": "summary", "logistic_h95": "summary", "summarize_sweep": "summary", "write_outputs": "summary",
 }
-_MODULES = ("axes", "chunkfile", "cluster", "convert", "legacy", "outcomes", "plots", "runner", "scenario", "spec",
-            "store", "summary", "verify")
+_MODULES = ("axes", "chunkfile", "cluster", "convert", "legacy", "manifest", "outcomes", "plots", "recovery", "runner",
+            "scenario", "spec", "store", "summary", "verify")
 __all__ = sorted(_PUBLIC)
 
 

@@ -10,7 +10,8 @@ from hyqjax.io.atomic import atomic_write, write_json
 from hyqjax.io.lock import DirLock
 from hyqjax.studies.sweep.chunkfile import rows_to_parquet
 from hyqjax.studies.sweep.legacy import OLD_SCHEMAS
-from hyqjax.studies.sweep.store import SCHEMA, StoreCorrupt, StoreMismatch, SweepStore, open_store
+from hyqjax.studies.sweep.manifest import SCHEMA, StoreCorrupt, StoreMismatch
+from hyqjax.studies.sweep.store import SweepStore, open_store
 
 
 def convert_v1(out_dir: str):

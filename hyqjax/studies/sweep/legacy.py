@@ -11,7 +11,7 @@ removed) so that pandas, polars or DuckDB open it as one table; the converted st
 and stays read-only.
 
 This module knows the old format only and sits below :mod:`hyqjax.studies.sweep.store`, which imports it (the
-current schema, :data:`hyqjax.studies.sweep.store.SCHEMA`, is the store's).
+current schema, :data:`hyqjax.studies.sweep.manifest.SCHEMA`, is the store's).
 """
 from __future__ import annotations
 

@@ -36,47 +36,28 @@ Guarantees:
   per program, chunk size) is recorded, and a resume with another one is refused (:class:`StoreMismatch`).
 
 Stores of schema ``hyqjax.sweep/1`` are read as they are, never resumed (:mod:`hyqjax.studies.sweep.legacy`).
+The manifest's schema, records and checks are :mod:`hyqjax.studies.sweep.manifest`; what a writer repairs on
+opening the store (temporaries, a missing or corrupt manifest, unrecorded and damaged chunk files) is
+:mod:`hyqjax.studies.sweep.recovery`.
 """
 from __future__ import annotations
 
-import datetime
-import hashlib
-import json
 import os
 
 import numpy as np
 
-from hyqjax.io.atomic import atomic_write, clean_temporaries, write_json
+from hyqjax.io.atomic import atomic_write, write_json
 from hyqjax.io.lock import Busy, DirLock
 from hyqjax.studies.sweep import legacy
-from hyqjax.studies.sweep.chunkfile import (CHECKSUM, META_KEY, ChunkDamaged, chunk_size_of, parquet_to_rows,
-                                            rows_to_parquet)
+from hyqjax.studies.sweep.chunkfile import CHECKSUM, ChunkDamaged, parquet_to_rows, rows_to_parquet
 from hyqjax.studies.sweep.legacy import OLD_SCHEMAS
+from hyqjax.studies.sweep.manifest import (MANIFEST, SCHEMA, StoreCorrupt, StoreMismatch, check_manifest,
+                                           chunk_entry, new_manifest, read_manifest, sha256_bytes)
+from hyqjax.studies.sweep.recovery import repair
 from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
-#: The schema this hyqjax writes (Parquet chunks with content checksums); older ones: :data:`OLD_SCHEMAS`.
-SCHEMA = "hyqjax.sweep/2"
-MANIFEST = "manifest.json"
-DAMAGED_DIR = "damaged"
-
-
-class StoreMismatch(RuntimeError):
-    """The output directory holds a sweep of a different specification, schema, layout or version."""
-
-
-class StoreCorrupt(RuntimeError):
-    """A store file cannot be read (the message names it and what to do)."""
-
-
+#: A writer that finds the lock held (:class:`hyqjax.io.lock.Busy`).
 StoreBusy = Busy
-
-
-def _now() -> str:
-    return datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds")
-
-
-def sha256_bytes(b: bytes) -> str:
-    return hashlib.sha256(b).hexdigest()
 
 
 def default_chunk_size(devices=None) -> int:
@@ -116,7 +97,6 @@ class SweepStore:
         self._lock: DirLock | None = None
         self._writer = writer
         self._verified: dict[int, dict[str, np.ndarray]] = {}
-        self._scan: dict | None = None
         self._requested = dict(chunk_size=chunk_size, layout=layout, default_chunk_size=default_chunk_size)
         if chunk_size is not None and chunk_size < 1:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
@@ -161,53 +141,14 @@ class SweepStore:
 
     # ---------------------------------------------------------------- manifest
     def _new_manifest(self, chunk_size, layout) -> dict:
-        cs = int(chunk_size or self._requested["default_chunk_size"] or default_chunk_size())
-        return dict(schema=SCHEMA, spec_hash=self.spec.spec_hash, spec=self.spec.to_dict(),
-                    n_instances=self.spec.n_instances, chunk_size=cs, n_chunks=-(-self.spec.n_instances // cs),
-                    layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=_now())
+        cs = chunk_size or self._requested["default_chunk_size"] or default_chunk_size()
+        return new_manifest(self.spec, cs, layout)
 
     def _read_manifest(self) -> dict | None:
-        try:
-            with open(self.path, "rb") as f:
-                man = json.loads(f.read().decode("utf-8"))
-            if not isinstance(man, dict) or not isinstance(man.get("chunks"), dict):
-                raise ValueError("not a sweep manifest (no 'chunks' table)")
-            return man
-        except FileNotFoundError:
-            return None
-        except (ValueError, UnicodeDecodeError) as e:
-            raise StoreCorrupt(f"{self.path} is corrupt ({str(e)[:120]}); run the same `hyqjax sweep` command "
-                               f"again to rebuild it from the chunk files, or remove {self.dir}") from None
+        return read_manifest(self.dir)
 
     def _check(self, man: dict, chunk_size, layout) -> None:
-        if man.get("schema") in OLD_SCHEMAS:  # same spec, read as is, never resumed
-            why = legacy.v1_refusal(self.dir, man, self.spec.spec_hash, self._writer)
-            if why:
-                raise StoreMismatch(why)
-            return
-        if man.get("schema") != SCHEMA:
-            raise StoreMismatch(f"{self.path} has schema {man.get('schema')!r}, expected {SCHEMA!r}")
-        if man.get("spec_hash") != self.spec.spec_hash:
-            raise StoreMismatch(
-                f"{self.dir} holds a different sweep (spec hash {str(man.get('spec_hash', '?'))[:12]}, this spec "
-                f"{self.spec.spec_hash[:12]}); use another --out directory or remove {self.dir}")
-        if self._writer and man.get("converted_from"):
-            raise StoreMismatch(legacy.read_only_message(self.dir, man["converted_from"], converted=True))
-        if chunk_size is not None and chunk_size != man["chunk_size"]:
-            print(f"note: resuming with the stored chunk size {man['chunk_size']} (ignoring {chunk_size})")
-        stored = man.get("layout")
-        if layout is not None and stored is not None:
-            want = dict(layout, chunk_size=man["chunk_size"])
-            stored = dict(stored, impl=stored.get("impl", "jax"))  # stores written before impl was recorded
-            want.setdefault("impl", "jax")
-            keys = ("platform", "device_kind", "devices", "chunk_size", "impl")
-            if any(stored.get(k) != want.get(k) for k in keys):
-                fmt = lambda lo: (f"{lo.get('devices')} x {lo.get('device_kind')} ({lo.get('platform')}), "  # noqa: E731
-                                  f"chunks of {lo.get('chunk_size')}, MJX impl {lo.get('impl')}")
-                raise StoreMismatch(
-                    f"{self.dir} was computed on {fmt(stored)}; this run has {fmt(want)}. An instance's result "
-                    f"depends on the batch each device compiles for, so a store never mixes layouts: resume "
-                    f"with the same devices (e.g. CUDA_VISIBLE_DEVICES / --executor), or use another --out")
+        check_manifest(man, self.dir, self.spec.spec_hash, self._writer, chunk_size, layout)
 
     def check_resumable(self) -> None:
         """Raise :class:`StoreMismatch` if a writer would be refused here (an old or a converted store)."""
@@ -255,20 +196,6 @@ class SweepStore:
         if idx is None or not np.array_equal(idx, np.arange(want["start"], want["stop"])):
             return f"its index column is not the row range [{want['start']}, {want['stop']})"
         return None
-
-    def _read_file(self, path: str) -> tuple[bytes | None, dict | None, dict | None, str | None]:
-        """``(data, rows, meta, None)`` of the chunk file ``path`` if it reads and its content checksum matches (or
-        it has none), else ``(data or None, None, None, reason)``."""
-        try:
-            with open(path, "rb") as f:
-                data = f.read()
-        except OSError:
-            return None, None, None, f"{path} is missing"
-        try:
-            rows, meta = parquet_to_rows(data)
-        except ChunkDamaged as e:
-            return data, None, None, f"{path}: {e}"
-        return data, rows, meta, None
 
     def _verify_chunk(self, c: int, entry: dict) -> tuple[dict | None, dict | None, str | None]:
         """``(rows, meta, None)`` of recorded chunk ``c`` if its file matches its manifest entry (size, SHA-256),
@@ -330,122 +257,12 @@ class SweepStore:
 
     # ---------------------------------------------------------------- writing (under the lock)
     def _refresh(self) -> None:
-        """Under the lock: remove dead writers' temporaries, read (or rebuild a missing or corrupt) manifest, check
-        it, adopt written-but-unrecorded chunks, re-verify, set damaged chunk files aside, write the manifest."""
-        for d in (self.dir, self.chunks_dir):
-            for p in clean_temporaries(d, all_writers=True):
-                print(f"note: removed {p}, the temporary file of a writer that stopped")
-        self._scan = None
-        try:
-            man, state = self._read_manifest(), None
-        except StoreCorrupt:
-            man, state = None, "corrupt"
-        if man is None:
-            state = state or ("missing" if self._scan_files() else None)
-            man = self._rebuilt_manifest()
-        self._check(man, self._requested["chunk_size"], self._requested["layout"])
-        if state == "corrupt":
-            bad = f"{self.path}.corrupt-{datetime.datetime.now().strftime('%Y%m%dT%H%M%S')}"
-            os.replace(self.path, bad)
-            print(f"note: {self.path} was corrupt (kept as {bad}): rebuilding it from the chunk files whose "
-                  f"content checksums verify")
-        elif state == "missing":
-            print(f"note: {self.path} was missing: rebuilding it from the chunk files whose content checksums verify")
-        if man.get("layout") is None and self._requested["layout"] is not None:
-            man["layout"] = dict(self._requested["layout"], chunk_size=man["chunk_size"])
-        self.manifest = man
-        os.makedirs(self.chunks_dir, exist_ok=True)
-        self._adopt_unlisted(rebuilding=state is not None)
-        self._scan = None
-        self.verify()
-        for c, why in sorted(self.problems.items()):
-            moved = self._set_aside(self.chunk_file(c)) if 0 <= c < self.n_chunks else ""
-            print(f"note: chunk {c} failed verification ({why}): {moved}recomputed")
-            self.manifest["chunks"].pop(str(c), None)
-        write_json(self.path, self.manifest)
-
-    def _scan_files(self) -> dict[int, tuple]:
-        """``{chunk: (path, data, rows, meta, reason)}`` of the files ``chunks/NNNNN.parquet`` (read once while a
-        writer opens the store; ``reason`` None when the file reads and its content checksum matches)."""
-        if self._scan is None:
-            self._scan = {}
-            names = os.listdir(self.chunks_dir) if os.path.isdir(self.chunks_dir) else []
-            for name in sorted(names):
-                if name.endswith(".parquet") and name[:-8].isdigit():
-                    path = os.path.join(self.chunks_dir, name)
-                    self._scan[int(name[:-8])] = (path, *self._read_file(path))
-        return self._scan
-
-    def _rebuilt_manifest(self) -> dict:
-        """A manifest for a directory without a readable one, from the metadata of its chunk files whose content
-        checksums verify: refused if they are another sweep's (or any file without a checksum is: an earlier
-        hyqjax's chunk of another sweep is not overwritten either); their chunk size and device layout kept, so
-        the checks still apply. Damaged files tell nothing here."""
-        scan = self._scan_files()
-        readable = {c: meta for c, (_, _, _, meta, why) in scan.items() if why is None}
-        verified = {c: m for c, m in readable.items() if CHECKSUM in m}
-        # an earlier hyqjax's chunk (no checksum) counts when it names a sweep; a file without metadata tells nothing
-        named = [m for m in readable.values() if CHECKSUM in m or isinstance(m.get("spec_hash"), str)]
-        foreign = sorted({str(m.get("spec_hash")) for m in named} - {self.spec.spec_hash})
-        if foreign:
-            raise StoreMismatch(f"{self.dir} has no readable {MANIFEST} and its chunk files hold a different sweep "
-                                f"(spec hash {foreign[0][:12]}); use another --out directory or remove {self.dir}")
-        cs = chunk_size_of(verified, self.spec.n_instances) or self._requested["chunk_size"]
-        layout = next((m["layout"] for m in verified.values() if isinstance(m.get("layout"), dict)), None)
-        return self._new_manifest(cs, layout or self._requested["layout"])
-
-    def _set_aside(self, path: str) -> str:
-        """Move a damaged chunk file out of ``chunks/`` into ``DIR/damaged/`` (so that the chunk table read with
-        pandas, polars or DuckDB holds no damaged rows); returns the words for the note."""
-        if not os.path.isfile(path):
-            return ""
-        d = os.path.join(self.dir, DAMAGED_DIR)
-        os.makedirs(d, exist_ok=True)
-        dst = os.path.join(d, f"{os.path.basename(path)}.{datetime.datetime.now().strftime('%Y%m%dT%H%M%S%f')}")
-        os.replace(path, dst)
-        return f"moved to {dst}, "
-
-    def _adopt_unlisted(self, rebuilding: bool) -> None:
-        """Record chunk files not in the manifest whose content checksum, metadata and row range verify: after a
-        writer was killed between the chunk's and the manifest's rename, or (``rebuilding``) when the manifest
-        was missing or corrupt. A file that does not verify, or has no content checksum (an earlier hyqjax's,
-        whose contents nothing else vouches for here), is named, set aside and recomputed: never adopted."""
-        kept = []
-        for c, (path, data, rows, meta, why) in sorted(self._scan_files().items()):
-            if str(c) in self.manifest["chunks"]:
-                continue
-            if not 0 <= c < self.n_chunks:
-                why = f"{path}: chunk {c} is outside the sweep's {self.n_chunks} chunks of {self.chunk_size}"
-            elif why is None and CHECKSUM not in meta:
-                why = (f"{path} has no content checksum (written by an earlier hyqjax) and is not in the manifest, "
-                       f"so its contents cannot be verified")
-            elif why is None:
-                why = self._check_rows(c, rows, meta) or self._check_columns(rows)
-                why = why and f"{path}: {why}"
-            if why:
-                print(f"note: {why}: not adopted, {self._set_aside(path)}"
-                      + ("the chunk is recomputed" if 0 <= c < self.n_chunks else "not part of the store"))
-                continue
-            self.manifest["chunks"][str(c)] = self._entry(c, data, wall_s=meta.get("wall_s"), adopted=True)
-            self.manifest.setdefault("columns", sorted(rows))
-            kept.append(c)
-            if not rebuilding:
-                print(f"note: {path} was written but not recorded in the manifest (its writer stopped in between): "
-                      f"content checksum, metadata and row range verified, kept")
-        if rebuilding:
-            print(f"note: {self.path} rebuilt with {len(kept)} chunk file(s) whose content checksum, metadata and "
-                  f"row range verify")
+        """Under the lock: repair what a killed writer left (:func:`hyqjax.studies.sweep.recovery.repair`)."""
+        repair(self)
 
     def _entry(self, c: int, data: bytes, wall_s=None, worker=None, adopted=False) -> dict:
-        start, stop = self.chunk_range(c)
-        e = dict(file=os.path.relpath(self.chunk_file(c), self.dir), start=start, stop=stop, rows=stop - start,
-                 bytes=len(data), sha256=sha256_bytes(data), wall_s=None if wall_s is None else round(wall_s, 3),
-                 finished=_now())
-        if worker:
-            e["worker"] = worker
-        if adopted:
-            e["adopted"] = True
-        return e
+        return chunk_entry(os.path.relpath(self.chunk_file(c), self.dir), *self.chunk_range(c), data, wall_s=wall_s,
+                           worker=worker, adopted=adopted)
 
     def write_chunk(self, c: int, rows: dict[str, np.ndarray], wall_s: float, worker: str | None = None) -> bool:
         """Record chunk ``c`` (its rows must be exactly the chunk's row range). Needs the lock. Returns False,
@@ -494,6 +311,5 @@ def open_store(out_dir: str) -> SweepStore:
     return SweepStore(out_dir, None)
 
 
-__all__ = ["CHECKSUM", "ChunkDamaged", "DAMAGED_DIR", "MANIFEST", "META_KEY", "SCHEMA", "StoreBusy", "StoreCorrupt",
-           "StoreMismatch", "SweepStore", "default_chunk_size", "open_store", "parquet_to_rows", "rows_to_parquet"]
+__all__ = ["StoreBusy", "SweepStore", "default_chunk_size", "open_store"]
 

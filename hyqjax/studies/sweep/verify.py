@@ -83,9 +83,10 @@ def is_sweep_dir(path: str) -> bool:
 
 
 def verify_store(out_dir: str) -> StoreCheck:
-    """Check the sweep in ``out_dir`` (module docstring); raises :class:`~hyqjax.studies.sweep.store.StoreCorrupt`
-    if it is no sweep directory, :class:`~hyqjax.studies.sweep.store.StoreMismatch` for an unknown schema."""
-    from hyqjax.studies.sweep.store import MANIFEST, StoreCorrupt, open_store
+    """Check the sweep in ``out_dir`` (module docstring); raises :class:`~hyqjax.studies.sweep.manifest.StoreCorrupt`
+    if it is no sweep directory, :class:`~hyqjax.studies.sweep.manifest.StoreMismatch` for an unknown schema."""
+    from hyqjax.studies.sweep.manifest import MANIFEST, StoreCorrupt
+    from hyqjax.studies.sweep.store import open_store
 
     if not is_sweep_dir(out_dir):
         raise StoreCorrupt(f"{out_dir} holds no sweep (no {MANIFEST}, no chunks/)")
