@@ -39,7 +39,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 
 from hyqjax.io import atomic as hio  # noqa: E402
-from hyqjax.sim import cpu_backend  # noqa: E402
+from hyqjax.sim import cpu_physics  # noqa: E402
 from hyqjax.studies import stepdown  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     per_cell = -(-args.batch // 6)
     scen, _ = stepdown.make_scenarios(HEIGHTS, [False, True], per_cell, args.seed)
     scen = jax.tree_util.tree_map(lambda x: x[:args.batch], scen)
-    res = dict(info=host_info(), args=vars(args), batch=scen.batch_size, threads=cpu_backend.default_threads(),
+    res = dict(info=host_info(), args=vars(args), batch=scen.batch_size, threads=cpu_physics.default_threads(),
                provenance=hio.provenance(argv if argv is not None else sys.argv[1:]), throughput={})
     print(json.dumps({k: res["info"][k] for k in ("date", "device", "jax", "mujoco")}), flush=True)
     for impl in args.impls:

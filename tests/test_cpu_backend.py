@@ -19,6 +19,7 @@ import pytest
 
 from hyqjax.sim import backend
 from hyqjax.sim import cpu_backend as cb
+from hyqjax.sim import cpu_physics
 from hyqjax.sim import model as hmodel
 
 
@@ -73,7 +74,7 @@ def test_physics_batch_steps_and_packs_the_view(hyq):
     terrain = hmodel.InstanceTerrain.make([0.0, 0.0, 0.0], friction=[0.8, 0.9, 1.0])
     models = cb.batch_models(m, ids, terrain)
     q0 = hmodel.standing_qpos(m)
-    phys = cb.CPhysics(models, np.broadcast_to(q0, (3, m.nq)), ids.trunk_body, threads=2, dtype=np.float64)
+    phys = cpu_physics.CPhysics(models, np.broadcast_to(q0, (3, m.nq)), ids.trunk_body, threads=2, dtype=np.float64)
     ref = [mujoco.MjData(mm) for mm in models]
     for d in ref:
         d.qpos[:] = q0
@@ -109,8 +110,8 @@ def test_padded_rows_are_never_stepped_and_copy_the_last_real_row(hyq):
     m, ids = hyq
     models = cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2]))
     q0 = np.broadcast_to(hmodel.standing_qpos(m), (3, m.nq))
-    padded = cb.CPhysics(models, q0, ids.trunk_body, threads=2)
-    exact = cb.CPhysics(cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2])), q0, ids.trunk_body,
+    padded = cpu_physics.CPhysics(models, q0, ids.trunk_body, threads=2)
+    exact = cpu_physics.CPhysics(cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2])), q0, ids.trunk_body,
                         threads=2)
     try:
         assert padded.b == len(padded.datas) == 3
@@ -202,7 +203,7 @@ def test_observation_reads_the_weight_on_the_feet(hyq):
     m, ids = hyq
     (mm,) = cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0]))
     q0 = hmodel.standing_qpos(m)
-    phys = cb.CPhysics([mm], q0[None], ids.trunk_body, threads=1)
+    phys = cpu_physics.CPhysics([mm], q0[None], ids.trunk_body, threads=1)
     d = mujoco.MjData(mm)
     d.qpos[:] = q0
     for _ in range(300):  # settle under the PD, then read one tick
