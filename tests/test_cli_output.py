@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from hyqjax.cli import app, common
+from hyqjax.sim import compile_phase
 from hyqjax.sim import runner as rn
 from hyqjax.studies import stepdown_duration as sdd
 from hyqjax.studies import stepdown_table
@@ -187,15 +188,15 @@ def test_progress_bar_ends_at_its_total_for_any_duration(capsys):
 
 def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsys):
     with common.compile_status("stepdown") as status:
-        for listener in list(rn._LISTENERS):
+        for listener in list(compile_phase._LISTENERS):
             listener("start", dict(batch=8))
             listener("compile", dict(program="init"))
             listener("compiled", dict(program="init", from_cache=False))
             listener("end", dict(batch=8, seconds=12.5, from_cache=False))
             listener("done", dict(compile_s=12.5, simulate_s=2.0, batch=8, passes=1, instances=6))
     err = capsys.readouterr().err
-    assert rn.COMPILE_LABEL == "compiling (first run of this shape; cached afterwards)"
-    assert "stepdown: " + rn.COMPILE_LABEL in err and "compiled in 12.5 s" in err
+    assert compile_phase.COMPILE_LABEL == "compiling (first run of this shape; cached afterwards)"
+    assert "stepdown: " + compile_phase.COMPILE_LABEL in err and "compiled in 12.5 s" in err
     text = status.throughput_text(6, 1000)
     assert text.startswith("simulating 2.0 s: 3,000 env-steps/s of 6 instances; compile 12.5 s besides")
     assert "2 padded rows not counted" in text
@@ -205,14 +206,14 @@ def test_a_program_from_the_persistent_cache_is_not_called_a_compile(capsys):
     """A compile phase whose programs all came from the persistent compilation cache (the runner's "compiled" events
     say ``from_cache``) never shows the compiling label; its one line says the program was loaded."""
     with common.compile_status("stepdown") as status:
-        for listener in list(rn._LISTENERS):
+        for listener in list(compile_phase._LISTENERS):
             listener("start", dict(batch=32))
             for program in ("init", "advance"):
                 listener("compile", dict(program=program))
                 listener("compiled", dict(program=program, from_cache=True))
             listener("end", dict(batch=32, seconds=1.5, from_cache=True))
     err = capsys.readouterr().err
-    assert rn.COMPILE_LABEL not in err and "compiled in" not in err
+    assert compile_phase.COMPILE_LABEL not in err and "compiled in" not in err
     assert "stepdown: " + common.PREPARE_LABEL in err
     assert "stepdown: compiled program loaded from the cache in 1.5 s" in err
     assert status.compile_s == 1.5 and not status.compiling
@@ -234,7 +235,7 @@ def test_a_slow_compile_request_is_shown_as_compiling(capsys):
         listener("compiled", dict(program="advance", from_cache=False))
         listener("end", dict(batch=8, seconds=3.0, from_cache=False))
     err = capsys.readouterr().err
-    assert "sweep: " + rn.COMPILE_LABEL in err and "compiled in 3.0 s" in err
+    assert "sweep: " + compile_phase.COMPILE_LABEL in err and "compiled in 3.0 s" in err
 
 
 # ---------------------------------------------------------------- batch buckets

@@ -19,7 +19,7 @@ import pytest
 
 from hyqjax.sim import backend
 from hyqjax.sim import cpu_backend as cb
-from hyqjax.sim import cpu_physics
+from hyqjax.sim import compile_phase, cpu_physics
 from hyqjax.sim import model as hmodel
 
 
@@ -171,11 +171,11 @@ import sys, jax, jax.numpy as jnp
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-from hyqjax.sim import host_call, runner
+from hyqjax.sim import compile_phase, host_call
 host_call.register("hyqjax_test_add", lambda a, r: r[0].__setitem__(Ellipsis, a[0] + 1.0))
 f = jax.jit(lambda x: jax.lax.scan(lambda c, _: (host_call.call("hyqjax_test_add", jax.ShapeDtypeStruct((3,),
     jnp.float32), c) * 2.0, None), x, None, length=3)[0])
-exe, from_cache = runner.compile_lowered(f.lower(jnp.zeros(3, jnp.float32)))
+exe, from_cache = compile_phase.compile_lowered(f.lower(jnp.zeros(3, jnp.float32)))
 print(from_cache, float(exe(jnp.zeros(3, jnp.float32))[0]))
 """
 
@@ -183,7 +183,7 @@ print(from_cache, float(exe(jnp.zeros(3, jnp.float32))[0]))
 @pytest.mark.slow
 def test_a_program_with_a_host_call_is_loaded_from_the_persistent_cache(tmp_path):
     """Unlike an io_callback's, a program calling a host_call target goes to JAX's persistent compilation cache: a
-    second process loads it (runner.compile_lowered says so) and it computes the same ((0+1)2+1)2+1)2 = 14."""
+    second process loads it (compile_phase.compile_lowered says so) and it computes the same ((0+1)2+1)2+1)2 = 14."""
     script = tmp_path / "cached.py"
     script.write_text(_CACHED_HOST_CALL)
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -297,7 +297,6 @@ def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
     five in a batch of exactly 5 (the padded rows never stepped, dropped from the result); a batch of 6 then runs
     in the same bucket without tracing or compiling again (counted by the runner's compile listener and its trace
     counter, not by wall time)."""
-    from hyqjax.sim import runner as rn
     from hyqjax.studies import stepdown
 
     cfg = stepdown.StepdownConfig(duration=0.6, record_every=10, impl="c")
@@ -316,7 +315,7 @@ def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
     want = run(exact, five)
     assert exact.last_timing["batch"] == 5
     events = []
-    with rn.compile_listener(lambda e, info: events.append(e)):
+    with compile_phase.compile_listener(lambda e, info: events.append(e)):
         got = run(bucketed, five)
         assert bucketed.last_timing["batch"] == 8 and bucketed.last_timing["instances"] == 5
         assert events.count("compile") == 2  # the initial carry and the chunk program (compiled or cache-loaded)

@@ -18,6 +18,7 @@ import pytest
 from conftest import start_python, user_xla_flags
 from mujoco import mjx
 
+from hyqjax.sim import compile_phase
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
 from hyqjax.sim import rollout as sim
@@ -483,7 +484,7 @@ def test_padded_batch_rows_equal_the_unpadded_ones(chunked_run):
     bucketed = runner_mod.make_batch_runner(runner.ids, stand.stand_controller, runner.cfg, height_metrics(), record,
                                             params_axes=None)
     events = []
-    with runner_mod.compile_listener(lambda e, info: events.append(e)):
+    with compile_phase.compile_listener(lambda e, info: events.append(e)):
         res = bucketed(mx3, three[0], params, three[1], chunk_seconds=2.5)
     assert bucketed.last_timing["batch"] == 4 and bucketed.last_timing["instances"] == 3
     assert events == ["start", "compile", "compiled", "compile", "compiled", "end", "done"]

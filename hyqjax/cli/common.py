@@ -98,7 +98,7 @@ def use_help_formatter(p: argparse.ArgumentParser) -> None:
 
 
 def _compile_line(prefix: str, label: str | None = None):
-    from hyqjax.sim.runner import COMPILE_LABEL
+    from hyqjax.sim.compile_phase import COMPILE_LABEL
 
     label = COMPILE_LABEL if label is None else label
     return f"{prefix}: {label}" if prefix else label
@@ -113,7 +113,7 @@ COMPILE_AFTER_S = 0.5
 
 
 class CompileStatus:
-    """Listens to the batch runners (:func:`hyqjax.sim.runner.compile_listener`) and shows their compile phase on
+    """Listens to the batch runners (:func:`hyqjax.sim.compile_phase.compile_listener`) and shows their compile phase on
     stderr with its elapsed time: ``PREFIX: preparing the simulation program 0:01`` while the programs are traced
     (and loaded from the persistent compilation cache), ``PREFIX: compiling (first run of this shape; cached
     afterwards) 0:42`` once XLA compiles (a compile request not answered from the cache within
@@ -224,7 +224,7 @@ class CompileStatus:
 @contextlib.contextmanager
 def compile_status(prefix: str = "", disable: bool = False):
     """A :class:`CompileStatus` listening to every batch runner while the context is open."""
-    from hyqjax.sim.runner import compile_listener
+    from hyqjax.sim.compile_phase import compile_listener
 
     status = CompileStatus(prefix, disable)
     try:
@@ -274,7 +274,7 @@ class SimProgress:
 def sim_progress(desc: str, total_s: float, disable: bool = False):
     """A :class:`SimProgress` for one batched run (listening to the runners' compiles); yields it (the
     ``progress`` callback of the runner; ``.status`` holds the compile and simulate seconds)."""
-    from hyqjax.sim.runner import compile_listener
+    from hyqjax.sim.compile_phase import compile_listener
 
     prog = SimProgress(desc, total_s, disable)
     try:

@@ -57,6 +57,7 @@ from hyqjax.sim import impls as _impls
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
 from hyqjax.sim import runner as hrunner
+from hyqjax.sim.compile_phase import AheadOfTime, notify
 from hyqjax.sim.cpu_physics import CPhysics, unpack
 
 log = logging.getLogger(__name__)
@@ -134,7 +135,7 @@ def _physics_target(args: list[np.ndarray], results: list[np.ndarray]) -> None:
     _ACTIVE[int(handle)].step_padded(tau_frozen, results[0])
 
 
-class CBatchRunner(hrunner.AheadOfTime):
+class CBatchRunner(AheadOfTime):
     """The closed loop of a batch on C MuJoCo (module docstring); the counterpart of
     :class:`hyqjax.sim.runner.BatchRunner` with the same call and result.
 
@@ -281,7 +282,7 @@ class CBatchRunner(hrunner.AheadOfTime):
                     jax.block_until_ready(carry)
             _ACTIVE.pop(handle, None)
             phys.close()
-        hrunner._notify("done", **self.last_timing)
+        notify("done", **self.last_timing)
         trace = None
         if self.record is not None:
             trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(

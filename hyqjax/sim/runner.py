@@ -5,7 +5,8 @@ all run batches through :func:`make_batch_runner` (``hyqjax.make_batch_runner``)
 
 Compile phase. The runner compiles ahead of time (``jit(...).lower(...).compile()``), once per batch shape,
 so compiling and simulating are timed apart (:attr:`BatchRunner.last_timing`) and announced to the
-listeners of :func:`compile_listener` (the command line shows a "compiling" line with its elapsed time).
+listeners of :func:`hyqjax.sim.compile_phase.compile_listener` (the command line shows a "compiling" line with
+its elapsed time).
 
 Batch buckets. On CPU devices a batch of ``n`` instances runs as passes of a few fixed sizes
 (:func:`batch_plan`): ``n <= CPU_PASS`` rounds up to a power of two, a larger ``n`` runs as
@@ -18,14 +19,12 @@ own size in one pass. The C MuJoCo backend, whose physics runs outside the compi
 batch to one bucket (:func:`host_physics_plan`: the next power of two, at least ``HOST_PHYSICS_MIN_BUCKET``);
 its padded rows are never stepped.
 
-Both runners compile through :class:`AheadOfTime`, which also tells a program loaded from JAX's persistent
+Both runners compile through :class:`hyqjax.sim.compile_phase.AheadOfTime`, which also tells a program loaded from JAX's persistent
 compilation cache from one XLA compiled (``jax.monitoring``'s cache-hit event), so the command line says
 "compiling" only for a real compile.
 """
 from __future__ import annotations
 
-import contextlib
-import threading
 import time
 from typing import Any, Callable, NamedTuple
 
@@ -37,6 +36,8 @@ from mujoco import mjx
 
 from hyqjax.sim import impls
 from hyqjax.sim import model as hmodel
+# compile_listener is public here (docs/api.md: hyqjax.sim.runner.compile_listener); its home is compile_phase
+from hyqjax.sim.compile_phase import AheadOfTime, compile_listener, notify
 from hyqjax.sim.rollout import (Controller, Metrics, Push, RolloutResult, SimConfig, no_metrics, rollout_advance,
                                 rollout_init, rollout_result)
 
@@ -47,10 +48,6 @@ Progress = Callable[[float, float], None]
 #: loop saturates at about 10k env-steps/s from batch 16 on (benchmarks/RESULTS.md, bench_physics); 8 trades a
 #: little of that for less padding of small batches (at most 7 padded rows, a third of the default step-down's 6).
 CPU_PASS = 8
-
-#: Label of the compile phase, as the command line shows it.
-COMPILE_LABEL = "compiling (first run of this shape; cached afterwards)"
-
 
 class BatchPlan(NamedTuple):
     """How a batch of ``n`` instances runs: ``passes`` passes of ``size`` instances (the compiled batch shape);
@@ -107,110 +104,6 @@ def batch_plan(n: int, platform: str = "cpu", n_devices: int = 1, pass_size: int
     return BatchPlan(n, min(pad_batch(bucket(n), nd), big), 1)
 
 
-_LISTENERS: list = []
-
-
-@contextlib.contextmanager
-def compile_listener(listener: Callable[[str, dict], None]):
-    """While the context is open, every batch runner that compiles calls ``listener(event, info)``:
-    ``("start", {"batch": size})`` before it traces its first program of a call (a program already compiled in this
-    process is neither traced nor announced); ``("compile", {"program": name})`` before XLA compiles a traced
-    program or loads it from the persistent compilation cache, and ``("compiled", {"program": name, "from_cache":
-    bool})`` after; ``("end", {"batch": size, "seconds": s, "from_cache": bool})`` once its programs are ready
-    (``from_cache``: every program of the phase was loaded from the persistent cache, none compiled); and
-    ``("done", last_timing)`` after every run (:attr:`BatchRunner.last_timing`)."""
-    _LISTENERS.append(listener)
-    try:
-        yield listener
-    finally:
-        _LISTENERS.remove(listener)
-
-
-def _notify(event: str, **info) -> None:
-    for fn in list(_LISTENERS):
-        fn(event, info)
-
-
-_cache_hits = threading.local()
-_monitoring_installed = False
-
-
-def _count_cache_hit(event: str, **_) -> None:
-    if event == "/jax/compilation_cache/cache_hits":  # fired in the thread that asked for the program
-        _cache_hits.n = getattr(_cache_hits, "n", 0) + 1
-
-
-def compile_lowered(lowered) -> tuple[Any, bool]:
-    """``(executable, from_cache)``: ``lowered.compile()``, and whether JAX loaded the program from its persistent
-    compilation cache instead of compiling it (``jax.monitoring``'s ``/jax/compilation_cache/cache_hits`` event,
-    fired in this thread while it compiles)."""
-    global _monitoring_installed
-    if not _monitoring_installed:
-        jax.monitoring.register_event_listener(_count_cache_hit)
-        _monitoring_installed = True
-    before = getattr(_cache_hits, "n", 0)
-    exe = lowered.compile()
-    return exe, getattr(_cache_hits, "n", 0) > before
-
-
-class AheadOfTime:
-    """The compile phase of a batch runner: programs compiled ahead of time (``jit(...).lower(...).compile()``),
-    once per shape, kept in ``_executables``; the phase announced to :func:`compile_listener` and timed into
-    ``last_timing`` (``compile_s``, ``trace_s``; ``compiled`` and ``from_cache``: programs XLA compiled and
-    programs loaded from the persistent cache). Shared by :class:`BatchRunner` and the C MuJoCo backend's runner."""
-
-    def _reset_compile_phase(self) -> None:
-        self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
-        self._phase_compiled = 0
-
-    def _executable(self, name: str, fn, args: tuple, static: tuple = (), batch: int | None = None):
-        """The compiled ``fn`` for the shapes of ``args`` (compiled ahead of time on first use; opens the compile
-        phase, see :meth:`_end_compile_phase`)."""
-        key = (name, static, _signature(args))
-        exe = self._executables.get(key)
-        if exe is None:
-            if self._compile_t0 is None:
-                self._compile_t0 = time.perf_counter()
-                self._phase_compiled = 0
-                _notify("start", batch=batch)
-            t0 = time.perf_counter()
-            lowered = fn.lower(*args, *static)
-            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
-            _notify("compile", program=name)
-            exe, from_cache = compile_lowered(lowered)
-            self._executables[key] = exe
-            field = "from_cache" if from_cache else "compiled"
-            self.last_timing[field] = self.last_timing.get(field, 0) + 1
-            self._phase_compiled += 0 if from_cache else 1
-            _notify("compiled", program=name, from_cache=from_cache)
-        return exe
-
-    def _end_compile_phase(self, batch: int) -> None:
-        if self._compile_t0 is not None:
-            dt = time.perf_counter() - self._compile_t0
-            self._compile_t0 = None
-            self.last_timing["compile_s"] += dt
-            _notify("end", batch=batch, seconds=dt, from_cache=self._phase_compiled == 0)
-
-    def _new_timing(self, plan: "BatchPlan") -> None:
-        self._reset_compile_phase()
-        self.last_timing = dict(compile_s=0.0, trace_s=0.0, simulate_s=0.0, compiled=0, from_cache=0,
-                                batch=plan.size, passes=plan.passes, instances=plan.n)
-
-    def chunk_ticks(self, chunk_seconds: float | None) -> int:
-        """Ticks per chunk: the largest divisor of ``cfg.n_ticks`` that is at most ``chunk_seconds`` of simulated
-        time and a multiple of ``cfg.record_every`` (all ticks when ``chunk_seconds`` is None). It depends on the
-        configuration alone, never on the batch, so every batch size shares the chunk program's length."""
-        n, rec = self.cfg.n_ticks, max(self.cfg.record_every, 1) if self.record is not None else 1
-        if chunk_seconds is None:
-            return n
-        if not chunk_seconds > 0:
-            raise ValueError(f"chunk_seconds must be > 0 s, got {chunk_seconds}")
-        want = max(int(chunk_seconds / self.cfg.control_dt), 1)
-        fits = [k for k in range(rec, n + 1, rec) if n % k == 0 and k <= want]
-        return max(fits) if fits else rec if n % rec == 0 else n
-
-
 def _rows(tree, axes, idx: np.ndarray):
     """Rows ``idx`` (host NumPy) of the leaves of ``tree`` whose ``vmap`` axis (``axes``: 0, None, or a pytree
     of them) is 0; other leaves unchanged."""
@@ -220,11 +113,6 @@ def _rows(tree, axes, idx: np.ndarray):
         return jax.tree_util.tree_map(lambda x: np.asarray(x)[idx], tree)
     return jax.tree_util.tree_map(lambda ax, x: x if ax is None else np.asarray(x)[idx], axes, tree,
                                   is_leaf=lambda x: x is None)
-
-
-def _signature(args) -> tuple:
-    leaves, treedef = jax.tree_util.tree_flatten(args)
-    return treedef, tuple(jax.typeof(x) for x in leaves)
 
 
 class BatchRunner(AheadOfTime):
@@ -330,7 +218,7 @@ class BatchRunner(AheadOfTime):
         self._new_timing(plan)
         if plan.passes == 1 and plan.size == n:
             out = self._run_pass(mx_batched, d0, params, push, k, progress, 0, 1)
-            _notify("done", **self.last_timing)
+            notify("done", **self.last_timing)
             return out
         if self._init is None:
             self._build(mx_batched, d0, params, push)
@@ -342,7 +230,7 @@ class BatchRunner(AheadOfTime):
                                  plan.passes)
             parts.append(jax.tree_util.tree_map(np.asarray, res))
         out = jax.device_put(jax.tree_util.tree_map(lambda *xs: np.concatenate(xs, 0)[:n], *parts))
-        _notify("done", **self.last_timing)
+        notify("done", **self.last_timing)
         return out
 
     def _traced(self, mx_batched, d0, params, push, k: int) -> RolloutResult:
@@ -433,3 +321,8 @@ def batch_mesh(devices=None) -> Mesh:
 def pad_batch(n: int, multiple: int) -> int:
     """Smallest batch size >= n divisible by ``multiple``."""
     return -(-n // multiple) * multiple
+
+
+__all__ = ["BatchPlan", "BatchRunner", "CPU_PASS", "HOST_PHYSICS_MIN_BUCKET", "Progress", "batch_mesh", "batch_plan",
+           "batch_rollout", "batch_rollout_fn", "bucket", "compile_listener", "host_physics_plan", "make_batch_runner",
+           "pad_batch"]
