@@ -152,10 +152,10 @@ def test_reparameterisation_roundtrip_float64(x64):
     ((12,), (..., 12), True), ((), (...,), True), ((3,), (..., 4, 3), False), ((7, 1, 12), (7, ..., 12), True),
     ((7, 12), (7, ..., 1, 12), False)])
 def test_shape_patterns_match_as_chex_assert_shape(shape, pattern, ok):
-    """hyqjax.core.params.shape_matches against chex.assert_shape's rule for the same patterns."""
+    """hyqjax.core.shapes.shape_matches against chex.assert_shape's rule for the same patterns."""
     import chex
 
-    from hyqjax.core.params import shape_matches
+    from hyqjax.core.shapes import shape_matches
 
     try:
         chex.assert_shape(np.zeros(shape), pattern)

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from hyqjax.core import robot
-from hyqjax.core.params import check_shape
+from hyqjax.core.shapes import check_shape
 from hyqjax.core.spatial import rot_x
 
 _Q_SHAPES = ((..., 12), (..., 4, 3))

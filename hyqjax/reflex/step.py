@@ -48,7 +48,7 @@ import jax.numpy as jnp
 
 from hyqjax.core import kinematics
 from hyqjax.core import robot
-from hyqjax.core.params import check_shape
+from hyqjax.core.shapes import check_shape
 from hyqjax.reflex.forces import (
     COLLINEAR_TOL,
     SCHEDULE_SHAPES,

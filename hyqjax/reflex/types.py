@@ -8,7 +8,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from hyqjax.core.params import check_shape
+from hyqjax.core.shapes import check_shape
 from hyqjax.reflex.geometry import stance_feet, terrain_normal
 
 _UP = (0.0, 0.0, 1.0)
