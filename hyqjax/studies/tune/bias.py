@@ -13,13 +13,15 @@ the estimates of its two halves; the cosine between the halves is the estimate's
 other gradient's cosine with ``g_sigma`` can reach at this ``N``. :func:`compare` reports, per pathwise variant
 (plain, or with contacts from distance, :mod:`hyqjax.sim.contacts_from_distance`), its cosine with
 ``g_sigma`` and its signal-to-noise ratio across windows (``|mean| / (std / sqrt(W))`` per coordinate,
-:func:`.study.gradient_stats`).
+:func:`.gradient_stats.gradient_stats`).
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from hyqjax.studies.tune.gradient_stats import gradient_stats
 
 
 def cosine(a, b) -> float:
@@ -53,14 +55,12 @@ def compare(pathwise: dict, zero_order: dict, lengths, names) -> dict:
     """Per pathwise variant (``name -> step dict`` of :func:`.objective.make_value_and_jac`): its mean gradient's
     cosine with each zero-order estimate (``sigma -> smoothed_gradient``), the zero-order halves' cosine (the
     ceiling), and the gradient's SNR across windows at the full window length."""
-    from hyqjax.studies.tune import study
-
     zo = {s: dict(ceiling=cosine(z["grad_a"], z["grad_b"]), norm=float(np.linalg.norm(z["grad"])),
                   non_finite=z["non_finite"]) for s, z in zero_order.items()}
     out = dict(zero_order=zo, variants={})
     for name, r in pathwise.items():
         g = np.asarray(r["grad"], np.float64)
-        stats = study.gradient_stats(r, lengths, list(names))["per_length"][-1]
+        stats = gradient_stats(r, lengths, list(names))["per_length"][-1]
         snr = np.asarray([np.nan if x is None else x for x in stats["snr"]], float)
         out["variants"][name] = dict(
             cosine={str(s): cosine(g, z["grad"]) for s, z in zero_order.items()}, norm=float(np.linalg.norm(g)),

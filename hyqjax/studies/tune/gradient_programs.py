@@ -25,6 +25,7 @@ import numpy as np
 
 from hyqjax.sim.contacts_from_distance import ContactsFromDistance
 from hyqjax.studies.tune import schedule, search
+from hyqjax.studies.tune.gradient_stats import gradient_stats
 
 #: Offset of the seed of the gradient's snapshot scenarios.
 WINDOW_SEED_OFFSET = 11
@@ -219,14 +220,12 @@ def gradient_diagnostics(cfg, res: dict, params: dict, base, grad: GradientProgr
     """What decides whether the gradient can pay, per parameterisation with a gradient run:
 
     * the gradient's signal-to-noise ratio across windows at the start point, ``|mean| / (std / sqrt(W))`` per
-      coordinate (:func:`.study.gradient_stats`), and the median per-window gradient norm;
+      coordinate (:func:`.gradient_stats.gradient_stats`), and the median per-window gradient norm;
     * how well the window objective ranks held-out success: Spearman's rank correlation between the window
       objective ``L`` (lower is better) and held-out clean success over every iterate of that parameterisation
       that was evaluated (a useful objective gives a clearly negative correlation).
     """
     from scipy import stats
-
-    from hyqjax.studies.tune import study
 
     out = {}
     for d, param in params.items():
@@ -234,7 +233,7 @@ def gradient_diagnostics(cfg, res: dict, params: dict, base, grad: GradientProgr
             continue
         _, evaluate, _ = grad.fns[param.name]
         r0 = grad.exact_step(param)(param.theta_of(base))
-        gs = study.gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
+        gs = gradient_stats(r0, grad.obj.lengths, list(param.names))["per_length"][-1]
         snr = np.asarray([np.nan if x is None else x for x in gs["snr"]], float)
         keys = diagnostic_iterates(res, members, d)
         thetas = np.stack([np.asarray(members[k][1], np.float64) for k in keys])

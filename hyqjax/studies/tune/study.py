@@ -51,6 +51,7 @@ from hyqjax.sim import backend
 from hyqjax.studies.tune import baselines, evaluate, kinematic, optimize, windows
 from hyqjax.studies.tune import objective as clobj
 from hyqjax.studies.tune import space as spmod
+from hyqjax.studies.tune.gradient_stats import gradient_stats
 
 METHODS = ("gradient", "cma_es", "random_search", "cma_es_success", "random_search_success")
 
@@ -384,22 +385,3 @@ def _previous(out_dir: str, cfg: StudyConfig) -> dict | None:
     if not isinstance(prev.get("config"), dict) or settings_of(prev["config"]) != fingerprint(cfg):
         raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
     return prev
-
-
-def gradient_stats(r: dict, lengths, names) -> dict:
-    """Across-window mean, standard deviation and signal-to-noise ratio ``|mean| / (std / sqrt(W))`` of the
-    gradient per parameter and window length, and the median gradient norm per length (its growth with the
-    length is the closed loop's sensitivity: a chaos horizon shows as exponential growth)."""
-    ok = np.asarray(r["ok"], bool)
-    g = np.asarray(r["per_window_prefix_grad"], np.float64)[ok]  # (W, L, P)
-    out = dict(windows=int(ok.sum()), lengths=list(lengths), names=names, per_length=[])
-    for i, n in enumerate(lengths):
-        gi = g[:, i]
-        mean, std = gi.mean(0), gi.std(0, ddof=1) if len(gi) > 1 else np.zeros(gi.shape[1])
-        # undefined with one window (no spread across scenarios): NaN, written as null
-        snr = (np.abs(mean) / np.maximum(std / np.sqrt(len(gi)), 1e-30) if len(gi) > 1
-               else np.full(gi.shape[1], np.nan))
-        out["per_length"].append(dict(ticks=int(n), mean=mean.tolist(), std=std.tolist(), snr=snr.tolist(),
-                                      median_norm=float(np.median(np.linalg.norm(gi, axis=1))),
-                                      max_norm=float(np.max(np.linalg.norm(gi, axis=1)))))
-    return out
