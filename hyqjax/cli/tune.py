@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 
 from hyqjax.cli import tune_gradient_study as gradient_study
+from hyqjax.cli import tune_wallclock as wallclock_run
 from hyqjax.cli.tune_gradient_study import BASELINES, split_names
 
 NAME = "tune"
@@ -335,68 +336,4 @@ def run(args) -> int:
     with DirLock(args.out, wait=args.wait, what="tune run"):
         if args.gradient_study:
             return gradient_study.run(args)
-        return _run_wallclock(args)
-
-
-def _run_wallclock(args) -> int:
-    import os
-
-    from hyqjax.studies.tune import figure, wallclock, wallclock_results
-
-    cfg = args.wallclock_config
-    what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
-    print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
-          f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
-    res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True))
-    fig = figure.plot_wallclock(res, os.path.join(args.out, "tuning.png"))
-    print(figure.wallclock_markdown(res))
-    ho = res["heldout"]
-    f = lambda h: (f"clean {h['clean']:.3f} [{h['clean_ci95'][0]:.3f}, {h['clean_ci95'][1]:.3f}], "  # noqa: E731
-                   f"completed {h['completed']:.3f} [{h['completed_ci95'][0]:.3f}, {h['completed_ci95'][1]:.3f}]")
-    n = res["heldout_set"]["instances"]
-    print(f"held-out ({n} instances): start point {f(ho['start'])}; Table I, paper crawl {f(ho['table1'])}")
-    for m in cfg.methods:
-        for d in cfg.dims:
-            k = wallclock_results.member_key(m, d, 60.0 * cfg.wall_minutes[-1])
-            if k in ho:
-                print(f"held-out ({n} instances): {k} (returned) {f(ho[k])}")
-    if not args.study:
-        from hyqjax.studies.tune import schedule
-
-        m, d = cfg.methods[0], cfg.dims[0]
-        par = schedule.make(d, cfg.groups)
-        start = par.describe(par.theta_of(wallclock.start_params(cfg)))
-        got = res["runs"][f"{m}/{d}"]["params"]
-        print("returned parameters (start in brackets): " + ", ".join(
-            f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))
-        if got.get("stability_number", 0.0) >= 1.0:
-            print(f"note: the returned reflex gains have stability number {got['stability_number']:.3g} >= 1, outside "
-                  f"the step-size condition ReflexParams.validate(dt) enforces (the batched rollouts above ran them; "
-                  f"reflex_step with concrete parameters refuses them; docs/tuning.md)")
-    for d, g in res.get("diagnostics", {}).items():
-        print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
-              f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
-              f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
-        c = g.get("step_cost")
-        if c:
-            print(f"gradient on {d}: one jacfwd step ({c['tangents']} tangents) costs {c['jacfwd_over_value']:.1f} "
-                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s)"
-                  + (f"; the forward gradient ({c['forward_gradient_directions']} directions) "
-                     f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
-    for key, r in res["runs"].items():
-        sel = r.get("selection")
-        if sel and sel["log"]:
-            pt = r["points"][-1]
-            print(f"selection of {key}: {len(sel['log'])} validations on {sel['instances']} fixed scenarios "
-                  f"({sel['wall_s']:.0f} s, {sel['physics_steps']:,} physics steps of its budget); returned: "
-                  f"iteration {pt.get('selected_iteration', 0)}, validation clean "
-                  f"{pt.get('validation_clean', float('nan')):.3f}")
-    w = wallclock_results.winner(res, cfg.wall_minutes[-1])
-    if args.study and w and not w["others"]:
-        print(f"only run at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; no other "
-              f"method or parameterisation in this directory to compare with)")
-    elif args.study and w:
-        print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
-              f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
-    print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
-    return 0
+        return wallclock_run.run(args)

@@ -1,6 +1,6 @@
 """``hyqjax tune --gradient-study``: the gradient study at equal physics budget (:mod:`hyqjax.studies.tune.study`):
 its option checks, its configuration and its run. The default tuner and ``--study`` live in :mod:`hyqjax.cli.tune`,
-which defines every option of the command."""
+which defines every option of the command (their run: :mod:`hyqjax.cli.tune_wallclock`)."""
 from __future__ import annotations
 
 import os
