@@ -17,9 +17,9 @@ import pytest
 
 from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import envelope as be
+from hyqjax.bounding import falls
 from hyqjax.bounding import params as bp
 from hyqjax.bounding import robust as rb
-from hyqjax.bounding import rollout as brollout
 from hyqjax.bounding import tracking as bt
 from hyqjax.core.params import param_ranges
 
@@ -214,10 +214,10 @@ def test_safe_area_is_the_area_owned_by_commands_below_the_threshold():
 
 
 def test_columns_name_the_first_failure():
-    fm = brollout.FallMetrics(fall_tick=np.array([-1, 100, 300, 50]), low_trunk=np.array([False, True, False, False]),
-                              roll=np.array([False, False, False, True]), pitch=np.zeros(4, bool),
-                              ticks=np.full(4, 400), min_z=np.full(4, 0.5), max_roll=np.zeros(4),
-                              max_pitch=np.zeros(4))
+    fm = falls.FallMetrics(fall_tick=np.array([-1, 100, 300, 50]), low_trunk=np.array([False, True, False, False]),
+                           roll=np.array([False, False, False, True]), pitch=np.zeros(4, bool),
+                           ticks=np.full(4, 400), min_z=np.full(4, 0.5), max_roll=np.zeros(4),
+                           max_pitch=np.zeros(4))
     z = np.zeros(4)
     ms = bt.TrackingMetrics(fall=fm, max_yaw_err=np.radians([1.0, 2, 3, 4]), eps=np.zeros((4, 2)),
                             settled_v=np.array([[4.0, 0.4], [0, 0], [0, 0], [0, 0]]), settled_n=np.array([8, 0, 0, 0]),

@@ -21,10 +21,10 @@ The run starts at an apex (gait phase 0) and lasts a whole number of gait period
 apex again: :class:`BoundingOutcome` holds the final apex state (forward speed along the heading included), the
 final yaw and position, and the fall and divergence flags.
 
-The bound's device metrics (:class:`FallMetrics`: a fall is the trunk below ``FALL_HEIGHT`` or ``|roll|`` or
-``|pitch|`` above ``FALL_ANGLE``), its trace sample (:func:`record`) and its initial state
-(:func:`apex_initial_data`) live here with the outcome they make; the batch of instances they run on is
-:mod:`hyqjax.bounding.batch`'s.
+The bound's trace sample (:func:`record`) and its initial state (:func:`apex_initial_data`) live here with the
+outcome they make; its device metrics (:class:`hyqjax.bounding.falls.FallMetrics`: a fall is the trunk below
+``FALL_HEIGHT`` or ``|roll|`` or ``|pitch|`` above ``FALL_ANGLE``) are :mod:`hyqjax.bounding.falls`'s, and the
+batch of instances they run on is :mod:`hyqjax.bounding.batch`'s.
 """
 from __future__ import annotations
 
@@ -40,6 +40,7 @@ from mujoco import mjx
 from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import controller as bctrl
 from hyqjax.bounding import cycle as bc
+from hyqjax.bounding.falls import FallMetrics, fall_metrics
 from hyqjax.bounding.params import Apex, BoundingParams
 from hyqjax.bounding.state import BoundingInfo
 from hyqjax.core import robot
@@ -122,57 +123,6 @@ class BoundingRolloutConfig:
                                                   f"got {self.duration:g}")
 
 
-#: A fall (:class:`FallMetrics`): the trunk below ``FALL_HEIGHT`` (m), or ``|roll|`` or ``|pitch|`` above
-#: ``FALL_ANGLE`` (rad).
-FALL_HEIGHT = 0.35
-FALL_ANGLE = 0.7
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class FallMetrics:
-    """Device metrics of one instance (accumulated every tick on the ground truth).
-
-    Attributes:
-      fall_tick: tick of the first fall (-1: none).  low_trunk, roll, pitch: the first fall's cause (the trunk
-        below ``FALL_HEIGHT``; ``|roll|`` / ``|pitch|`` above ``FALL_ANGLE``; checked in that order, one is set).
-      ticks: ticks simulated.  min_z: lowest trunk height.  max_roll, max_pitch: largest ``|roll|``, ``|pitch|``.
-    """
-
-    fall_tick: jax.Array
-    low_trunk: jax.Array
-    roll: jax.Array
-    pitch: jax.Array
-    ticks: jax.Array
-    min_z: jax.Array
-    max_roll: jax.Array
-    max_pitch: jax.Array
-
-
-def fall_metrics() -> sim.Metrics:
-    """:class:`FallMetrics` as a :class:`hyqjax.sim.rollout.Metrics` pair."""
-
-    def init(d):
-        f = jnp.zeros((), bool)
-        return FallMetrics(fall_tick=jnp.array(-1), low_trunk=f, roll=f, pitch=f, ticks=jnp.array(0),
-                           min_z=d.qpos[robot.QPOS_BASE_POS][2], max_roll=jnp.zeros((), d.qpos.dtype),
-                           max_pitch=jnp.zeros((), d.qpos.dtype))
-
-    def update(ms: FallMetrics, d, obs, info):
-        rpy = spatial.rot_to_rpy(spatial.quat_to_rot(d.qpos[robot.QPOS_BASE_QUAT]))
-        z = d.qpos[robot.QPOS_BASE_POS][2]
-        low = z < FALL_HEIGHT
-        roll = ~low & (jnp.abs(rpy[0]) > FALL_ANGLE)
-        pitch = ~low & ~roll & (jnp.abs(rpy[1]) > FALL_ANGLE)
-        new = (ms.fall_tick < 0) & (low | roll | pitch)
-        return FallMetrics(fall_tick=jnp.where(new, ms.ticks, ms.fall_tick), low_trunk=ms.low_trunk | (new & low),
-                           roll=ms.roll | (new & roll), pitch=ms.pitch | (new & pitch), ticks=ms.ticks + 1,
-                           min_z=jnp.minimum(ms.min_z, z), max_roll=jnp.maximum(ms.max_roll, jnp.abs(rpy[0])),
-                           max_pitch=jnp.maximum(ms.max_pitch, jnp.abs(rpy[1])))
-
-    return sim.Metrics(init, update)
-
-
 def record(d, obs, info: BoundingInfo) -> dict:
     """One trace sample: ground truth (trunk pose and twist, apex state, full ``qpos`` for replay, foot forces)
     and what the controller commanded / estimated."""
@@ -192,7 +142,7 @@ class BoundingOutcome:
       fell: the trunk fell (:class:`FallMetrics`) at some tick.
       fall_tick: tick of the first fall (-1: none); the fall time is ``(fall_tick + 1) * control_dt``.
       low_trunk, roll, pitch: the first fall's cause (trunk below ``FALL_HEIGHT``; ``|roll|`` or ``|pitch|``
-        above ``FALL_ANGLE``); at most one is set.
+        above ``FALL_ANGLE``, :mod:`hyqjax.bounding.falls`); at most one is set.
       min_z: lowest trunk height (m).  max_roll, max_pitch: largest ``|roll|``, ``|pitch|`` (rad).
       diverged: the simulation diverged (non-finite state or speed limit); its state froze at its last finite
         tick.  diverged_tick: that tick (-1: none).

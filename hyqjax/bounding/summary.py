@@ -9,7 +9,7 @@
 * **side slip**: ``|mean lateral speed|`` in the heading frame over the settled cycles (outward drift in a turn);
 * **periodicity residual**: ``||W (s_{k+1} - s_k)||`` of consecutive apex states (Eq. C2's scaling),
   median over the settled cycles;
-* **failures**: a fall (:class:`hyqjax.bounding.rollout.FallMetrics`) or a diverged simulation
+* **failures**: a fall (:class:`hyqjax.bounding.falls.FallMetrics`) or a diverged simulation
   (non-finite state / speed limit), whichever came first, as boolean fields of :class:`InstanceResult`
   with the time; failed instances are counted, never dropped, and left out of the tracking errors.
 """

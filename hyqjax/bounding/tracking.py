@@ -13,7 +13,7 @@ Per control tick ``k`` (``dt`` = 2 ms), with ``psi`` the trunk's yaw, ``psi^d`` 
 * fall margins, ``sp_s(x) = s softplus(x / s)`` a smooth ``max(x, 0)``:
   ``M_k = sp(z_0 - z)^2 + sp(|phi| - phi_0)^2 + sp(|theta| - theta_0)^2`` (trunk height, roll, pitch), margins well
   inside the fall thresholds of :mod:`hyqjax.bounding.rollout` (0.35 m, 0.7 rad);
-* falls (:class:`hyqjax.bounding.rollout.FallMetrics`).
+* falls (:class:`hyqjax.bounding.falls.FallMetrics`).
 
 The cost terms accumulate only while the instance has not fallen (a robot on the ground tells nothing about
 the gains). The cost of one instance (:func:`cost_terms`, :func:`total_cost`; bars are means over the ticks
@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.bounding import batch as bbatch
+from hyqjax.bounding import falls
 from hyqjax.bounding import rollout as brollout
 from hyqjax.core import robot
 from hyqjax.core import spatial
@@ -92,7 +93,7 @@ class TrackingMetrics:
     """Device accumulators of one instance (see the module docstring).
 
     Attributes:
-      fall: :class:`hyqjax.bounding.rollout.FallMetrics`.
+      fall: :class:`hyqjax.bounding.falls.FallMetrics`.
       max_yaw_err: largest ``|e|`` (rad) before a fall.
       eps: (2,) filtered forward / lateral speed error (m/s).
       settled_v: (2,) sum of ``v_f``, ``v_l`` over the settled ticks before a fall.  settled_n: their count.
@@ -100,7 +101,7 @@ class TrackingMetrics:
         over those ticks.  apex_n, sum_apex2: apex events and their squared height errors.
     """
 
-    fall: brollout.FallMetrics
+    fall: falls.FallMetrics
     max_yaw_err: jax.Array
     eps: jax.Array
     settled_v: jax.Array
@@ -121,7 +122,7 @@ def _sp(x, s):
 def tracking_metrics(spec: CostSpec = CostSpec(), control_dt: float = 0.002) -> sim.Metrics:
     """:class:`TrackingMetrics` as a :class:`hyqjax.sim.rollout.Metrics` pair (pure JAX; runs under both MJX
     implementations: it reads only ``qpos``, ``qvel`` and the controller's info)."""
-    fm = brollout.fall_metrics()
+    fm = falls.fall_metrics()
     gain = control_dt / spec.period
 
     def init(d):
