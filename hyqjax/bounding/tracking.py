@@ -42,7 +42,6 @@ from hyqjax.bounding import falls
 from hyqjax.bounding import rollout as brollout
 from hyqjax.core import robot
 from hyqjax.core import spatial
-from hyqjax.sim import model as hmodel
 from hyqjax.sim import backend
 from hyqjax.sim import rollout as sim
 
