@@ -6,6 +6,7 @@ and the other front leg's probe ends by 5 s), far starts (11-14 cm before the ed
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -35,7 +36,8 @@ def _edge_in_world(res, i):
 
 
 def test_a_bad_probe_setting_is_refused_in_one_line_naming_it_and_its_range():
-    for name, bad in (("edge_probe", 0.5), ("edge_probe_depth", -0.01), ("edge_tilt", 1.5), ("edge_margin", 0.4)):
+    for name, bad in (("edge_probe", 0.5), ("edge_probe_depth", -0.01), ("edge_tilt", 1.5), ("edge_margin", 0.4),
+                      ("edge_lowering", 0.15)):
         with pytest.raises(ParameterError) as e:
             CrawlParams.make(**{name: bad})
         msg = str(e.value)
@@ -43,6 +45,31 @@ def test_a_bad_probe_setting_is_refused_in_one_line_naming_it_and_its_range():
         with pytest.raises(ParameterError, match=f"CrawlParams.{name}="):
             CrawlParams.make().replace(**{name: np.float32(bad)})
     assert parse_settings("edge_probe=0.1,edge_tilt=0.3") == dict(edge_probe=0.1, edge_tilt=0.3)
+    assert parse_settings("edge_lowering=0.03") == dict(edge_lowering=0.03)
+
+
+def test_the_trunk_is_lowered_only_while_a_front_hip_is_behind_the_edge():
+    """``edge_lowering`` lowers the body phase's trunk target only where a front hip ends behind the edge's far
+    bound plus ``edge_margin``; at 0, with the hips past and without a known edge the target is bitwise unchanged."""
+
+    class St:  # the bounds the gate reads, in H0
+        edge_lo, edge_hi = np.float32(0.0), np.float32(0.2)
+
+    class Unknown:  # no step down yet
+        edge_lo, edge_hi = np.float32(-edge.EDGE_UNKNOWN), np.float32(edge.EDGE_UNKNOWN)
+
+    rp, delta = jnp.zeros(2, jnp.float32), jnp.array([-0.3, 0.0, 0.5], jnp.float32)  # front hips end at about +0.07 m
+
+    def same(p, st):
+        return np.asarray(edge.lowered(p, st, rp, delta)).tobytes() == np.asarray(delta).tobytes()
+
+    base = CrawlParams.make(**REMEDY, edge_probe=0.1, edge_tilt=0.3)
+    assert bool(edge.behind(base, St, rp, delta)) and same(base, St)
+    low = base.replace(edge_lowering=np.float32(0.03))
+    np.testing.assert_allclose(np.asarray(edge.lowered(low, St, rp, delta)), [-0.3, 0.0, 0.47], atol=1e-6)
+    past = low.replace(edge_margin=np.float32(-0.2))  # the hips are past 0.2 - 0.2 = 0
+    assert not bool(edge.behind(past, St, rp, delta)) and same(past, St) and same(low, Unknown)
+    assert same(low.replace(edge_probe=np.float32(0.0)), St)
 
 
 @pytest.mark.slow
@@ -50,7 +77,7 @@ def test_probe_off_leaves_every_output_bitwise_unchanged():
     """At ``edge_probe = 0`` the other probe settings change nothing: outcomes, traces, final state and the
     crawl's own memory are bitwise those of the defaults (the option's code paths are all ``where``-gated)."""
     base = CrawlParams.make(**REMEDY)
-    other = CrawlParams.make(**REMEDY, edge_probe_depth=0.1, edge_tilt=1.0, edge_margin=-0.2)
+    other = CrawlParams.make(**REMEDY, edge_probe_depth=0.1, edge_tilt=1.0, edge_margin=-0.2, edge_lowering=0.1)
     runs = [_run(p, (0.0, 0.15), duration=5.0) for p in (base, other)]
     (out_a, res_a), (out_b, res_b) = runs
     for a, b in zip(jax.tree.leaves((out_a, res_a.data.qpos, res_a.trace, res_a.ctrl_state)),

@@ -22,7 +22,8 @@ The rule (``edge_probe = L > 0``; at ``edge_probe = 0`` the crawl's outputs are 
   step from its lift-off would have put it, at least a step less the probe past the edge);
 * **the trunk's tilt**: a body phase after which a front hip is still behind ``edge_hi + edge_margin`` has the trunk
   follow ``edge_tilt`` of the feet plane's roll and pitch instead of ``terrain_adaptation`` (a nose kept up while
-  the backward-pointing front knees are over the platform); once both front hips pass it, the crawl's own tilt.
+  the backward-pointing front knees are over the platform); once both front hips pass it, the crawl's own tilt;
+* **the trunk's height**: in the same body phases the trunk is ``edge_lowering`` lower (:func:`lowered`).
 
 The bounds live in the current phase's ``H0`` and are carried to the next phase's ``H0`` by leg odometry
 (:func:`carry`): the stance feet are fixed in the world, so the new frame's origin moved by their mean displacement
@@ -94,11 +95,24 @@ def max_depth(p: CrawlParams, st):
     return jnp.where(st.probing, p.edge_probe_depth, p.max_search_depth)
 
 
-def tilt_share(p: CrawlParams, st, adapt, rp, delta):
-    """Share of the feet plane's tilt a body phase follows: ``edge_tilt`` where the probe is on, the edge known and
-    a front hip at the end of the phase (trunk displaced by ``delta``, tilt ``rp`` at its start) is behind
-    ``edge_hi + edge_margin``; ``adapt`` otherwise (``st`` carries the bounds in this phase's ``H0``)."""
+def behind(p: CrawlParams, st, rp, delta):
+    """Whether the probe is on, the edge known and a front hip at the end of a body phase (trunk displaced by
+    ``delta``, tilt ``rp`` at its start) is behind ``edge_hi + edge_margin`` (``st`` carries the bounds in this
+    phase's ``H0``)."""
     hips = jnp.asarray(robot.B_P_HIP[:2], delta.dtype) @ spatial.roll_pitch_to_rot(rp[0], rp[1]).T
     hip_x = jnp.min(hips[:, 0]) + delta[0]
-    behind = (p.edge_probe > 0) & known(st.edge_hi) & (hip_x < st.edge_hi + p.edge_margin)
-    return jnp.where(behind, p.edge_tilt, adapt)
+    return (p.edge_probe > 0) & known(st.edge_hi) & (hip_x < st.edge_hi + p.edge_margin)
+
+
+def tilt_share(p: CrawlParams, st, adapt, rp, delta):
+    """Share of the feet plane's tilt a body phase follows: ``edge_tilt`` while a front hip is behind the edge
+    (:func:`behind`), ``adapt`` otherwise."""
+    return jnp.where(behind(p, st, rp, delta), p.edge_tilt, adapt)
+
+
+def lowered(p: CrawlParams, st, rp, delta):
+    """The body phase's trunk displacement ``delta`` with the trunk ``edge_lowering`` lower while a front hip is
+    behind the edge (:func:`behind`): the legs of a trunk held near level over the step (``edge_tilt``) stand
+    stretched down it, and the lower trunk gives them range. ``delta`` itself where the hips are past and at
+    ``edge_lowering = 0``."""
+    return jnp.where(behind(p, st, rp, delta), delta.at[2].add(-p.edge_lowering), delta)

@@ -116,6 +116,7 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlS
     adapt = p.terrain_adaptation + p.terrain_adaptation_step * (1.0 - p.terrain_adaptation) * stepping
     delta = footholds.body_target(feet, leg, com_h, p.stability_margin, height)
     adapt = edge.tilt_share(p, st, adapt, rp, delta)  # adapt itself at edge_probe = 0
+    delta = edge.lowered(p, st, rp, delta)  # delta itself at edge_probe = 0
     rp_target = jnp.clip(adapt * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
     return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
