@@ -27,7 +27,9 @@ the shin remedy at 30%), ``tuned`` (the parameters a tuning study selected, from
 ``--tuned-method``), and options to push the reach (``hyqjax.crawl.params``; defaults off): ``remedy_fwd_0.10``
 (the forward search saturating 10 cm ahead), ``remedy_lower_0.05`` (the trunk 5 cm lower while a step down is under
 way), ``adaptive`` (the shin remedy with the trunk at 30% of the feet plane, 80% while a step down is under way),
-``remedy_all`` (the three together). ``--custom NAME:field=value,...`` adds any ``CrawlParams.make`` setting.
+``remedy_all`` (the three together), ``remedy_probe`` (a probing step for the edge, ``hyqjax.crawl.edge``, and the
+trunk at 30% of the feet plane until the front hips pass it) and ``remedy_probe2`` (the same with the trunk 1 cm
+lower until then). ``--custom NAME:field=value,...`` adds any ``CrawlParams.make`` setting.
 
 Runs in chunks of ``--chunk`` instances (one compiled program: the last chunk is padded), each written to
 ``DIR/chunks/NNNNN.npz`` as it finishes; the same command resumes after a kill or a time limit (a directory of

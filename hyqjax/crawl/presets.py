@@ -6,7 +6,8 @@ Every preset is a dict of ``CrawlParams.make`` overrides and a one-line descript
 shin remedy (``crawl.remedy``) and its trunk at 80% of the feet plane (``terrain_adaptation``) come from the
 narrow-spread remedy study (docs/stepdown.md), the other settings are its options (``remedy_probe``: the probing
 step of ``crawl.edge``, its tilt and margin picked among eight settings on 96 CPU runs of the reach map's seed 9494;
-docs/stepdown.md, "Finding the edge").
+``remedy_probe2``: the same with the trunk lower while the front hips are behind the edge, picked among five
+lowerings on the same runs and confirmed on 256 runs of seed 9696; docs/stepdown.md, "Finding the edge").
 """
 from __future__ import annotations
 
@@ -27,6 +28,8 @@ HAND_SET = {
                    "remedy, saturating forward search and lower trunk during a step down"),
     "remedy_probe": (dict(REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1),
                      "remedy, a 10 cm probing step for the edge, trunk at 30% until the front hips pass it"),
+    "remedy_probe2": (dict(REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1, edge_lowering=0.01),
+                      "remedy_probe with the trunk 1 cm lower until the front hips pass the edge"),
 }
 
 
