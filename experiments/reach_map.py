@@ -84,24 +84,32 @@ def parse_custom(text: str) -> tuple[str, dict]:
         raise UsageError(str(e)) from None
 
 
-def tuned_params(path: str, method: str, option: str = ""):
+def tuned_params(path: str, method: str, option: str = "", settings: dict | None = None):
     """The ``CrawlParams`` a tuning study (``hyqjax tune``) selected: ``method``'s ``theta`` on the study's
     ``ParamSpace`` and start point (:func:`hyqjax.studies.tune.tuned.crawl_params`; both layouts, ``method`` a
-    method, ``cma_es``, or a run, ``cma_es/shared``); a problem is one line starting with ``option``."""
+    method, ``cma_es``, or a run, ``cma_es/shared``), over ``CrawlParams.make`` ``settings`` of fields the run did
+    not tune; a problem is one line starting with ``option``."""
     from hyqjax.studies.tune import tuned
 
     try:
-        return tuned.crawl_params(path, method)
+        return tuned.crawl_params(path, method, **(settings or {}))
     except ValueError as e:
         raise UsageError(f"{option or f'--tuned-method {method!r}'}: {e}") from None
 
 
-def parse_tuned_run(text: str) -> tuple[str, tuple[str, str]]:
-    """``NAME:PATH:METHOD`` of ``--tuned-run`` -> ``(NAME, (PATH, METHOD))``."""
-    parts = text.split(":")
-    if len(parts) != 3 or not all(parts) or parts[0] in VARIANTS:
-        raise UsageError(f"--tuned-run {text!r}: must be NAME:PATH:METHOD with a new variant name")
-    return parts[0], (parts[1], parts[2])
+def parse_tuned_run(text: str) -> tuple[str, tuple[str, str, dict]]:
+    """``NAME:PATH:METHOD[:field=value,...]`` of ``--tuned-run`` -> ``(NAME, (PATH, METHOD, settings))``: the
+    optional settings are ``CrawlParams.make`` settings under the tuned values (fields the run did not tune)."""
+    parts = text.split(":", 3)
+    if len(parts) not in (3, 4) or not all(parts) or parts[0] in VARIANTS:
+        raise UsageError(f"--tuned-run {text!r}: must be NAME:PATH:METHOD[:field=value,...] with a new variant name")
+    from hyqjax.crawl.params import parse_settings
+
+    try:
+        settings = parse_settings(parts[3], f"--tuned-run {parts[0]}") if len(parts) == 4 else {}
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    return parts[0], (parts[1], parts[2], settings)
 
 
 def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tuned_runs: dict | None = None) -> dict:
@@ -115,7 +123,8 @@ def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tune
     for name in names:
         try:
             if name in tuned_runs:
-                out[name] = tuned_params(*tuned_runs[name], option=f"--tuned-run {name}")
+                path, method, settings = tuned_runs[name]
+                out[name] = tuned_params(path, method, option=f"--tuned-run {name}", settings=settings)
             elif name == "tuned":
                 out[name] = tuned_params(tuned_path, tuned_method)
             else:
@@ -350,8 +359,9 @@ def main(argv=None) -> int:
                     help="a variant of CrawlParams.make settings (repeatable)")
     ap.add_argument("--tuned", default=DEFAULT_TUNED, help="a tuning study's results.json (variant 'tuned')")
     ap.add_argument("--tuned-method", default="gradient", help="which of its methods (e.g. gradient)")
-    ap.add_argument("--tuned-run", action="append", default=[], metavar="NAME:PATH:METHOD",
-                    help="a further variant NAME: METHOD's parameters from the tuning results.json PATH (repeatable)")
+    ap.add_argument("--tuned-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
+                    help="a further variant NAME: METHOD's parameters from the tuning results.json PATH, optionally "
+                         "with CrawlParams.make settings of fields it did not tune (repeatable)")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run")
     ap.add_argument("--chunk", type=int, default=0,

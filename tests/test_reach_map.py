@@ -26,6 +26,7 @@ from experiments import reach_map  # noqa: E402
     (["--tuned-run", "remedy:x.json:cma_es"], "--tuned-run 'remedy:x.json:cma_es'"),
     (["--tuned-run", "v:x.json:cma_es", "--custom", "v:terrain_adaptation=0.5"], "--tuned-run 'v'"),
     (["--tuned-run", "t1:/no/such/results.json:cma_es", "--variants", "t1"], "/no/such/results.json"),
+    (["--tuned-run", "t1:x.json:snes:bogus=1", "--variants", "t1"], "--tuned-run t1"),
 ])
 def test_bad_options_are_one_line_and_exit_2_before_compiling(argv, needle, tmp_path, capsys):
     assert reach_map.main(["--out", str(tmp_path / "m"), *argv]) == 2
@@ -54,6 +55,27 @@ def test_tuned_variant_is_the_study_selected_parameters():
     assert float(p.terrain_adaptation) == pytest.approx(want["terrain_adaptation"], rel=1e-5)
     assert float(p.search_forward) == pytest.approx(want["search_forward"], rel=1e-5)
     assert float(p.shin_remedy) == 1.0
+
+
+def test_tuned_run_settings_go_under_the_tuned_values_and_never_replace_one():
+    """``--tuned-run NAME:PATH:METHOD:field=value,...``: the settings of fields the run did not tune are set (the
+    tuned ones are the run's), and a tuned field or an out-of-range value is refused in one line naming it."""
+    path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "docs", "results",
+                        "tune_repeats_h100_10min", "snes_s1", "results.json")
+    name, (p, m, settings) = reach_map.parse_tuned_run(f"v:{path}:snes:edge_probe=0.1,edge_lowering=0.01")
+    assert name == "v" and settings == {"edge_probe": 0.1, "edge_lowering": 0.01}
+    plain = reach_map.variant_params(["a"], {}, "", "", {"a": (p, m, {})})["a"]
+    probe = reach_map.variant_params(["b"], {}, "", "", {"b": (p, m, settings)})["b"]
+    assert float(probe.edge_probe) == pytest.approx(0.1) and float(plain.edge_probe) == 0.0
+    assert float(probe.edge_lowering) == pytest.approx(0.01)
+    for field in ("k_base", "terrain_adaptation", "search_forward"):
+        a = getattr(plain.reflex, field) if field == "k_base" else getattr(plain, field)
+        b = getattr(probe.reflex, field) if field == "k_base" else getattr(probe, field)
+        assert float(a) == float(b)
+    with pytest.raises(reach_map.UsageError, match="terrain_adaptation: tuned by run"):
+        reach_map.variant_params(["c"], {}, "", "", {"c": (p, m, {"terrain_adaptation": 0.5})})
+    with pytest.raises(reach_map.UsageError, match=r"edge_probe=0.5 out of range"):
+        reach_map.variant_params(["d"], {}, "", "", {"d": (p, m, {"edge_probe": 0.5})})
 
 
 def _study_copy(tmp_path, run: str):
