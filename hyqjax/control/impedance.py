@@ -42,7 +42,7 @@ class ImpedanceGains:
                 raise ParameterError("ImpedanceGains", name, f"array of shape {np.shape(v)}",
                                      "a scalar or of shape (3,)", problem="has a wrong shape") from e
         ImpedanceGains(**out)  # range check on the float64 values
-        return ImpedanceGains(jnp.asarray(out["kp"], jnp.float32), jnp.asarray(out["kd"], jnp.float32))
+        return ImpedanceGains(jnp.asarray(out["kp"].astype(np.float32)), jnp.asarray(out["kd"].astype(np.float32)))
 
     def per_joint(self):
         return jnp.tile(self.kp, 4), jnp.tile(self.kd, 4)

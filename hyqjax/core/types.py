@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 if TYPE_CHECKING:  # annotations only: importing this module must not load MJX
     from mujoco import mjx
@@ -50,7 +51,8 @@ class Push:
 
     @staticmethod
     def none(dtype=jnp.float32) -> "Push":
-        return Push(jnp.zeros(3, dtype), jnp.asarray(0.0, dtype), jnp.asarray(0.0, dtype))
+        zero = np.zeros((), dtype)  # built in NumPy, then put: no program compiled for it
+        return Push(jnp.asarray(np.zeros(3, dtype)), jnp.asarray(zero), jnp.asarray(zero))
 
 
 class Controller(NamedTuple):

@@ -189,7 +189,7 @@ class CrawlParams:
                 raise ParameterError("CrawlParams", name, f"array of shape {arr.shape}", "a scalar",
                                      problem="has a wrong shape")
             specs[name].check(arr, "CrawlParams")
-            vals[name] = jnp.asarray(arr, jnp.float32)
+            vals[name] = jnp.asarray(np.asarray(arr, np.float32))  # converted in NumPy: no conversion program
         if isinstance(foot_sequence, str):
             if foot_sequence not in FOOT_SEQUENCES:
                 raise ParameterError("CrawlParams", "foot_sequence", foot_sequence,
@@ -200,9 +200,9 @@ class CrawlParams:
             if sorted(seq) != [0, 1, 2, 3]:
                 raise ParameterError("CrawlParams", "foot_sequence", repr(foot_sequence),
                                      "a permutation of (0, 1, 2, 3)", problem="is not a leg order")
-        return CrawlParams(**vals, foot_sequence=jnp.asarray(seq, jnp.int32),
-                           use_reflex=jnp.asarray(1.0 if use_reflex else 0.0, jnp.float32),
-                           shin_remedy=jnp.asarray(1.0 if shin_remedy else 0.0, jnp.float32),
+        return CrawlParams(**vals, foot_sequence=jnp.asarray(np.asarray(seq, np.int32)),
+                           use_reflex=jnp.asarray(np.asarray(1.0 if use_reflex else 0.0, np.float32)),
+                           shin_remedy=jnp.asarray(np.asarray(1.0 if shin_remedy else 0.0, np.float32)),
                            weight_qp=bool(weight_qp),
                            gains=gains or impedance.ImpedanceGains.make(),
                            reflex=reflex_params or reflex.ReflexParams.table1())

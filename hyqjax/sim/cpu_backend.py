@@ -258,10 +258,11 @@ class CBatchRunner(AheadOfTime):
         carry = None
         try:
             with _warnings_to_log():
-                view0 = unpack(phys.layout, jnp.asarray(phys.packed()[rows]))
+                # Unpacked in NumPy, then put: slicing a JAX array here would compile one small program per field.
+                view0 = jax.tree_util.tree_map(jnp.asarray, unpack(phys.layout, phys.packed()[rows]))
                 init = self._executable("init", self._init, (view0, params), batch=plan.size)
                 carry = init(view0, params)
-                h = jnp.int32(handle)
+                h = jnp.asarray(np.asarray(handle, np.int32))  # a NumPy scalar would compile a conversion
                 advance = self._executable("advance", self._advance, (carry, params, h), (k,), batch=plan.size)
                 self._end_compile_phase(plan.size)
                 t_sim = time.perf_counter()
@@ -290,7 +291,8 @@ class CBatchRunner(AheadOfTime):
         res = sim.rollout_result(carry, trace)
         if plan.size == n:
             return res
-        return jax.tree_util.tree_map(lambda x: x[:n], res)  # the padded rows dropped
+        # The padded rows dropped, in NumPy (slicing each JAX array would compile one small program per shape).
+        return jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res))
 
 
 class CBackend:

@@ -317,12 +317,14 @@ def make_scenarios(heights, reflex_modes, instances: int, seed: int, *, friction
     b = len(table["height"])
     terrain = hmodel.InstanceTerrain.make(table["height"], table["friction"], table["payload_mass"],
                                           table["payload_com"], n_blocks=n_blocks)
-    bparams = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), base)
-    bparams = dataclasses.replace(bparams, use_reflex=jnp.asarray(table["reflex"], jnp.float32))
+    # Broadcast in NumPy, then put (a jnp.broadcast_to of each field would compile one small program per shape).
+    batched = lambda x: jnp.asarray(np.broadcast_to(np.asarray(x), (b,) + np.shape(x)))  # noqa: E731
+    bparams = jax.tree_util.tree_map(batched, base)
+    bparams = dataclasses.replace(bparams, use_reflex=jnp.asarray(np.asarray(table["reflex"], np.float32)))
     scenario = Scenario(terrain=terrain, start_distance=jnp.asarray(table["start_distance"]),
                         lateral_offset=jnp.asarray(table["lateral_offset"]), yaw=jnp.asarray(table["yaw"]),
                         params=bparams,
-                        push=jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + x.shape), sim.Push.none()))
+                        push=jax.tree_util.tree_map(batched, sim.Push.none()))
     return scenario, table
 
 
