@@ -37,7 +37,7 @@ def _edge_in_world(res, i):
 
 def test_a_bad_probe_setting_is_refused_in_one_line_naming_it_and_its_range():
     for name, bad in (("edge_probe", 0.5), ("edge_probe_depth", -0.01), ("edge_tilt", 1.5), ("edge_margin", 0.4),
-                      ("edge_lowering", 0.15)):
+                      ("edge_lowering", 0.15), ("edge_deep", 1.5), ("edge_tilt_deep", -0.1)):
         with pytest.raises(ParameterError) as e:
             CrawlParams.make(**{name: bad})
         msg = str(e.value)
@@ -77,7 +77,8 @@ def test_probe_off_leaves_every_output_bitwise_unchanged():
     """At ``edge_probe = 0`` the other probe settings change nothing: outcomes, traces, final state and the
     crawl's own memory are bitwise those of the defaults (the option's code paths are all ``where``-gated)."""
     base = CrawlParams.make(**REMEDY)
-    other = CrawlParams.make(**REMEDY, edge_probe_depth=0.1, edge_tilt=1.0, edge_margin=-0.2, edge_lowering=0.1)
+    other = CrawlParams.make(**REMEDY, edge_probe_depth=0.1, edge_tilt=1.0, edge_margin=-0.2, edge_lowering=0.1,
+                             edge_deep=0.0, edge_tilt_deep=1.0)
     runs = [_run(p, (0.0, 0.15)) for p in (base, other)]  # 6 s: the program of the tests below
     (out_a, res_a), (out_b, res_b) = runs
     for a, b in zip(jax.tree.leaves((out_a, res_a.data.qpos, res_a.trace, res_a.ctrl_state)),
@@ -105,3 +106,20 @@ def test_the_probe_brackets_the_true_edge(starts, hit):
         else:
             assert hi - lo < 0.1 + 0.02, (lo, hi)
     assert not np.any(np.asarray(out.lost_foothold))  # the probe's miss is no stance trigger in the air
+
+
+def test_the_gate_tilts_by_the_measured_depth():
+    """Behind the edge the gate follows ``edge_tilt_deep`` where the measured step is deeper than ``edge_deep``,
+    ``edge_tilt`` where it is not, and the crawl's own share where the hips are past (or the probe is off)."""
+    p = CrawlParams.make(**REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_deep=0.255, edge_tilt_deep=0.5)
+    rp, behind_delta = jnp.zeros(2), jnp.zeros(3)
+
+    class St:
+        edge_lo, edge_hi = np.float32(0.2), np.float32(0.6)  # the hips (x about 0.37) are behind it
+
+    for depth, want in ((0.24, 0.3), (0.27, 0.5)):
+        St.edge_depth = np.float32(depth)
+        assert float(edge.tilt_share(p, St, 0.8, rp, behind_delta)) == pytest.approx(want)
+    St.edge_lo, St.edge_hi = np.float32(-0.6), np.float32(-0.2)  # hips past the edge
+    assert float(edge.tilt_share(p, St, 0.8, rp, behind_delta)) == pytest.approx(0.8)
+    assert float(edge.tilt_share(p.replace(edge_probe=np.float32(0.0)), St, 0.8, rp, behind_delta)) == pytest.approx(0.8)

@@ -38,7 +38,7 @@ from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
 from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
     LIMIT_DEPTH, LIMIT_END_STOP, LIMIT_EXTENSION, LIMIT_NONE, PHASE_BODY, PHASE_SWING,
-    CrawlInfo, CrawlState, crawl_init, start_body_phase, start_swing_phase,
+    CrawlInfo, CrawlState, crawl_init, feet_h, start_body_phase, start_swing_phase,
 )
 from hyqjax.reflex import step as reflex
 from hyqjax.core.types import Controller, Observation
@@ -159,11 +159,13 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
                                          deep=st.deep.at[leg].set(deep_leg), n_steps=st.n_steps + 1,
                                          n_touchdowns=st.n_touchdowns + touchdown.astype(jnp.int32),
                                          n_limit_stops=st.n_limit_stops + (limit & ~touchdown).astype(jnp.int32))
-    edge_lo, edge_hi, probe_leg = edge.after_swing(p, st, leg, deep_leg, touchdown)
-    st_after_swing = dataclasses.replace(st_after_swing, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg)
+    edge_lo, edge_hi, probe_leg, edge_depth = edge.after_swing(p, st, leg, deep_leg, touchdown, feet_h(obs)[0])
+    st_after_swing = dataclasses.replace(st_after_swing, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
+                                         edge_depth=edge_depth)
     # A probe's end (touchdown or its depth) starts the leg's full swing from where it is (hyqjax.crawl.edge).
     st_after_probe = start_swing_phase(p, dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi,
-                                                              probe_leg=probe_leg, probing=False,
+                                                              probe_leg=probe_leg, edge_depth=edge_depth,
+                                                              probing=False,
                                                               step_back=edge.step_back(p, touchdown)), obs)
     st_after_swing = start_body_phase(p, st_after_swing, obs)
     st_after_body = start_swing_phase(p, st1, obs)

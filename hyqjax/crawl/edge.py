@@ -57,8 +57,18 @@ def carry(st, feet_new):
     return jnp.where(on, st.edge_lo + shift, st.edge_lo), jnp.where(on, st.edge_hi + shift, st.edge_hi)
 
 
-def after_swing(p: CrawlParams, st, leg, deep_leg, touchdown):
-    """``(edge_lo, edge_hi, probe_leg)`` after ``leg``'s swing ends (``st``: the swing's state, its ``H0``)."""
+def drop(st, leg, feet_now):
+    """How far ``leg``'s foot went down in the world during the swing (m): its height above the stance feet at the
+    swing's start (``st.feet_h0``) less the same now (``feet_now``, the current horizontal frame; the stance feet
+    have not moved in the world)."""
+    w = st.stance / jnp.sum(st.stance)
+    return ((st.feet_h0[leg, 2] - jnp.sum(w * st.feet_h0[:, 2])) - (feet_now[leg, 2] - jnp.sum(w * feet_now[:, 2])))
+
+
+def after_swing(p: CrawlParams, st, leg, deep_leg, touchdown, feet_now):
+    """``(edge_lo, edge_hi, probe_leg, edge_depth)`` after ``leg``'s swing ends (``st``: the swing's state, its
+    ``H0``; ``feet_now`` the feet in the current horizontal frame): the bounds, the leg to probe and the step's
+    depth (:func:`drop`, measured by the front swing that found it)."""
     mate = remedy.partner(leg)
     r = jnp.asarray(robot.FOOT_RADIUS, st.edge_hi.dtype)
     first = remedy.is_front(leg) & deep_leg & ~st.deep[mate] & ~known(st.edge_hi) & ~st.probing
@@ -68,7 +78,8 @@ def after_swing(p: CrawlParams, st, leg, deep_leg, touchdown):
     lo = jnp.where(first, lo_first, jnp.where(st.probing & touchdown, jnp.maximum(st.edge_lo, at), st.edge_lo))
     hi = jnp.where(first, hi_first, jnp.where(st.probing & ~touchdown, jnp.minimum(st.edge_hi, at), st.edge_hi))
     probe_leg = jnp.where(first & (p.edge_probe > 0), mate, jnp.where(st.probing, -1, st.probe_leg))
-    return lo, hi, probe_leg.astype(st.probe_leg.dtype)
+    depth = jnp.where(first, drop(st, leg, feet_now), st.edge_depth)
+    return lo, hi, probe_leg.astype(st.probe_leg.dtype), depth
 
 
 def probe_swing(p: CrawlParams, st, leg, lift, target, search_dir, search_fwd):
@@ -106,8 +117,10 @@ def behind(p: CrawlParams, st, rp, delta):
 
 def tilt_share(p: CrawlParams, st, adapt, rp, delta):
     """Share of the feet plane's tilt a body phase follows: ``edge_tilt`` while a front hip is behind the edge
-    (:func:`behind`), ``adapt`` otherwise."""
-    return jnp.where(behind(p, st, rp, delta), p.edge_tilt, adapt)
+    (:func:`behind`; ``edge_tilt_deep`` where the measured step is deeper than ``edge_deep``), ``adapt``
+    otherwise."""
+    tilt = jnp.where(st.edge_depth > p.edge_deep, p.edge_tilt_deep, p.edge_tilt)
+    return jnp.where(behind(p, st, rp, delta), tilt, adapt)
 
 
 def lowered(p: CrawlParams, st, rp, delta):

@@ -85,6 +85,8 @@ class CrawlParams:
       edge_margin: the front hips count as past the edge this far beyond its far bound (m; negative: before it).
       edge_lowering: with the probe on, body phases after which a front hip stays behind the edge's far bound plus
         ``edge_margin`` hold the trunk this much lower (m; :func:`hyqjax.crawl.edge.lowered`; 0: off).
+      edge_deep, edge_tilt_deep: where the step the first front foot found is deeper than ``edge_deep`` (its
+        measured drop, m; 1: never), the gate's tilt is ``edge_tilt_deep`` instead of ``edge_tilt``.
       velocity_feedforward: 0..1, gain on the joint velocity references ``qd^d = J^-1 xd`` (0: the PD damps
         toward zero velocity).
       joint_margin: joint references are kept this far inside each joint's range (rad), so that the
@@ -135,6 +137,8 @@ class CrawlParams:
     edge_margin: jax.Array = param_field(0.0, -0.3, 0.3, "m", "front hips past the edge's far bound by this")
     edge_lowering: jax.Array = param_field(0.0, 0.0, 0.1, "m", "trunk lowered while a front hip is behind the "
                                            "edge (probe on)")
+    edge_deep: jax.Array = param_field(1.0, 0.0, 1.0, "m", "step depth above which the gate tilts edge_tilt_deep")
+    edge_tilt_deep: jax.Array = param_field(0.3, 0.0, 1.0, "", "the gate's tilt on a step deeper than edge_deep")
     velocity_feedforward: jax.Array = param_field(0.0, 0.0, 1.0, "", "gain on the joint velocity references")
     joint_margin: jax.Array = param_field(0.0, 0.0, 0.2, "rad", "joint references kept this far inside the ranges")
     joint_speed_limit: jax.Array = param_field(robot.VELOCITY_LIMIT, 1.0, 1000.0, "rad/s",
@@ -159,7 +163,7 @@ class CrawlParams:
              search_forward=0.5, deep_search=0.05, search_forward_limit=1.5, search_forward_lift=0.0,
              step_down_lowering=0.0,
              terrain_adaptation_step=0.0, edge_probe=0.0, edge_probe_depth=0.04, edge_tilt=0.3, edge_margin=0.0,
-             edge_lowering=0.0,
+             edge_lowering=0.0, edge_deep=1.0, edge_tilt_deep=0.3,
              velocity_feedforward=0.0, joint_margin=0.0,
              joint_speed_limit=robot.VELOCITY_LIMIT, stance_min_force=0.0, weight_qp=False,
              foot_sequence="rh-rf-lh-lf", use_reflex=True, shin_remedy=False,
@@ -178,7 +182,7 @@ class CrawlParams:
                      step_down_lowering=step_down_lowering,
                      terrain_adaptation_step=terrain_adaptation_step, edge_probe=edge_probe,
                      edge_probe_depth=edge_probe_depth, edge_tilt=edge_tilt, edge_margin=edge_margin,
-                     edge_lowering=edge_lowering,
+                     edge_lowering=edge_lowering, edge_deep=edge_deep, edge_tilt_deep=edge_tilt_deep,
                      velocity_feedforward=velocity_feedforward, joint_margin=joint_margin,
                      joint_speed_limit=joint_speed_limit, stance_min_force=stance_min_force)
         specs = param_ranges(CrawlParams)

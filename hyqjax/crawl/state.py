@@ -64,6 +64,7 @@ class CrawlState:
     probe_leg: jax.Array  # the leg whose next swing probes for the edge (-1: none)
     probing: jax.Array  # bool: the current swing is the probe
     step_back: jax.Array  # the next swing's step is this much shorter (m): a probe that missed went this far
+    edge_depth: jax.Array  # the step's depth measured by the front foot that found it (m; 0 before)
     reflex: reflex.ReflexState
     q_cmd: jax.Array  # (12,) last joint reference
     n_steps: jax.Array  # completed swings
@@ -164,7 +165,7 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         search_forward_left=jnp.asarray(p.search_forward_limit, dtype), search_depth=z, stance=jnp.ones(4, dtype),
         loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool), edge_lo=jnp.asarray(-edge.EDGE_UNKNOWN, dtype),
         edge_hi=jnp.asarray(edge.EDGE_UNKNOWN, dtype), probe_leg=jnp.asarray(-1), probing=jnp.asarray(False),
-        step_back=z,
+        step_back=z, edge_depth=z,
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )
