@@ -47,12 +47,17 @@ def known(edge_hi):
     return edge_hi < 0.5 * EDGE_UNKNOWN
 
 
+def stance_shift(st, feet_new):
+    """``(3,)`` mean displacement of ``st``'s stance feet from ``st.feet_h0`` (its ``H0``) to ``feet_new`` (another
+    frame's): as they have not moved in the world, how far that frame's origin lies from ``H0``'s, negated."""
+    w = st.stance / jnp.sum(st.stance)
+    return jnp.sum(w[:, None] * (feet_new - st.feet_h0), 0)
+
+
 def carry(st, feet_new):
     """``(edge_lo, edge_hi)`` in the ``H0`` of a phase starting with feet ``feet_new`` ``(4, 3)``: the bounds of
-    ``st`` (in its ``H0``, whose stance feet ``st.feet_h0`` weighted by ``st.stance`` have not moved in the world)
-    shifted by those feet's mean displacement along x."""
-    w = st.stance / jnp.sum(st.stance)
-    shift = jnp.sum(w * (feet_new[:, 0] - st.feet_h0[:, 0]))
+    ``st`` (in its ``H0``) shifted by its stance feet's mean displacement along x (:func:`stance_shift`)."""
+    shift = stance_shift(st, feet_new)[0]
     on = known(st.edge_hi)
     return jnp.where(on, st.edge_lo + shift, st.edge_lo), jnp.where(on, st.edge_hi + shift, st.edge_hi)
 
@@ -60,9 +65,8 @@ def carry(st, feet_new):
 def drop(st, leg, feet_now):
     """How far ``leg``'s foot went down in the world during the swing (m): its height above the stance feet at the
     swing's start (``st.feet_h0``) less the same now (``feet_now``, the current horizontal frame; the stance feet
-    have not moved in the world)."""
-    w = st.stance / jnp.sum(st.stance)
-    return ((st.feet_h0[leg, 2] - jnp.sum(w * st.feet_h0[:, 2])) - (feet_now[leg, 2] - jnp.sum(w * feet_now[:, 2])))
+    have not moved in the world: :func:`stance_shift`)."""
+    return st.feet_h0[leg, 2] - feet_now[leg, 2] + stance_shift(st, feet_now)[2]
 
 
 def after_swing(p: CrawlParams, st, leg, deep_leg, touchdown, feet_now):
