@@ -374,6 +374,31 @@ def test_written_chunk_carries_a_checksum_that_covers_rows_and_metadata(spec):
     assert chunkfile.content_sha256(t2, m) != m[chunkfile.CHECKSUM]  # one ulp of one column
 
 
+CHUNK_THREADS = textwrap.dedent("""
+    import os, sys
+    sys.path.insert(0, {root!r})
+    import numpy as np
+    from hyqjax.studies.sweep import chunkfile
+    data = chunkfile.rows_to_parquet(dict(x=np.arange(500.0), h=np.ones((500, 3)), s=np.array(["ok"] * 500)),
+                                     dict(chunk=0))
+    before = len(os.listdir("/proc/self/task"))
+    for _ in range(20):
+        chunkfile.parquet_to_rows(chunkfile.rows_to_parquet(*chunkfile.parquet_to_rows(data)))
+    print(before, len(os.listdir("/proc/self/task")))
+""")
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts threads through Linux's /proc")
+def test_chunk_io_starts_no_native_threads():
+    """Reading and writing chunks stays on the calling thread: Arrow's thread pool, once started, can abort the
+    interpreter at exit (SIGABRT, "terminate called without an active exception"), which turned a writer's
+    one-line refusal into exit code -6 about once in ten runs."""
+    out = subprocess.run([sys.executable, "-c", CHUNK_THREADS.format(root=ROOT)], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    before, after = map(int, out.stdout.split())
+    assert after == before
+
 def test_chunks_without_a_checksum_trusted_only_through_the_manifest(tmp_path, spec, capsys):
     """Policy for chunk files of an earlier hyqjax (no content checksum): recorded in the manifest with a matching
     SHA-256 they are verified (and listed as such); without the manifest nothing vouches for their contents, so

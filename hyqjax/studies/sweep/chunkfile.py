@@ -119,7 +119,10 @@ def read_table(data: bytes):
     import pyarrow.parquet as pq
 
     try:
-        table = pq.ParquetFile(pa.BufferReader(data)).read()  # the file alone (no dataset discovery)
+        # The file alone (no dataset discovery), on this thread: a chunk is small, and Arrow's thread pool left
+        # running can abort the interpreter at exit ("terminate called without an active exception", apache/arrow
+        # issue 34314), which would turn a finished sweep or a one-line refusal into exit code -6.
+        table = pq.ParquetFile(pa.BufferReader(data)).read(use_threads=False)
         meta = json.loads((table.schema.metadata or {}).get(META_KEY, b"{}"))
         if not isinstance(meta, dict):
             raise ValueError("metadata is not a JSON object")
