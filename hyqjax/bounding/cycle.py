@@ -254,6 +254,7 @@ def least_squares_residual(params: BoundingParams, z_des: float, prior_weight: f
     with a ``custom_jvp`` whose rule materialises the Jacobian by one ``jax.jacfwd``."""
     scale = jnp.asarray(DECISION_SCALE, jnp.float32)
 
+    @jax.jit  # traced once per shape: optimistix's init and step trace f and its JVP several times
     def full(x):
         u = x * scale
         return jnp.concatenate([residual(u, params), jnp.sqrt(prior_weight) * prior_residual(u, z_des)])
