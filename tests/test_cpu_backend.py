@@ -331,3 +331,17 @@ def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
         np.testing.assert_array_equal(a, b)
     for a, b in zip(jax.tree_util.tree_leaves(got6), g):  # the five shared instances, again in a batch of 6
         np.testing.assert_array_equal(a[:5], b)
+    # Shards, one host thread each, run at once: 13 instances as 7 + 6 rows, each padded to the same bucket of 8
+    # (no new program), give every instance the result of the unsharded runs of the same rows.
+    thirteen = jax.tree_util.tree_map(lambda x: x[:13], stepdown.make_scenarios([0.16, 0.21, 0.24], [False, True], 3,
+                                                                                 seed=3)[0])
+    bucketed.shards = 2
+    assert bucketed.shard_bounds(13) == [(0, 7), (7, 13)]
+    both = run(bucketed, thirteen)
+    assert bucketed.last_timing["shards"] == 2 and bucketed.last_timing["compile_s"] == 0.0
+    assert bucketed.n_compiles == traced
+    bucketed.shards = 1
+    parts = [run(bucketed, jax.tree_util.tree_map(lambda x: x[lo:hi], thirteen)) for lo, hi in ((0, 7), (7, 13))]
+    for a, b, c in zip(jax.tree_util.tree_leaves(both), *(jax.tree_util.tree_leaves(p) for p in parts)):
+        np.testing.assert_array_equal(a, np.concatenate([b, c]))
+    bucketed.shards = None  # the cached runner back to its default

@@ -32,15 +32,26 @@ automatic reset of an unstable instance is switched off as well: its non-finite 
 divergence instead of restarting the run silently. Warnings MuJoCo prints for such an instance go to the
 ``hyqjax.sim.cpu_backend`` logger (debug level) while a batch runs, not to ``MUJOCO_LOG.TXT``.
 
+**Shards.** A batch runs as contiguous shards, one per CPU core (:meth:`CBatchRunner.shard_bounds`; at least
+:data:`MIN_SHARD_ROWS` rows each, so a small batch runs as one), each with its own ``MjData`` stepped on one thread
+and its own copy of the compiled chunk program, executed at once from one host thread per shard. A tick of one
+shard is its controller (compiled JAX) and then its physics (C MuJoCo); with one shard the two run one after the
+other, the core that is not stepping physics waiting for the controller. With two, one shard's controller runs while
+the other's physics steps (JAX and MuJoCo both release the GIL). Every shard is padded to the bucket of the largest,
+so all run one compiled program. Each instance's computation is the same whatever the sharding, and so are its
+results, bit for bit (tested).
+
 Forward only: a derivative through this backend is a ``ValueError`` naming ``impl`` (gradients need
 ``impl="jax"``), and there is no one-instance rollout outside a batch.
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import copy
 import functools
 import logging
+import threading
 import time
 import types
 from typing import Any
@@ -58,7 +69,7 @@ from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
 from hyqjax.sim import runner as hrunner
 from hyqjax.sim.compile_phase import AheadOfTime, notify
-from hyqjax.sim.cpu_physics import CPhysics, unpack
+from hyqjax.sim.cpu_physics import CPhysics, default_threads, unpack
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +77,9 @@ log = logging.getLogger(__name__)
 #: elemental emitters instead of its fusion emitters compile the crawl's closed loop in about half the time
 #: (5 instead of 9.5 s of CPU for 18 instances) and run its ticks as fast (benchmarks/bench_cpu_backend.py).
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+#: The fewest rows a shard of a batch has (a smaller batch runs as fewer shards, down to one).
+MIN_SHARD_ROWS = 8
 
 _MODEL_FIELDS = ("geom_pos", "geom_friction", "body_mass", "body_ipos", "body_inertia")
 
@@ -148,13 +162,14 @@ class CBatchRunner(AheadOfTime):
     """
 
     def __init__(self, ids: hmodel.ModelIds, controller: Controller, cfg, metrics: Metrics | None = None,
-                 record=None, params_axes: Any = 0, threads: int | None = None, buckets: bool = True):
+                 record=None, params_axes: Any = 0, threads: int | None = None, buckets: bool = True,
+                 shards: int | None = None):
         from hyqjax.sim import rollout as sim
 
         self.ids, self.controller, self.cfg = ids, controller, cfg
         self.metrics = metrics if metrics is not None else sim.no_metrics()
         self.record = record if cfg.record_every else None
-        self.params_axes, self.threads, self.buckets = params_axes, threads, buckets
+        self.params_axes, self.threads, self.buckets, self.shards = params_axes, threads, buckets, shards
         self.n_compiles = 0
         self._layout: dict | None = None
         self._width = 0
@@ -236,6 +251,17 @@ class CBatchRunner(AheadOfTime):
         return carry, None
 
     # ------------------------------------------------------------------ running a batch
+    def shard_bounds(self, n: int) -> list[tuple[int, int]]:
+        """Contiguous row ranges ``[lo, hi)`` of the shards a batch of ``n`` runs as (module docstring, "Shards"):
+        ``shards`` of them (at most ``n``; default: one per CPU core this process may use, as many as give each at
+        least :data:`MIN_SHARD_ROWS` rows), the larger ones first."""
+        want = self.shards if self.shards is not None else min(default_threads(), n // MIN_SHARD_ROWS)
+        s = max(1, min(int(want), n))
+        bounds = np.linspace(0, n, s + 1).round().astype(int)
+        sizes = sorted(np.diff(bounds).tolist(), reverse=True)
+        edges = np.concatenate([[0], np.cumsum(sizes)])
+        return [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+
     def __call__(self, models: list[mujoco.MjModel], d0: CInitialData, params: Any, push: Push | None = None, *,
                  progress=None, chunk_seconds: float | None = None):
         from hyqjax.sim import rollout as sim
@@ -244,55 +270,100 @@ class CBatchRunner(AheadOfTime):
             chunk_seconds = 1.0
         k = self.chunk_ticks(chunk_seconds)
         n = len(models)
-        plan = self.plan(n)
-        rows = np.minimum(np.arange(plan.size), n - 1)  # the padded rows repeat the last instance
+        bounds = self.shard_bounds(n)
+        plan = self.plan(bounds[0][1] - bounds[0][0])  # every shard padded to the largest one's bucket
         dtype = np.dtype(jnp.result_type(float))
-        phys = CPhysics(models, d0.qpos, self.ids.trunk_body, self.cfg.substeps, push, self.threads, dtype)
-        self._layout, self._width = phys.layout, phys.width
-        params = hrunner._rows(params, self.params_axes, rows)
-        n_ticks, dt, traces = self.cfg.n_ticks, self.cfg.control_dt, []
-        self._new_timing(plan)
-        handle = next(_next_handle)
-        _ACTIVE[handle] = phys
+        pushes = _push_rows(push, n)
+        threads = self.threads or default_threads()
+        per_shard = max(1, threads // len(bounds))
+        shards = []
+        for lo, hi in bounds:
+            rows = lo + np.minimum(np.arange(plan.size), hi - lo - 1)  # the padded rows repeat the shard's last
+            sp = None if pushes is None else Push(*(x[lo:hi] for x in pushes))
+            phys = CPhysics(models[lo:hi], d0.qpos[lo:hi], self.ids.trunk_body, self.cfg.substeps, sp, per_shard,
+                            dtype)
+            shards.append(types.SimpleNamespace(lo=lo, hi=hi, rows=rows, phys=phys, handle=next(_next_handle),
+                                                params=hrunner._rows(params, self.params_axes, rows), carry=None,
+                                                traces=[], done=0))
+        self._layout, self._width = shards[0].phys.layout, shards[0].phys.width
+        n_ticks, dt = self.cfg.n_ticks, self.cfg.control_dt
+        self._new_timing(hrunner.BatchPlan(n, plan.size * len(shards), 1))
+        self.last_timing["shards"] = len(shards)
+        for sh in shards:
+            _ACTIVE[sh.handle] = sh.phys
         host_call.discard_pending(PHYSICS_TARGET)
-        carry = None
+        lock = threading.Lock()
+        reported = [0]
+
+        def chunk_done(sh) -> None:  # progress at the pace of the slowest shard
+            with lock:
+                sh.done += k
+                least = min(x.done for x in shards)
+                if progress is not None and least > reported[0]:
+                    reported[0] = least
+                    progress(least * dt, n_ticks * dt)
+
+        def run(sh, advance, h) -> None:
+            for _ in range(0, n_ticks, k):
+                sh.carry, tr = advance(sh.carry, sh.params, h)
+                sh.traces.append(tr)
+                if progress is not None:
+                    jax.block_until_ready(sh.carry.tick)
+                    chunk_done(sh)
+            jax.block_until_ready(sh.carry)
+
         try:
             with _warnings_to_log():
-                # Unpacked in NumPy, then put: slicing a JAX array here would compile one small program per field.
-                view0 = jax.tree_util.tree_map(jnp.asarray, unpack(phys.layout, phys.packed()[rows]))
-                init = self._executable("init", self._init, (view0, params), batch=plan.size)
-                carry = init(view0, params)
-                h = jnp.asarray(np.asarray(handle, np.int32))  # a NumPy scalar would compile a conversion
-                advance = self._executable("advance", self._advance, (carry, params, h), (k,), batch=plan.size)
+                for sh in shards:
+                    # Unpacked in NumPy, then put: slicing a JAX array here would compile one small program per field.
+                    view0 = jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, sh.phys.packed()[sh.rows - sh.lo]))
+                    init = self._executable("init", self._init, (view0, sh.params), batch=plan.size)
+                    sh.carry = init(view0, sh.params)
+                hs = [jnp.asarray(np.asarray(sh.handle, np.int32)) for sh in shards]  # NumPy would compile a conversion
+                advance = self._executable("advance", self._advance, (shards[0].carry, shards[0].params, hs[0]), (k,),
+                                           batch=plan.size)
                 self._end_compile_phase(plan.size)
                 t_sim = time.perf_counter()
-                for done in range(0, n_ticks, k):
-                    carry, tr = advance(carry, params, h)
-                    traces.append(tr)
-                    if progress is not None:
-                        jax.block_until_ready(carry.tick)
-                        host_call.raise_pending(PHYSICS_TARGET)
-                        progress((done + k) * dt, n_ticks * dt)
-                jax.block_until_ready(carry)
+                if len(shards) == 1:
+                    run(shards[0], advance, hs[0])
+                else:  # one host thread per shard: while one shard's physics steps, another's controller runs
+                    with concurrent.futures.ThreadPoolExecutor(len(shards)) as pool:
+                        for f in [pool.submit(run, sh, advance, h) for sh, h in zip(shards, hs)]:
+                            f.result()
                 host_call.raise_pending(PHYSICS_TARGET)
                 self.last_timing["simulate_s"] = time.perf_counter() - t_sim
         finally:
             self._compile_t0 = None
-            if carry is not None:  # a call that failed on the host waits for the chunks it dispatched
-                with contextlib.suppress(Exception):
-                    jax.block_until_ready(carry)
-            _ACTIVE.pop(handle, None)
-            phys.close()
+            for sh in shards:
+                if sh.carry is not None:  # a call that failed on the host waits for the chunks it dispatched
+                    with contextlib.suppress(Exception):
+                        jax.block_until_ready(sh.carry)
+                _ACTIVE.pop(sh.handle, None)
+                sh.phys.close()
         notify("done", **self.last_timing)
-        trace = None
-        if self.record is not None:
-            trace = traces[0] if len(traces) == 1 else jax.tree_util.tree_map(
-                lambda *xs: jnp.concatenate(xs, axis=1), *traces)
-        res = sim.rollout_result(carry, trace)
-        if plan.size == n:
-            return res
-        # The padded rows dropped, in NumPy (slicing each JAX array would compile one small program per shape).
-        return jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], res))
+        results = []
+        for sh in shards:
+            trace = None
+            if self.record is not None:
+                trace = sh.traces[0] if len(sh.traces) == 1 else jax.tree_util.tree_map(
+                    lambda *xs: jnp.concatenate(xs, axis=1), *sh.traces)
+            results.append((sim.rollout_result(sh.carry, trace), sh.hi - sh.lo))
+        if len(results) == 1 and plan.size == n:
+            return results[0][0]
+        # The padded rows dropped and the shards joined, in NumPy (slicing or joining JAX arrays would compile one
+        # small program per shape).
+        return jax.device_put(jax.tree_util.tree_map(
+            lambda *xs: np.concatenate([np.asarray(x)[:m] for x, (_, m) in zip(xs, results)]),
+            *(r for r, _ in results)))
+
+
+def _push_rows(push: Push | None, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``push`` as per-instance NumPy rows ``(n, 3), (n,), (n,)`` (None without one)."""
+    if push is None:
+        return None
+    return (np.broadcast_to(np.asarray(push.force, np.float64).reshape(-1, 3), (n, 3)),
+            np.broadcast_to(np.asarray(push.t_start, np.float64).reshape(-1), (n,)),
+            np.broadcast_to(np.asarray(push.duration, np.float64).reshape(-1), (n,)))
 
 
 class CBackend:
