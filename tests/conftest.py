@@ -77,24 +77,6 @@ def pytest_configure(config):
     mjx.put_model = guarded
 
 
-#: Test files by CPU time in the suite (seconds on 2 cores with an empty compile cache, `--durations`, 2026-11-27),
-#: the longest first. pytest-xdist's `--dist loadfile` hands files to its workers in collection order, and in
-#: alphabetical order the longest file (test_tune.py, about a third of the suite) came last but one and finished
-#: the run alone; longest first, the other worker shares out the rest meanwhile. Files not listed follow in their
-#: own order.
-LONGEST_FILES_FIRST = ("test_tune.py", "test_api.py", "test_bounding.py", "test_sim.py", "test_cluster.py",
-                       "test_cpu_backend.py", "test_bounding_robust.py", "test_warp.py", "test_sweep.py",
-                       "test_model.py", "test_contacts_from_distance.py", "test_store.py", "test_episode_end.py",
-                       "test_reflex.py", "test_reverse_mode.py", "test_stepdown.py")
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """The collected tests file by file, the files of :data:`LONGEST_FILES_FIRST` first (a stable sort: the order
-    within a file is kept)."""
-    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
-    items.sort(key=lambda item: rank.get(os.path.basename(str(item.path)), len(rank)))
-
-
 def pytest_runtest_setup(item):
     _RUNNING["item"] = item
 
