@@ -200,6 +200,8 @@ def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsy
     text = status.throughput_text(6, 1000)
     assert text.startswith("simulating 2.0 s: 3,000 env-steps/s of 6 instances; compile 12.5 s besides")
     assert "2 padded rows not counted" in text
+    status.timings[-1] = dict(compile_s=0.0, simulate_s=2.0, batch=32, passes=1, instances=18, shards=2)
+    assert status.throughput_text(18, 1000).endswith("; 2 shards of 16 rows, 14 padded rows not counted")
 
 
 def test_a_program_from_the_persistent_cache_is_not_called_a_compile(capsys):

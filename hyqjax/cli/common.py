@@ -214,8 +214,10 @@ class CompileStatus:
         if self.timings:
             t = self.timings[-1]
             extra = t["passes"] * t["batch"] - t["instances"]
-            if extra or t["passes"] > 1:
-                pad = f"; batches of {t['batch']}" + (f" x {t['passes']} passes" if t["passes"] > 1 else "")
+            shards = t.get("shards", 1)  # C MuJoCo: the batch's rows in shards, one program (hyqjax.sim.cpu_backend)
+            if extra or t["passes"] > 1 or shards > 1:
+                pad = (f"; {shards} shards of {t['batch'] // shards} rows" if shards > 1 else
+                       f"; batches of {t['batch']}" + (f" x {t['passes']} passes" if t["passes"] > 1 else ""))
                 pad += f", {extra} padded rows not counted" if extra else ""
         return (f"simulating {self.simulate_s:.1f} s: {rate:,.0f} env-steps/s of {instances} instances; compile "
                 f"{self.compile_s:.1f} s besides{pad}")
