@@ -344,4 +344,17 @@ def test_padded_c_batch_equals_the_exact_batch_and_one_bucket_compiles_once():
     parts = [run(bucketed, jax.tree_util.tree_map(lambda x: x[lo:hi], thirteen)) for lo, hi in ((0, 7), (7, 13))]
     for a, b, c in zip(jax.tree_util.tree_leaves(both), *(jax.tree_util.tree_leaves(p) for p in parts)):
         np.testing.assert_array_equal(a, np.concatenate([b, c]))
+    # An interrupt in one shard's thread (here from the progress callback, at the first chunk both shards finished)
+    # stops the other at its next chunk and reaches the caller; nothing of the batch stays registered.
+    bucketed.shards = 2
+    calls = []
+
+    def interrupt(done_s, total_s):
+        calls.append(done_s)
+        raise KeyboardInterrupt
+
+    mb, d0 = stepdown.batch_inputs(st, thirteen)
+    with pytest.raises(KeyboardInterrupt):
+        bucketed(mb, d0, thirteen.params, thirteen.push, progress=interrupt, chunk_seconds=0.2)
+    assert calls == [pytest.approx(0.2)] and not cb._ACTIVE
     bucketed.shards = None  # the cached runner back to its default

@@ -69,7 +69,7 @@ from hyqjax.sim import model as hmodel
 from hyqjax.sim import observe as hobs
 from hyqjax.sim import runner as hrunner
 from hyqjax.sim.compile_phase import AheadOfTime, notify
-from hyqjax.sim.cpu_physics import CPhysics, default_threads, unpack
+from hyqjax.sim.cpu_physics import CPhysics, default_threads, push_rows, unpack
 
 log = logging.getLogger(__name__)
 
@@ -257,9 +257,7 @@ class CBatchRunner(AheadOfTime):
         least :data:`MIN_SHARD_ROWS` rows), the larger ones first."""
         want = self.shards if self.shards is not None else min(default_threads(), n // MIN_SHARD_ROWS)
         s = max(1, min(int(want), n))
-        bounds = np.linspace(0, n, s + 1).round().astype(int)
-        sizes = sorted(np.diff(bounds).tolist(), reverse=True)
-        edges = np.concatenate([[0], np.cumsum(sizes)])
+        edges = np.cumsum([0] + [n // s + (i < n % s) for i in range(s)])  # the larger shards first
         return [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
 
     def __call__(self, models: list[mujoco.MjModel], d0: CInitialData, params: Any, push: Push | None = None, *,
@@ -273,9 +271,8 @@ class CBatchRunner(AheadOfTime):
         bounds = self.shard_bounds(n)
         plan = self.plan(bounds[0][1] - bounds[0][0])  # every shard padded to the largest one's bucket
         dtype = np.dtype(jnp.result_type(float))
-        pushes = _push_rows(push, n)
-        threads = self.threads or default_threads()
-        per_shard = max(1, threads // len(bounds))
+        pushes = push_rows(push, n)
+        per_shard = max(1, (self.threads or default_threads()) // len(bounds))
         shards = []
         for lo, hi in bounds:
             rows = lo + np.minimum(np.arange(plan.size), hi - lo - 1)  # the padded rows repeat the shard's last
@@ -303,8 +300,12 @@ class CBatchRunner(AheadOfTime):
                     reported[0] = least
                     progress(least * dt, n_ticks * dt)
 
+        stop = threading.Event()  # set when another shard failed or the caller was interrupted
+
         def run(sh, advance, h) -> None:
             for _ in range(0, n_ticks, k):
+                if stop.is_set():
+                    return
                 sh.carry, tr = advance(sh.carry, sh.params, h)
                 sh.traces.append(tr)
                 if progress is not None:
@@ -315,8 +316,9 @@ class CBatchRunner(AheadOfTime):
         try:
             with _warnings_to_log():
                 for sh in shards:
-                    # Unpacked in NumPy, then put: slicing a JAX array here would compile one small program per field.
-                    view0 = jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, sh.phys.packed()[sh.rows - sh.lo]))
+                    # Unpacked in NumPy, then put (slicing JAX arrays would compile a program per field).
+                    rows0 = sh.phys.packed()[sh.rows - sh.lo]
+                    view0 = jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, rows0))
                     init = self._executable("init", self._init, (view0, sh.params), batch=plan.size)
                     sh.carry = init(view0, sh.params)
                 hs = [jnp.asarray(np.asarray(sh.handle, np.int32)) for sh in shards]  # NumPy would compile a conversion
@@ -327,9 +329,17 @@ class CBatchRunner(AheadOfTime):
                 if len(shards) == 1:
                     run(shards[0], advance, hs[0])
                 else:  # one host thread per shard: while one shard's physics steps, another's controller runs
-                    with concurrent.futures.ThreadPoolExecutor(len(shards)) as pool:
-                        for f in [pool.submit(run, sh, advance, h) for sh, h in zip(shards, hs)]:
-                            f.result()
+                    pool = concurrent.futures.ThreadPoolExecutor(len(shards))
+                    try:
+                        futs = [pool.submit(run, sh, advance, h) for sh, h in zip(shards, hs)]
+                        concurrent.futures.wait(futs, return_when=concurrent.futures.FIRST_EXCEPTION)
+                        for f in sorted(futs, key=lambda f: not (f.done() and f.exception())):
+                            f.result()  # the first failure first
+                    except BaseException:  # an interrupt or a failed shard: the others stop at their next chunk
+                        stop.set()
+                        raise
+                    finally:
+                        pool.shutdown(wait=True)
                 host_call.raise_pending(PHYSICS_TARGET)
                 self.last_timing["simulate_s"] = time.perf_counter() - t_sim
         finally:
@@ -355,15 +365,6 @@ class CBatchRunner(AheadOfTime):
         return jax.device_put(jax.tree_util.tree_map(
             lambda *xs: np.concatenate([np.asarray(x)[:m] for x, (_, m) in zip(xs, results)]),
             *(r for r, _ in results)))
-
-
-def _push_rows(push: Push | None, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """``push`` as per-instance NumPy rows ``(n, 3), (n,), (n,)`` (None without one)."""
-    if push is None:
-        return None
-    return (np.broadcast_to(np.asarray(push.force, np.float64).reshape(-1, 3), (n, 3)),
-            np.broadcast_to(np.asarray(push.t_start, np.float64).reshape(-1), (n,)),
-            np.broadcast_to(np.asarray(push.duration, np.float64).reshape(-1), (n,)))
 
 
 class CBackend:

@@ -154,6 +154,15 @@ class CPhysics:
         return unpack(self.layout, flat)
 
 
+def push_rows(push: Push | None, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """``push`` as per-instance NumPy rows ``(n, 3), (n,), (n,)`` (None without one)."""
+    if push is None:
+        return None
+    return (np.broadcast_to(np.asarray(push.force, np.float64).reshape(-1, 3), (n, 3)),
+            np.broadcast_to(np.asarray(push.t_start, np.float64).reshape(-1), (n,)),
+            np.broadcast_to(np.asarray(push.duration, np.float64).reshape(-1), (n,)))
+
+
 def packed_layout(m: mujoco.MjModel) -> dict[str, tuple[int, int, tuple[int, ...]]]:
     """Columns ``(start, stop, shape per instance)`` of each field in :class:`CPhysics`'s packed rows; ``state``
     is ``time, qpos, qvel``."""
