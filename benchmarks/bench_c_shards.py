@@ -29,9 +29,8 @@ from hyqjax.io import atomic as hio  # noqa: E402
 from hyqjax.studies import stepdown  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_cpu_backend import HEIGHTS  # noqa: E402  (the same batch as bench_cpu_backend.py)
 from bench_physics import host_info  # noqa: E402
-
-HEIGHTS = (0.16, 0.21, 0.24)
 
 
 def main(argv=None) -> int:
@@ -65,8 +64,7 @@ def main(argv=None) -> int:
             leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(out)]
             if s not in first:
                 first[s] = leaves
-            ref = first[args.shards[0]] if args.shards[0] in first else leaves
-            same &= all(np.array_equal(a, b, equal_nan=True) for a, b in zip(leaves, ref))
+            same &= all(np.array_equal(a, b, equal_nan=True) for a, b in zip(leaves, first[args.shards[0]]))
             row = dict(rep=rep, shards=runner.last_timing.get("shards", 1), wall_s=wall, simulate_s=sim_s,
                        compile_s=runner.last_timing["compile_s"], rate=scen.batch_size * ticks / sim_s)
             res["runs"].append(row)

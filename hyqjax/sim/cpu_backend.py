@@ -310,6 +310,7 @@ class CBatchRunner(AheadOfTime):
                 sh.traces.append(tr)
                 if progress is not None:
                     jax.block_until_ready(sh.carry.tick)
+                    host_call.raise_pending(PHYSICS_TARGET)  # a failed host call stops the run at this chunk
                     chunk_done(sh)
             jax.block_until_ready(sh.carry)
 
