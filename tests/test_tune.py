@@ -231,9 +231,12 @@ def test_windows_retaken_under_a_parameterised_crawl(cl64, su64):
         th[sp.names.index("body_height")] -= 1.0  # a lower trunk: another gait, other snapshot states
         spec = windows.WindowSpec(per_scenario=2, lead=6.0, offset=190)
         sc0, _ = evaluate.scenarios([0.24], 1, 3, params=base)
+        programs = windows._capture_batch._cache_size()
         retaken = windows.make_windows(sc0, spec, su, param=schedule.Parameterisation("shared", sp), theta=th)
         sc1, _ = evaluate.scenarios([0.24], 1, 3, params=sp.crawl_params(jnp.asarray(th), base))
         plain = windows.make_windows(sc1, spec, su)
+        # one new program (the scheduled crawl's): the plain crawl with other values reuses the fixture's
+        assert windows._capture_batch._cache_size() == programs + 1
     assert np.asarray(retaken.valid).all()
     for a, b in ((retaken.leg, plain.leg), (retaken.tick, plain.tick)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -314,22 +317,45 @@ FAST_COMPILE = {"xla_backend_optimization_level": 0}
 
 
 @pytest.mark.slow
-def test_reverse_mode_window_rows_equal_jacfwd_with_checkpoint(cl64, su64):
-    """The reverse-mode tuning step (:func:`objective.make_value_and_grad_reverse`: MJX's solver as a fixed-length
-    loop, the checkpointed tick scan, two prefix lengths with one backward pass each) gives ``jacfwd``'s
-    per-window rows of both front legs' float64 windows and both prefixes, the same losses and terms."""
-    _, sp, _, _, base, _, both = cl64
+def test_reverse_mode_and_scheduled_parameterisation_gradients(cl64, su64):
+    """The window objective through the per-leg, feature-conditioned crawl (parameters selected per tick; the
+    parameterisation's two coordinate kinds: a per-leg row and a conditioning column) on both front legs' float64
+    windows, two prefix lengths:
 
-    def call(fn, *args):
-        out = fn.lower(*args).compile(compiler_options=FAST_COMPILE)(*args)
-        return jax.tree_util.tree_map(np.asarray, out)
+    * ``jacfwd`` (:func:`objective.make_value_and_jac`) against central differences, along a random direction and
+      along the first swinging front leg's own ``K_base`` row; the hind legs' rows do not act in these windows;
+    * the reverse-mode tuning step (:func:`objective.make_value_and_grad_reverse`: MJX's solver as a fixed-length
+      loop, the checkpointed tick scan, one backward pass per prefix) gives ``jacfwd``'s per-window rows of both
+      windows and both prefixes, the same losses and terms.
+
+    One program per mode (the central differences reuse ``jacfwd``'s)."""
+    from hyqjax.studies.tune import schedule
+
+    _, _, _, _, base, _, both = cl64
+
+    def compiled(fn, *args):
+        prog = fn.lower(*args).compile(compiler_options=FAST_COMPILE)
+        return lambda *a: jax.tree_util.tree_map(np.asarray, prog(*a))
 
     with jax.enable_x64(True):
         obj = objective.ClosedLoopObjective(ticks=260, prefixes=(130,))
-        th = jnp.asarray(sp.theta_of(base))
-        ref = call(objective.make_value_and_jac(both, base, sp, obj, su64), th, both)
-        res = call(objective.make_value_and_grad_reverse(base, sp, obj, su64, checkpoint=True), th, both)
-    assert res["ok"].all() and ref["ok"].all()
+        sp = spmod.ParamSpace.make(("k_base",))
+        par = schedule.Parameterisation("test", sp, per_leg=True, conditioned=("k_base",))
+        th = jnp.asarray(par.theta_of(base))
+        jac = compiled(objective.make_value_and_jac(both, base, par, obj, su64), th, both)
+        ref = jac(th, both)
+        res = compiled(objective.make_value_and_grad_reverse(base, par, obj, su64, checkpoint=True), th, both)(th, both)
+        g = ref["grad"]
+        assert np.all(np.isfinite(g)) and ref["ok"].all()
+        rng = np.random.default_rng(1)
+        leg = schedule.LEGS[int(both.leg[0])]
+        for v in [rng.standard_normal(par.size), np.eye(par.size)[par.names.index(f"k_base[{leg}]")]]:
+            eps = 1e-6
+            fd = (float(jac(th + eps * v, both)["loss"]) - float(jac(th - eps * v, both)["loss"])) / (2 * eps)
+            assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
+        hind = [i for i, n in enumerate(par.names) if n.endswith("[LH]") or n.endswith("[RH]")]
+        assert np.abs(g[hind]).max() < 1e-3 * np.abs(g).max()
+    assert res["ok"].all()
     np.testing.assert_allclose(res["per_window_loss"], ref["per_window_loss"], rtol=1e-12)
     g, g0 = res["per_window_grad"], ref["per_window_grad"]
     assert np.all(np.abs(g0).max(1) > 1e-6)  # every window's row is not zero (the parameters act)
@@ -341,34 +367,6 @@ def test_reverse_mode_window_rows_equal_jacfwd_with_checkpoint(cl64, su64):
     pg, pg0 = res["per_window_prefix_grad"], ref["per_window_prefix_grad"]  # every prefix's rows, 130 ticks included
     np.testing.assert_allclose(pg, pg0, rtol=1e-6, atol=1e-9 * np.abs(pg0).max())
     assert not np.allclose(pg0[:, 0], pg0[:, 1])
-
-
-@pytest.mark.slow
-def test_scheduled_parameterisation_gradient_matches_central_differences(cl64, su64):
-    """The window objective through the per-leg, feature-conditioned crawl (parameters selected per tick):
-    jacfwd against central differences on the same float64 window, along random directions and along the
-    swinging front leg's own K_base row; the hind legs' rows do not act in this window (zero gradient)."""
-    from hyqjax.studies.tune import schedule
-
-    win, _, _, _, base, obj, _ = cl64
-    su = su64
-    with jax.enable_x64(True):
-        # K_base per swing leg, conditioned on the 3 features: 7 tangents (both coordinate kinds of a scheduled
-        # parameterisation: a per-leg row and a conditioning column).
-        sp = spmod.ParamSpace.make(("k_base",))
-        par = schedule.Parameterisation("test", sp, per_leg=True, conditioned=("k_base",))
-        vj = objective.make_value_and_jac(win, base, par, obj, su)
-        th = jnp.asarray(par.theta_of(base))
-        r = vj(th, win)
-        g = np.asarray(r["grad"])
-        assert np.all(np.isfinite(g)) and bool(r["ok"][0])
-        rng = np.random.default_rng(1)
-        for v in [rng.standard_normal(par.size), np.eye(par.size)[par.names.index(f"k_base[{schedule.LEGS[int(win.leg[0])]}]")]]:
-            eps = 1e-6
-            fd = (float(vj(th + eps * v, win)["loss"]) - float(vj(th - eps * v, win)["loss"])) / (2 * eps)
-            assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
-        hind = [i for i, n in enumerate(par.names) if n.endswith("[LH]") or n.endswith("[RH]")]
-        assert np.abs(g[hind]).max() < 1e-3 * np.abs(g).max()
 
 
 def test_line_search_never_raises_the_objective_even_with_a_biased_gradient(tmp_path):

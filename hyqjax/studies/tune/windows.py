@@ -212,6 +212,16 @@ def _capture(mx, ids, controller, p, d0, spec: WindowSpec, n_ticks: int, dt: flo
     return carry[3], carry[4]
 
 
+@functools.partial(jax.jit, static_argnames=("ids", "param", "spec", "n_ticks", "dt"))
+def _capture_batch(mb, params, d0, *, ids, param, spec: WindowSpec, n_ticks: int, dt: float):
+    """:func:`_capture` over a batch of scenarios, under the plain crawl (``param`` None) or the crawl that
+    ``param`` schedules; one program per static configuration, whatever the parameters' values (a tuner that
+    re-takes its windows at every iterate traces it once)."""
+    controller = crawl.crawl_controller(dt) if param is None else param.controller(dt)
+    return jax.vmap(lambda mm, pp, dd: _capture(mm, ids, controller, pp, dd, spec, n_ticks, dt),
+                    in_axes=(hmodel.model_in_axes(mb), 0, 0))(mb, params, d0)
+
+
 def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), su: Setup | None = None,
                  param=None, theta=None) -> Windows:
     """Snapshots of a step-down batch (``stepdown.make_scenarios``, reflex on) under its own parameters, or, with
@@ -226,17 +236,14 @@ def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), s
     params = jax.tree_util.tree_map(lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x,
                                     scenario.params)
     n_ticks = int(round(spec.lead / dt))
-    controller = crawl.crawl_controller(dt)
     if param is not None:
         th = jnp.asarray(np.asarray(theta, np.float64), dtype)
         sched = param.scheduled(th, params)
         params = dataclasses.replace(sched, table=jnp.broadcast_to(sched.table, (b,) + sched.table.shape),
                                      cond=jnp.broadcast_to(sched.cond, (b,) + sched.cond.shape))
-        controller = param.controller(dt)
     axes = hmodel.model_in_axes(mb)
-    fn = jax.jit(jax.vmap(lambda mm, pp, dd: _capture(mm, su.ids, controller, pp, dd, spec, n_ticks, dt),
-                          in_axes=(axes, 0, 0)))
-    (dd, cc, tt), (valid, legs, ticks) = fn(mb, params, d0)
+    (dd, cc, tt), (valid, legs, ticks) = _capture_batch(mb, params, d0, ids=su.ids, param=param, spec=spec,
+                                                        n_ticks=n_ticks, dt=dt)
     k = spec.per_scenario
     flat = lambda x: x.reshape((b * k,) + x.shape[2:])
     rep = lambda x, a: x if a is None else jnp.repeat(x, k, axis=0)
