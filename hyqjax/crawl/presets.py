@@ -7,12 +7,20 @@ shin remedy (``crawl.remedy``) and its trunk at 80% of the feet plane (``terrain
 narrow-spread remedy study (docs/stepdown.md), the other settings are its options (``remedy_probe``: the probing
 step of ``crawl.edge``, its tilt and margin picked among eight settings on 96 CPU runs of the reach map's seed 9494;
 ``remedy_probe2``: the same with the trunk lower while the front hips are behind the edge, picked among five
-lowerings on the same runs and confirmed on 256 runs of seed 9696; docs/stepdown.md, "Finding the edge").
+lowerings on the same runs and confirmed on 256 runs of seed 9696; docs/stepdown.md, "Finding the edge";
+``remedy_probe_deep`` and ``start_probe_deep``: the probe settings of the recommended step-down configuration,
+:data:`PROBE_DEEP`, on the remedy crawl and on the tuner's start point).
 """
 from __future__ import annotations
 
 #: ``--remedy``: the shin-strike remedy with the trunk at 80% of the feet plane.
 REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
+
+#: The edge probe's settings of the recommended step-down configuration (docs/stepdown.md, "The tilt by the measured
+#: depth"): a 10 cm probe, the trunk at 30% of the feet plane and 1 cm lower until the front hips are 10 cm past the
+#: edge, at 50% where the first front foot measured the step deeper than 25.5 cm.
+PROBE_DEEP = dict(edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1, edge_lowering=0.01, edge_deep=0.255,
+                  edge_tilt_deep=0.5)
 
 #: name -> (``CrawlParams.make`` overrides, description).
 HAND_SET = {
@@ -30,6 +38,10 @@ HAND_SET = {
                      "remedy, a 10 cm probing step for the edge, trunk at 30% until the front hips pass it"),
     "remedy_probe2": (dict(REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1, edge_lowering=0.01),
                       "remedy_probe with the trunk 1 cm lower until the front hips pass the edge"),
+    "remedy_probe_deep": (dict(REMEDY, **PROBE_DEEP),
+                          "remedy_probe2, the trunk at 50% while the hips pass an edge measured deeper than 25.5 cm"),
+    "start_probe_deep": (dict(shin_remedy=True, **PROBE_DEEP),
+                         "the tuner's start point with remedy_probe_deep's probe, gate and depth gate"),
 }
 
 
