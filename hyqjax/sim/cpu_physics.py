@@ -71,9 +71,7 @@ class CPhysics:
                         d.qfrc_bias, d.qacc, d.ctrl, d.xfrc_applied) for d in self.datas]
         self._push = None
         if push is not None:
-            f = np.asarray(push.force, np.float64).reshape(b, 3)
-            t0 = np.asarray(push.t_start, np.float64).reshape(b)
-            dur = np.asarray(push.duration, np.float64).reshape(b)
+            f, t0, dur = push_rows(push, b)
             has = (dur > 0) & np.any(f != 0, -1)
             if np.any(has):
                 self._push = (f, t0, dur, has)
