@@ -51,7 +51,8 @@ def run(args) -> int:
         c = g.get("step_cost")
         if c:
             print(f"gradient on {d}: one jacfwd step ({c['tangents']} tangents) costs {c['jacfwd_over_value']:.1f} "
-                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s)"
+                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s); one "
+                  f"reverse-mode step {c['reverse_over_value']:.1f} ({c['reverse_s']:.3f} s)"
                   + (f"; the forward gradient ({c['forward_gradient_directions']} directions) "
                      f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
     for key, r in res["runs"].items():

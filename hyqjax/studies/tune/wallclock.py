@@ -321,8 +321,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
                 diag["step_cost"] = grad.step_cost(params[d])
             res["diagnostics"][d] = diag
             sc_ = diag["step_cost"]
-            log(f"gradient on {d}: one jacfwd step {sc_['jacfwd_s']:.3f} s = {sc_['jacfwd_over_value']:.1f} forward "
-                f"windows ({sc_['window_value_s']:.3f} s, one candidate, MJX-JAX)"
+            log(f"gradient on {d} (the study's steps: {cfg.grad_mode}): one jacfwd step {sc_['jacfwd_s']:.3f} s = "
+                f"{sc_['jacfwd_over_value']:.1f} forward windows ({sc_['window_value_s']:.3f} s, one candidate, MJX-JAX); "
+                f"one reverse-mode step {sc_['reverse_s']:.3f} s = {sc_['reverse_over_value']:.1f}"
                 + (f"; forward gradient ({sc_['forward_gradient_directions']} directions) "
                    f"{sc_['forward_gradient_s']:.3f} s = {sc_['forward_gradient_over_value']:.1f}"
                    if "forward_gradient_s" in sc_ else ""))
