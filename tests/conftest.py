@@ -11,18 +11,19 @@ import tempfile
 import textwrap
 import warnings
 
-#: The session's one XLA:CPU option (XLA_FLAGS, set before jax is imported, inherited by every subprocess a test
+#: The session's XLA:CPU options (XLA_FLAGS, set before jax is imported, inherited by every subprocess a test
 #: starts unless it gives XLA_FLAGS itself): XLA:CPU's elemental emitters instead of its fusion emitters, the code
 #: generator hyqjax already compiles the C MuJoCo backend's programs with (``hyqjax.sim.cpu_backend.
-#: COMPILER_OPTIONS``). The suite is nearly all XLA compiling MJX programs on the CPU; with this option the whole
-#: suite takes about a quarter less CPU time and every test passes unchanged (benchmarks/RESULTS.md). What a user's
-#: process compiles with (XLA's default code generator) still runs here: the two-device rollout of
+#: COMPILER_OPTIONS``), and LLVM's optimisation level 0 for the compiled code. The suite is nearly all XLA compiling
+#: MJX programs on the CPU and running them for a few hundred ticks; the first option takes about a quarter off the
+#: suite's CPU time, the second a further tenth (benchmarks/RESULTS.md), and every test passes unchanged with both.
+#: What a user's process compiles with (XLA's defaults) still runs here: the two-device rollout of
 #: tests/test_sim.py, compared with the session's run of the same scenario, and its batch-512 deadlock regression
 #: (:func:`user_xla_flags`).
-SESSION_XLA_FLAG = "--xla_cpu_use_fusion_emitters=false"
+SESSION_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):  # a choice of the user's is kept
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + SESSION_XLA_FLAG).strip()
-    os.environ["HYQJAX_TEST_XLA_FLAG"] = SESSION_XLA_FLAG  # added here (the xdist workers inherit both)
+    os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *SESSION_XLA_FLAGS]).strip()
+    os.environ["HYQJAX_TEST_XLA_FLAG"] = " ".join(SESSION_XLA_FLAGS)  # added here (the xdist workers inherit both)
 
 import hyqjax  # noqa: E402,F401  (sets the XLA:CPU flags before jax is imported)
 import jax  # noqa: E402
@@ -33,9 +34,9 @@ REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def user_xla_flags() -> str:
-    """XLA_FLAGS as a user's process has them: this session's without the option it added (``SESSION_XLA_FLAG``)."""
-    added = os.environ.get("HYQJAX_TEST_XLA_FLAG")
-    return " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f != added)
+    """XLA_FLAGS as a user's process has them: this session's without the options it added (``SESSION_XLA_FLAGS``)."""
+    added = set(os.environ.get("HYQJAX_TEST_XLA_FLAG", "").split())
+    return " ".join(f for f in os.environ.get("XLA_FLAGS", "").split() if f not in added)
 
 
 # A persistent compilation cache for this test session only (fresh each run, removed at exit): the

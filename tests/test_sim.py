@@ -320,7 +320,10 @@ def test_sharded_two_device_mesh_matches_and_runs_twice(standing_run, two_device
     assert proc.returncode == 0 and "OK" in stdout, f"stdout:\n{stdout}\nstderr:\n{stderr[-4000:]}"
     with np.load(out) as f:
         r2 = {k: f[k] for k in f.files}
-    _assert_same_result(r2, standing_run, atol=1e-4)
+    # The two-device job compiles with a user's XLA options, the session's run with the session's
+    # (conftest.SESSION_XLA_FLAGS: other code generator, LLVM at level 0): float32 rounding differs, and over 5,000
+    # ticks the standing robot's residual joint velocities (~3e-4 rad/s) differ by up to 1.3e-4 (measured).
+    _assert_same_result(r2, standing_run, atol=3e-4)
 
 
 def _assert_same_result(a, b, atol):
@@ -329,7 +332,7 @@ def _assert_same_result(a, b, atol):
     for k in ("qpos", "qvel", "trace_qpos", "max_dz"):
         np.testing.assert_allclose(a[k][STANDING], b[k][STANDING], atol=atol, rtol=0, err_msg=k)
     # Forces (~200 N) amplify float32 differences, and their inertial term M qdd carries the contact
-    # solver's rounding: relative, with an absolute floor of 500 x atol (0.05 N for two devices, far below
+    # solver's rounding: relative, with an absolute floor of 500 x atol (0.15 N for two devices, far below
     # the 30 N touchdown threshold).
     np.testing.assert_allclose(a["trace_foot_force"][STANDING], b["trace_foot_force"][STANDING],
                                atol=500 * atol, rtol=10 * atol, err_msg="trace_foot_force")
