@@ -48,13 +48,8 @@ def run(args) -> int:
         print(f"gradient on {d}: SNR across windows at the start mean {g['snr_mean']:.2f} (share > 2: "
               f"{g['snr_above_2']:.2f}); Spearman correlation of the window objective with held-out clean success "
               f"over {len(g['iterates'])} iterates: {g['objective_vs_heldout_spearman']:.2f} (useful: clearly < 0)")
-        c = g.get("step_cost")
-        if c:
-            print(f"gradient on {d}: one jacfwd step ({c['tangents']} tangents) costs {c['jacfwd_over_value']:.1f} "
-                  f"forward window evaluations on MJX-JAX ({c['jacfwd_s']:.3f} s vs {c['window_value_s']:.3f} s); one "
-                  f"reverse-mode step {c['reverse_over_value']:.1f} ({c['reverse_s']:.3f} s)"
-                  + (f"; the forward gradient ({c['forward_gradient_directions']} directions) "
-                     f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
+        if g.get("step_cost"):
+            print(wallclock_results.step_cost_line(d, g["step_cost"], res["config"].get("grad_mode", "jacfwd")))
     for key, r in res["runs"].items():
         sel = r.get("selection")
         if sel and sel["log"]:

@@ -54,7 +54,7 @@ from hyqjax.studies.tune import forward, schedule, search
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
 from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
-from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, summarize
+from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, step_cost_line, summarize
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
 #: the choice is stated).
@@ -320,13 +320,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
                 diag = gradient_diagnostics(cfg, res, {d: params[d]}, base, grad, members)[d]
                 diag["step_cost"] = grad.step_cost(params[d])
             res["diagnostics"][d] = diag
-            sc_ = diag["step_cost"]
-            log(f"gradient on {d} (the study's steps: {cfg.grad_mode}): one jacfwd step {sc_['jacfwd_s']:.3f} s = "
-                f"{sc_['jacfwd_over_value']:.1f} forward windows ({sc_['window_value_s']:.3f} s, one candidate, MJX-JAX); "
-                f"one reverse-mode step {sc_['reverse_s']:.3f} s = {sc_['reverse_over_value']:.1f}"
-                + (f"; forward gradient ({sc_['forward_gradient_directions']} directions) "
-                   f"{sc_['forward_gradient_s']:.3f} s = {sc_['forward_gradient_over_value']:.1f}"
-                   if "forward_gradient_s" in sc_ else ""))
+            log(step_cost_line(d, diag["step_cost"], cfg.grad_mode))
             save()
     res["complete"] = True
     save()

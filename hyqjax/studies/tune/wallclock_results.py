@@ -65,3 +65,15 @@ def winner(res: dict, minutes: float) -> dict | None:
     clear = len(rows) > 1 and all(best[4]["clean_ci95"][0] > r[4]["clean_ci95"][1] for r in rows[1:])
     return dict(method=best[2], dim=best[3], clean=best[0], completed=best[1], clean_ci95=best[4]["clean_ci95"],
                 others=len(rows) - 1, clear_of_all_others=bool(clear))
+
+
+def step_cost_line(dim: str, cost: dict, grad_mode: str) -> str:
+    """One line on the gradient's step cost on ``dim`` (``GradientPrograms.step_cost``'s dict): both exact steps
+    (``jacfwd``, reverse mode) and, where measured, the forward gradient, in forward-window evaluations on MJX-JAX;
+    ``grad_mode`` is the mode the study's steps used."""
+    c = cost
+    return (f"gradient on {dim} (the study's steps: {grad_mode}): one jacfwd step ({c['tangents']} tangents) "
+            f"{c['jacfwd_s']:.3f} s = {c['jacfwd_over_value']:.1f} forward windows ({c['window_value_s']:.3f} s, one "
+            f"candidate, MJX-JAX); one reverse-mode step {c['reverse_s']:.3f} s = {c['reverse_over_value']:.1f}"
+            + (f"; forward gradient ({c['forward_gradient_directions']} directions) {c['forward_gradient_s']:.3f} s = "
+               f"{c['forward_gradient_over_value']:.1f}" if "forward_gradient_s" in c else ""))
