@@ -605,6 +605,17 @@ class _FakeClock:
     def charge(self, s):
         self.charged += s
 
+    def state(self):
+        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=self.physics_steps)
+
+    def restore(self, st):
+        self.now, self.charged, self.physics_steps = st["elapsed"] - st["charged"], st["charged"], st["physics_steps"]
+
+    def paused(self):
+        import contextlib
+
+        return contextlib.nullcontext()
+
 
 def test_checkpoints_get_the_iterate_finished_before_them():
     from hyqjax.studies.tune import search
@@ -760,6 +771,108 @@ def test_search_methods_maximise_a_noisy_success_rate_with_common_random_numbers
     assert len(tr.finish(clk)) == 2
 
 
+def _synthetic_run(method, stop_at_iteration=None, stored=None):
+    """A method on a synthetic noisy success rate (or, for ``gradient``, a quadratic) under a fake clock, with
+    selection; stopped (:class:`resume.Paused`) once ``stop_at_iteration`` iterations are stored, or resumed from
+    ``stored``. Returns (trace, selection, clock, stored state or None)."""
+    from hyqjax.studies.tune import resume, search
+
+    target = np.array([1.0, -1.0, 0.5])
+    rate = lambda th: np.exp(-0.5 * np.sum((np.asarray(th) - target) ** 2, -1))  # noqa: E731
+    clk = _FakeClock()
+
+    def f_gen(thetas, g):
+        clk.now += 0.05
+        clean = np.random.default_rng([7, g]).random(32)[None, :] < rate(thetas)[:, None]
+        return dict(fitness=clean.mean(1), clean=clean, completed=clean, physics_steps=thetas.shape[0] * 32)
+
+    def validate(thetas):
+        clk.now += 0.02
+        c = np.random.default_rng(9).random((1, 200)) < rate(thetas[0])
+        return dict(clean=c, completed=c, physics_steps=200)
+
+    def step_fn(theta):
+        clk.now += 0.05
+        return dict(loss=jnp.sum((theta - target) ** 2), grad=2.0 * (theta - target))
+
+    def evaluate(cands):
+        clk.now += 0.01
+        return np.sum((np.asarray(cands, np.float64) - target) ** 2, -1)
+
+    sel = search.Selection(validate, every=3)
+    tr = search.Trace((0.5, 1.2), np.zeros(3), select=sel)
+    saved = []
+
+    def checkpoint(state_fn):
+        if len(tr.log) == stop_at_iteration:  # through JSON, as the file stores it
+            saved.append(resume.unpack(json.loads(json.dumps(resume.pack(
+                dict(clock=clk.state(), trace=tr.state(), method=state_fn()))))))
+            raise resume.Paused(method)
+
+    if stored is not None:
+        clk.restore(stored["clock"])
+        tr.restore(stored["trace"])
+    else:
+        tr.begin(clk)
+    state = None if stored is None else stored["method"]
+    try:
+        if method == "gradient":
+            search.run_gradient(step_fn, evaluate, np.zeros(3), clk, tr, step_cost=10, resume=state,
+                                checkpoint=checkpoint)
+        else:
+            search.run_search(method, f_gen, np.zeros(3), 6, 0.3, clk, tr, seed=4, resume=state,
+                              checkpoint=checkpoint)
+    except resume.Paused:
+        return tr, sel, clk, saved[0]
+    tr.finish(clk)
+    return tr, sel, clk, None
+
+
+@pytest.mark.parametrize("method", ["cma_es", "snes", "open_es", "random_search", "gradient"])
+def test_a_run_stopped_mid_budget_resumes_exactly_where_it_was(method):
+    """Every method stopped in the middle of its budget and resumed from its stored state (through JSON) takes
+    the same iterates, validations, checkpoints and physics steps as the uninterrupted run."""
+    full, full_sel, full_clk, _ = _synthetic_run(method)
+    assert len(full.log) > 12
+    tr0, _, _, stored = _synthetic_run(method, stop_at_iteration=7)
+    assert stored is not None and len(tr0.log) == 7
+    tr, sel, clk, _ = _synthetic_run(method, stored=stored)
+    assert json.dumps(tr.log) == json.dumps(full.log)
+    assert json.dumps(tr.points) == json.dumps(full.points)
+    assert json.dumps(sel.log) == json.dumps(full_sel.log)
+    assert clk.physics_steps == full_clk.physics_steps
+    np.testing.assert_array_equal(tr.returned, full.returned)
+
+
+def test_stored_run_state_survives_only_intact(tmp_path):
+    """The stored state comes back exactly (non-finite floats, arrays of any dtype, a generator's state); a file
+    that is altered, truncated or of another configuration is reported and ignored, never half-read."""
+    from hyqjax.studies.tune import resume
+
+    logs = []
+    st = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", {"seed": 0}, log=logs.append)
+    assert st.load() is None and not logs
+    rng = np.random.default_rng(3)
+    state = dict(a=np.arange(6, dtype=np.int32).reshape(2, 3), f=-np.inf, n=[np.float32(np.nan), 1.5],
+                 key=jax.random.key_data(jax.random.key(2)), rng=rng.bit_generator.state)
+    st.save(state)
+    back = st.load()
+    assert back["a"].dtype == np.int32 and back["a"].tolist() == state["a"].tolist()
+    assert back["f"] == -np.inf and np.isnan(back["n"][0]) and back["rng"] == state["rng"]
+    np.testing.assert_array_equal(back["key"], np.asarray(state["key"]))
+    raw = open(st.path, "rb").read()
+    i = raw.index(b"payload") + 40
+    for bad in (raw[:i] + bytes([raw[i] ^ 1]) + raw[i + 1:], raw[: len(raw) // 2]):
+        open(st.path, "wb").write(bad)
+        assert st.load() is None
+    assert len(logs) == 2 and all("starts over" in m for m in logs)
+    st.save(state)
+    other = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", {"seed": 1}, log=logs.append)
+    assert other.load() is None and "another configuration" in logs[-1]
+    st.remove()
+    assert not os.path.exists(st.path)
+
+
 def test_charges_count_compile_not_run_time():
     import time as _t
 
@@ -818,7 +931,10 @@ def test_wallclock_config_validation(kw, match):
                                          (["--study", "--select-instances", "10"], "multiple of 4"),
                                          (["--study", "--select-every", "0"], "--select-every"),
                                          (["--gradient-study", "--select-seed", "3"], "--select-seed belongs"),
-                                         (["--gradient-study", "--cold-compile"], "--cold-compile belongs")])
+                                         (["--gradient-study", "--cold-compile"], "--cold-compile belongs"),
+                                         (["--study", "--state-every-s", "-1"], "--state-every-s must be"),
+                                         (["--segment-minutes", "0"], "--segment-minutes must be"),
+                                         (["--gradient-study", "--segment-minutes", "5"], "--segment-minutes belongs")])
 def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
     from hyqjax.cli.app import main
 
@@ -829,8 +945,17 @@ def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, 
     assert not out.exists() or not any(out.iterdir())
 
 
+@pytest.fixture(scope="module")
+def c_success():
+    """The forward success program of the tiny CPU studies below (C MuJoCo, 0.5 s, 12 rows), compiled once."""
+    from hyqjax.studies.tune import forward, schedule, wallclock
+
+    cfg = wallclock.WallClockConfig(impl="c")
+    return forward.SuccessEvaluator(schedule.make("shared"), wallclock.start_params(cfg), 0.5, "c")
+
+
 @pytest.mark.slow
-def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_path, monkeypatch):
+def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_path, monkeypatch, c_success):
     """A tiny study on the CPU (random search and CMA-ES on the shared 14 coordinates, 0.5 s runs, one compiled
     forward program for training, selection and held-out), each method in its own call into the same directory
     (as one process per method would): members with equal parameters get equal outcomes on the common
@@ -838,16 +963,16 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     of generations plus validations); every checkpoint's iterate is the best validated one finished before it and
     is evaluated on the same held-out instances; the two calls compose into one results file; a further call keeps
     every finished stage and runs nothing; another configuration there is refused."""
-    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_results
+    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_results, wallclock_run
 
     cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.05, 0.15),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
                                     heldout_duration=0.5, impl="c", charge_compile=False, select_instances=12,
                                     select_every=1)
-    assert wallclock.selection_program(cfg) == "forward"  # 12 rows: the generation's program
+    assert wallclock_run.selection_program(cfg) == "forward"  # 12 rows: the generation's program
     base = wallclock.start_params(cfg)
     p = schedule.make("shared")
-    ev = forward.SuccessEvaluator(p, base, 0.5, "c")
+    ev = c_success
     th0 = p.theta_of(base)
     r = ev(np.stack([th0, th0 + 0.5, th0]), forward.train_scenarios(4, 3, 0))
     for k in ("clean", "completed", "progress", "mean_mobility"):
@@ -899,6 +1024,44 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert handset.best(hs)[0] in ("start", "default")
     with pytest.raises(ValueError, match="presets must be among"):
         handset.check_names(["start", "trunk_at_90"])
+
+
+@pytest.mark.slow
+def test_study_stopped_at_a_segment_end_goes_on_from_its_stored_state(tmp_path, monkeypatch, c_success):
+    """A study whose segment ends in the middle of a run (CMA-ES, C MuJoCo on the CPU) stores the run's state and
+    stops with the run unfinished; the same call then goes on from it: the generations continue without a gap or
+    a repeat, the clock from the stored seconds, every physics step is counted once, and the stored state is
+    removed when the run is in ``results.json``."""
+    from hyqjax.studies.tune import forward, resume, wallclock
+
+    cfg = wallclock.WallClockConfig(methods=("cma_es",), dims=("shared",), wall_minutes=(0.05, 0.15), popsize=2,
+                                    train_instances=4, train_duration=0.5, heldout=4, heldout_chunk=3,
+                                    heldout_duration=0.5, impl="c", charge_compile=False, select_instances=12,
+                                    select_every=2)
+    ev = c_success
+    ev(np.zeros((3, 14)), forward.train_scenarios(4, 3, 0))  # compiled before either segment
+    monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)
+    logs = []
+    first = wallclock.run_wallclock_study(cfg, str(tmp_path), log=logs.append, checkpoint_every_s=0.0,
+                                          segment_minutes=4.0 / 60)
+    assert first["paused"] == "cma_es/shared" and not first["runs"] and not first["complete"]
+    store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(cfg.to_dict()))
+    stored = store.load()
+    gens_before, t_stop = len(stored["trace"]["log"]), stored["clock"]["elapsed"]
+    assert gens_before >= 1 and 0.0 < t_stop < 60.0 * cfg.wall_minutes[-1]
+    res = wallclock.run_wallclock_study(cfg, str(tmp_path), log=logs.append)
+    run = res["runs"]["cma_es/shared"]
+    assert res["complete"] and "paused" not in res and run["segments"] == 2
+    assert any("resuming at" in m for m in logs) and not os.path.exists(store.path)
+    assert [r["generation"] for r in run["log"]] == list(range(len(run["log"]))) and len(run["log"]) > gens_before
+    assert run["log"][:gens_before] == stored["trace"]["log"]
+    assert run["log"][gens_before]["wall_s"] >= t_stop
+    walls = [r["wall_s"] for r in run["log"]]
+    assert walls == sorted(walls) and run["elapsed_s"] >= 60.0 * cfg.wall_minutes[-1]
+    sel = run["selection"]["log"]
+    assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250 + len(sel) * 12 * 250
+    assert [pt["seconds"] for pt in run["points"]] == list(cfg.checkpoints_s)
+    assert all(h["n"] == 4 for h in res["heldout"].values())
 
 
 def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
@@ -1061,7 +1224,7 @@ def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
 def test_training_draws_take_the_configured_heights_and_spread():
     """``train_heights`` and ``train_spread`` (the reach as the tuning objective): every height gets its share, and
     the wide spread reaches the start distances, frictions and payloads the training ranges exclude."""
-    from hyqjax.studies.tune import forward, wallclock
+    from hyqjax.studies.tune import forward, wallclock, wallclock_run
 
     hs = (0.24, 0.26, 0.28, 0.30)
     wide = forward.train_scenarios(256, 3, 0, hs, "wide")
@@ -1076,7 +1239,7 @@ def test_training_draws_take_the_configured_heights_and_spread():
     assert np.asarray(wide.terrain.payload_mass).max() > forward.TRAIN_RANGES["payload"][1]
     assert np.asarray(wide.terrain.friction).min() < forward.TRAIN_RANGES["friction"][0]
     cfg = wallclock.WallClockConfig(train_heights=hs, train_spread="wide", dims=("shared",), methods=("cma_es",))
-    sel = wallclock.validation_scenarios(cfg)
+    sel = wallclock_run.validation_scenarios(cfg)
     assert sel.batch_size == cfg.select_instances
     np.testing.assert_allclose(np.unique(np.asarray(sel.terrain.platform_height)), hs, atol=1e-6)
     with pytest.raises(ValueError, match="train_spread"):

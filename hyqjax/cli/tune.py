@@ -48,7 +48,7 @@ GRADIENT_STUDY_ONLY = ("objective", "steps", "line_search", "prefixes", "warm_st
                        "offset", "checkpoint_every")
 #: Options only the default tuner and --study use: refused with --gradient-study.
 WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
-                  "train_spread", "contacts_from_distance")
+                  "train_spread", "contacts_from_distance", "state_every_s", "segment_minutes")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -84,6 +84,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="compile every program cold: JAX's persistent cache and Warp's kernel cache in a fresh empty "
                         "directory of this process, so a method run in its own process (--methods one,name) pays the "
                         "compile a first run pays; runs of one study may be split over processes into one --out")
+    g.add_argument("--state-every-s", type=float, default=30.0,
+                   help="seconds between two stores of the running method's state (its search or gradient state, "
+                        "clock and trace), from which the same command resumes it after a kill (0: after every "
+                        "iteration; default 30)")
+    g.add_argument("--segment-minutes", type=float, default=None,
+                   help="stop after this many minutes of this process, storing the running method's state, and "
+                        "exit with status 75; the same command goes on from there (a budget longer than one machine "
+                        "lease runs in segments; default: no stop)")
     g.add_argument("--retake-windows", action="store_true",
                    help="the hybrid re-takes the gradient's snapshot windows under the iterate its gradient starts "
                         "from (paid from its clock), instead of descending from the start point's gait")
@@ -246,6 +254,9 @@ def _validate_wallclock(args) -> None:
     check_range("--select-every-s", args.select_every_s, 0.0, 3600.0, "s")
     check_range("--select-seed", args.select_seed, 0, 2**31 - 1, integer=True)
     check_range("--grad-directions", args.grad_directions, 0, 4096, integer=True)
+    check_range("--state-every-s", args.state_every_s, 0.0, 3600.0, "s")
+    if args.segment_minutes is not None:
+        check_range("--segment-minutes", args.segment_minutes, 0.0, 600.0, "min", lo_open=True)
     if args.heldout_seed == args.seed:
         raise UsageError(f"--heldout-seed must differ from --seed (the held-out scenarios), got {args.heldout_seed}")
     groups = split_names(args.groups)

@@ -8,6 +8,10 @@ from __future__ import annotations
 
 import os
 
+#: Exit status of a study stopped at the end of a segment (``--segment-minutes``): sysexits' EX_TEMPFAIL, "try
+#: again later" (the same command resumes it).
+PAUSED = 75
+
 
 def run(args) -> int:
     """Run the default tuner or ``--study`` (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
@@ -18,7 +22,12 @@ def run(args) -> int:
     what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
     print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
           f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
-    res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True))
+    res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True),
+                                        checkpoint_every_s=args.state_every_s, segment_minutes=args.segment_minutes)
+    if res.get("paused"):
+        print(f"paused at {res['paused']} after --segment-minutes {args.segment_minutes:g}; run the same command to "
+              f"go on (state in {args.out})", flush=True)
+        return PAUSED
     fig = figure.plot_wallclock(res, os.path.join(args.out, "tuning.png"))
     print(figure.wallclock_markdown(res))
     ho = res["heldout"]

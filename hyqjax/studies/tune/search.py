@@ -54,6 +54,23 @@ class Clock:
     def elapsed(self) -> float:
         return time.perf_counter() - self.t0 + self.charged
 
+    def state(self) -> dict:
+        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=int(self.physics_steps))
+
+    def restore(self, state: dict) -> None:
+        """Go on from a stored :meth:`state` (:mod:`.resume`): :meth:`elapsed` continues from its seconds."""
+        self.charged, self.physics_steps = float(state["charged"]), int(state["physics_steps"])
+        self.t0 = time.perf_counter() - (float(state["elapsed"]) - self.charged)
+
+    @contextlib.contextmanager
+    def paused(self):
+        """Time inside the block is not counted (a resumed run compiling again what it paid for once)."""
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.t0 += time.perf_counter() - t
+
 
 #: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.
 COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
@@ -146,6 +163,16 @@ class Selection:
                              physics_steps_run=int(clock.physics_steps - s0)))
         return better
 
+    def state(self) -> dict:
+        return dict(log=self.log, best=None if self.best is None else [list(self.best[0]), self.best[1]],
+                    since=self._since, t_last=self._t_last, theta_last=self._theta_last)
+
+    def restore(self, s: dict) -> None:
+        self.log = list(s["log"])
+        self.best = None if s["best"] is None else (tuple(s["best"][0]), np.asarray(s["best"][1], np.float64))
+        self._since, self._t_last = int(s["since"]), float(s["t_last"])
+        self._theta_last = None if s["theta_last"] is None else np.asarray(s["theta_last"], np.float64)
+
 
 @dataclasses.dataclass
 class Trace:
@@ -212,6 +239,23 @@ class Trace:
         elif self.select.due(clock, theta):
             self._validate(clock, theta, self._iterations)
 
+    def state(self) -> dict:
+        """Everything :meth:`restore` needs to go on as if never stopped (:mod:`.resume`)."""
+        return dict(checkpoints=list(self.checkpoints), log=self.log, points=self.points, last=list(self._last),
+                    spent=self._spent, iterations=self._iterations,
+                    select=None if self.select is None else self.select.state())
+
+    def restore(self, s: dict) -> None:
+        if [float(c) for c in s["checkpoints"]] != [float(c) for c in self.checkpoints]:
+            raise ValueError(f"stored checkpoints {s['checkpoints']} differ from {list(self.checkpoints)}")
+        if (s["select"] is None) != (self.select is None):
+            raise ValueError("stored run and this one differ in their selection")
+        self.log, self.points = list(s["log"]), list(s["points"])
+        self._last = (np.asarray(s["last"][0], np.float64), s["last"][1])
+        self._spent, self._iterations = int(s["spent"]), int(s["iterations"])
+        if self.select is not None:
+            self.select.restore(s["select"])
+
     def finish(self, clock: Clock) -> list:
         """Checkpoints not reached (the budget ran out at the last one): the iterate returned at the end."""
         for c in self.checkpoints[len(self.points):]:
@@ -243,16 +287,21 @@ def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float 
 
 
 def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
-               seed: int = 0, generation0: int = 0, progress: Callable | None = None, stop_at: float | None = None):
+               seed: int = 0, generation0: int = 0, progress: Callable | None = None, stop_at: float | None = None,
+               resume: dict | None = None, checkpoint: Callable | None = None):
     """Maximise ``f_gen(thetas (N, P), generation) -> dict(fitness (N,), clean, completed, physics_steps)`` with
-    ``method`` until ``clock`` passes ``stop_at`` (default the last checkpoint). Returns the final iterate."""
+    ``method`` until ``clock`` passes ``stop_at`` (default the last checkpoint). Returns the final iterate.
+    ``checkpoint(state_fn)`` is called after every generation; ``state_fn()`` is the method's state then, which
+    ``resume`` takes back (:mod:`.resume`; the clock and trace are the caller's)."""
     theta0 = np.asarray(theta0, np.float64)
     stop_at = trace.checkpoints[-1] if stop_at is None else stop_at
     key = jax.random.key(seed)
-    gen = generation0
+    gen = generation0 if resume is None else int(resume["gen"])
     if method == "random_search":
         rng = np.random.default_rng(seed)
         inc, inc_fit = theta0.copy(), -math.inf
+        if resume is not None:
+            rng.bit_generator.state, inc, inc_fit = resume["rng"], np.asarray(resume["inc"]), float(resume["inc_fit"])
         while clock.elapsed() < stop_at:
             cand = theta0 + sigma * rng.standard_normal((popsize, theta0.size))
             r = f_gen(np.concatenate([inc[None], cand]), gen)
@@ -268,11 +317,20 @@ def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float,
             gen += 1
             if progress:
                 progress(clock, trace)
+            if checkpoint:
+                checkpoint(lambda: dict(gen=gen, rng=rng.bit_generator.state, inc=inc, inc_fit=inc_fit))
         return inc
     es, params = make_strategy(method, theta0.size, popsize, sigma)
     key, k0 = jax.random.split(key)
     state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
     ask, tell = jax.jit(es.ask), jax.jit(es.tell)
+    if resume is not None:
+        from hyqjax.studies.tune.resume import tree_like
+
+        key, state = jax.random.wrap_key_data(jnp.asarray(resume["key"])), tree_like(state, resume["state"])
+        with clock.paused():  # compiled again in this process; the run paid for it once
+            pop, _ = ask(key, state, params)
+            tell(key, pop, jnp.zeros(popsize, jnp.float32), state, params)
     while clock.elapsed() < stop_at:
         key, ka, kt = jax.random.split(key, 3)
         pop, state = ask(ka, state, params)
@@ -292,16 +350,19 @@ def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float,
         gen += 1
         if progress:
             progress(clock, trace)
+        if checkpoint:
+            checkpoint(lambda: dict(gen=gen, key=jax.random.key_data(key), state=jax.tree.leaves(state)))
     return np.asarray(state.mean, np.float64)
 
 
 def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, trace: Trace, lr: float = 0.1,
                  clip: float = 1.0, line_search=(0.125, 0.25, 0.5, 1.0, 2.0), step_cost: int = 0,
-                 progress: Callable | None = None):
+                 progress: Callable | None = None, resume: dict | None = None, checkpoint: Callable | None = None):
     """Adam + batched line search (:mod:`.optimize`'s step) on ``step_fn(theta) -> dict(loss, grad)`` until the
     clock passes the last checkpoint; ``evaluate(thetas (K, P)) -> (K,)`` scores the line-search candidates
     together with ``theta`` itself (``c = 0``, so acceptance compares values of one program). ``step_cost``:
-    physics steps of one step (tangents and line search included)."""
+    physics steps of one step (tangents and line search included). ``checkpoint`` and ``resume``: as in
+    :func:`run_search` (the iterate, Adam's state and the step count)."""
     from hyqjax.studies.tune import optimize
 
     opt = optimize.make_optimizer(optimize.AdamConfig(lr=lr, clip=clip))
@@ -310,6 +371,13 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
     update = jax.jit(lambda g, s, th: opt.update(g, s, th))
     scales = jnp.asarray((0.0,) + tuple(line_search), jnp.float32)
     step = 0
+    if resume is not None:
+        from hyqjax.studies.tune.resume import tree_like
+
+        theta, step = jnp.asarray(resume["theta"], jnp.float32), int(resume["step"])
+        state = tree_like(state, resume["opt"])
+        with clock.paused():  # compiled again in this process; the run paid for it once
+            update(jnp.zeros_like(theta), state, theta)
     while not trace.done(clock):
         r = step_fn(theta)
         g = jnp.asarray(r["grad"], jnp.float32)
@@ -326,5 +394,7 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
         step += 1
         if progress:
             progress(clock, trace)
+        if checkpoint:
+            checkpoint(lambda: dict(step=step, theta=theta, opt=jax.tree.leaves(state)))
     return np.asarray(theta, np.float64)
 

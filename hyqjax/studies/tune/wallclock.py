@@ -31,18 +31,19 @@
    (``step_cost``: one ``jacfwd`` step and one forward evaluation of the same windows for one candidate, timed
    after their compiles).
 
-Resuming: ``results.json`` is written after every run and every held-out chunk; the same command on the same
-directory keeps every finished run and every finished held-out member (a run cut off by a kill starts over: its
-wall-clock budget is measured from its own start). Another configuration in the directory is refused, except
+Resuming: ``results.json`` is written after every run and every held-out chunk, and a run's state every
+``checkpoint_every_s`` seconds (:mod:`.resume`); the same command on the same directory keeps every finished run
+and every finished held-out member, and goes on with a run cut off by a kill from its last stored state, its
+clock from the seconds it had then (its compiles in the new process not counted again). With
+``segment_minutes`` a study stops by itself after that long and stores where it was, so that a budget longer
+than one machine lease runs in segments. Another configuration in the directory is refused, except
 for ``methods``: one process per method (each with ``cold_compile``, so that none loads another's compiled
 programs) composes into one results file.
 """
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import threading
 import time
 
 import jax
@@ -50,38 +51,16 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
-from hyqjax.studies.tune import forward, schedule, search
+from hyqjax.studies.tune import forward, resume, schedule, search
+from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
-from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
+from hyqjax.studies.tune.wallclock_config import WallClockConfig
 from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, step_cost_line, summarize
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
 #: the choice is stated).
 from hyqjax.studies.tune.names import DEFAULT_DIM, DEFAULT_METHOD  # noqa: E402,F401
-
-
-@contextlib.contextmanager
-def heartbeat(log, message, every: float = 5.0):
-    """Call ``log(message())`` every ``every`` seconds while the block runs (compiles and long batches report
-    progress too)."""
-    stop = threading.Event()
-
-    def beat():
-        while not stop.wait(every):
-            log(message())
-
-    th = threading.Thread(target=beat, daemon=True)
-    th.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        th.join()
-
-
-def run_key(method: str, dim: str) -> str:
-    return f"{method}/{dim}"
 
 
 def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:
@@ -116,124 +95,16 @@ def _methods_union(*lists) -> list:
     return [m for m in search.METHODS if m in seen]
 
 
-def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConfig, evaluator: forward.SuccessEvaluator,
-               charges: search.Charges, grad: GradientPrograms | None, base, log=print) -> dict:
-    """One method on one parameterisation under the wall-clock budget: its checkpoints and log."""
-    theta0 = dict(cfg.start_from).get(run_key(method, param.name))
-    theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
-    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
-        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
-                       f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
-            grad.programs(param)
-    clock = search.Clock()
-    selection = None
-    if cfg.select_instances:
-        sel_sc = validation_scenarios(cfg)
+def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoint_every_s: float = 30.0,
+                        segment_minutes: float | None = None) -> dict:
+    """Run (or resume) the study into ``out_dir`` (module docstring); returns the results dict.
 
-        def f_select(thetas):
-            with charges.track(selection_program(cfg)):  # compiles in this clock unless an earlier method did
-                return evaluator(thetas, sel_sc, param=param)
-
-        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s)
-    trace = search.Trace(cfg.checkpoints_s, theta0, select=selection)
-    gen_seed = generation_seed(cfg.seed, param.name)
-
-    def f_gen(thetas, g):
-        with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
-            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g, cfg.train_heights,
-                                                            cfg.train_spread), param=param)
-
-    last = [0.0]
-
-    def progress(clk, tr):
-        if clk.elapsed() - last[0] >= 5.0 or tr.done(clk):
-            last[0] = clk.elapsed()
-            row = tr.log[-1] if tr.log else {}
-            val = row.get("iterate_fitness", row.get("loss_at_theta"))
-            what = "fitness" if "iterate_fitness" in row else "window loss"
-            sel = tr.select.best if tr.select is not None else None
-            log(f"  {run_key(method, param.name)}: {clk.elapsed():7.1f} / {cfg.checkpoints_s[-1]:.0f} s, "
-                f"{clk.physics_steps:,} physics steps, {len(tr.log)} iterations"
-                + (f", iterate {what} {val:.3f}" if val is not None else "")
-                + (f", selected: validation clean {sel[0][0]:.3f} ({len(tr.select.log)} validations)" if sel else ""))
-
-    t_wall = time.perf_counter()
-    beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
-                     f"{cfg.checkpoints_s[-1]:.0f} s (charged compile {clock.charged:.1f} s), "
-                     f"{clock.physics_steps:,} physics steps, {len(trace.log)} iterations"
-                     + ("" if trace.log else " (the first one compiles its programs unless an earlier run did)"))
-    with beat:
-        _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log)
-    points = trace.finish(clock)
-    return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
-                selection=None if selection is None else dict(
-                    instances=cfg.select_instances, seed=cfg.select_seed, every=cfg.select_every,
-                    every_s=cfg.select_every_s, log=selection.log,
-                    physics_steps=int(sum(r["physics_steps_run"] for r in selection.log)),
-                    wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
-                charged_s=clock.charged, wall_s=time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
-                physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
-                params=param.describe(np.asarray(points[-1]["theta"])))
-
-
-def validation_scenarios(cfg: WallClockConfig):
-    """The fixed validation batch of the selection: ``select_instances`` scenarios drawn like training (training
-    heights and spread) from ``select_seed``; never the held-out set."""
-    return forward.train_scenarios(cfg.select_instances, cfg.select_seed, 0, cfg.train_heights, cfg.train_spread)
-
-
-def selection_program(cfg: WallClockConfig) -> str:
-    """The charge name of the selection's forward program: the training program's (``forward``) when it has its
-    rows (``select_instances == (popsize + 1) x train_instances``), else a program of its own."""
-    rows = cfg.select_instances
-    return "forward" if rows == (cfg.popsize + 1) * cfg.train_instances else f"forward/{rows}_rows"
-
-
-def forward_programs(method: str, cfg: WallClockConfig) -> list:
-    """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
-    out = ["forward"] if method in search.SEARCH_METHODS or method == "hybrid" else []
-    if cfg.select_instances and selection_program(cfg) not in out:
-        out.append(selection_program(cfg))
-    return out
-
-
-def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log):
-    charge = clock.charge if cfg.charge_compile else (lambda s: None)
-    for name in forward_programs(method, cfg):
-        if name in charges.seconds:
-            charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
-    trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
-    if method in search.SEARCH_METHODS:
-        search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                          progress=progress)
-    else:
-        theta_start = theta0
-        if method == "hybrid":
-            mean = search.run_search("cma_es", f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                                     progress=progress, stop_at=cfg.hybrid_split * cfg.checkpoints_s[-1])
-            theta_start = mean if trace.select is None else trace.returned
-            log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its "
-                + ("mean" if trace.select is None else "selected iterate"))
-        step_fn, evaluate, cost = grad.programs(param)
-        for name in grad.charge_names(param):
-            charge(charges.seconds[name])
-        retaken = method == "hybrid" and cfg.retake_windows
-        if retaken:
-            t = clock.elapsed()
-            clock.physics_steps += grad.retake(param, theta_start)
-            log(f"  hybrid: windows re-taken at the gradient's start iterate ({clock.elapsed() - t:.1f} s, "
-                f"{int(np.asarray(grad.win.valid).sum())} of {grad.win.size} triggered)")
-        try:
-            search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
-                                progress=progress)
-        finally:
-            if retaken:
-                grad.restore()
-
-
-def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
-    """Run (or resume) the study into ``out_dir`` (module docstring); returns the results dict."""
-    t_start = time.time()
+    Each run's state is stored every ``checkpoint_every_s`` seconds (:mod:`.resume`), so that a kill loses at
+    most that much of it. ``segment_minutes``: after that many minutes of this process, the run under way stores
+    its state and the study stops before starting anything new (``results.json`` then has ``paused``: the
+    run's key or ``"held-out"``); the same command goes on from there."""
+    t_start, t_process = time.time(), time.perf_counter()
+    segment_s = None if segment_minutes is None else 60.0 * float(segment_minutes)
     os.makedirs(out_dir, exist_ok=True)
     prev = previous(out_dir, cfg) or {}
     if cfg.cold_compile:
@@ -266,12 +137,30 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
         log("snapshot windows for the gradient (MJX-JAX) ...")
         with heartbeat(log, lambda t0=time.perf_counter(): f"  snapshot windows: {time.perf_counter() - t0:.0f} s"):
             grad = GradientPrograms(cfg, base, charges, log)
+    res.pop("paused", None)
+
+    def pause(what):
+        res["paused"] = what
+        res["charges"].update(charges.seconds)
+        save()
+        log(f"paused after {(time.perf_counter() - t_process) / 60:.1f} min (--segment-minutes {segment_minutes:g}) "
+            f"at {what}: the same command goes on from there")
+        return res
+
     for m, d in todo:
+        store = resume.RunCheckpoint(out_dir, run_key(m, d), _fingerprint(cfg.to_dict()), checkpoint_every_s,
+                                     segment_s, log, t_process)
+        if store.segment_over():
+            return pause(run_key(m, d))
         log(f"{run_key(m, d)} ({params[d].size} parameters): {cfg.wall_minutes} min budget")
-        r = run_method(m, params[d], cfg, evaluator, charges, grad, base, log)
+        try:
+            r = run_method(m, params[d], cfg, evaluator, charges, grad, base, log, store)
+        except resume.Paused:
+            return pause(run_key(m, d))
         res["runs"][run_key(m, d)] = r
         res["charges"].update(charges.seconds)
         save()
+        store.remove()
         log(f"{run_key(m, d)}: done, {r['physics_steps']:,} physics steps, {len(r['log'])} iterations, "
             f"{r['charged_s']:.1f} s charged compile")
     res["charges"].update(charges.seconds)
@@ -284,6 +173,8 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print) -> dict:
                               heights=[float(h) for h in forward.HELDOUT_HEIGHTS], ranges=forward.HELDOUT_RANGES,
                               trained_heights=[float(h) for h in cfg.train_heights],
                               train_ranges=forward.SPREADS[cfg.train_spread])
+    if left and segment_s is not None and time.perf_counter() - t_process >= segment_s:
+        return pause("held-out")
     if left:
         log(f"held-out: {len(left)} parameter sets x {sc.batch_size} instances x {cfg.heldout_duration:g} s "
             f"({len(left) * sc.batch_size * round(cfg.heldout_duration / 0.002):,} physics steps) ...")

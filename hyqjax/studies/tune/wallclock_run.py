@@ -1,0 +1,201 @@
+"""One method's run in the equal-wall-clock study (:mod:`.wallclock`): its clock, trace and selection, the
+hybrid's two phases, the compile charges it pays, and the storing and resuming of its state in the middle of its
+budget (:mod:`.resume`)."""
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+
+import numpy as np
+
+from hyqjax.studies.tune import forward, resume, schedule, search
+from hyqjax.studies.tune.gradient_programs import GradientPrograms
+from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
+
+
+@contextlib.contextmanager
+def heartbeat(log, message, every: float = 5.0):
+    """Call ``log(message())`` every ``every`` seconds while the block runs (compiles and long batches report
+    progress too)."""
+    stop = threading.Event()
+
+    def beat():
+        while not stop.wait(every):
+            log(message())
+
+    th = threading.Thread(target=beat, daemon=True)
+    th.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        th.join()
+
+def run_key(method: str, dim: str) -> str:
+    return f"{method}/{dim}"
+
+def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConfig, evaluator: forward.SuccessEvaluator,
+               charges: search.Charges, grad: GradientPrograms | None, base, log=print,
+               store: resume.RunCheckpoint | None = None) -> dict:
+    """One method on one parameterisation under the wall-clock budget: its checkpoints and log. With ``store``,
+    the run's state is stored as it goes and a stored state is resumed (:mod:`.resume`); at the end of a
+    segment :class:`.resume.Paused` is raised."""
+    theta0 = dict(cfg.start_from).get(run_key(method, param.name))
+    theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
+    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
+        with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
+                       f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
+            grad.programs(param)
+    clock = search.Clock()
+    selection = None
+    if cfg.select_instances:
+        sel_sc = validation_scenarios(cfg)
+
+        def f_select(thetas):
+            with charges.track(selection_program(cfg)):  # compiles in this clock unless an earlier method did
+                return evaluator(thetas, sel_sc, param=param)
+
+        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s)
+    trace = search.Trace(cfg.checkpoints_s, theta0, select=selection)
+    gen_seed = generation_seed(cfg.seed, param.name)
+
+    def f_gen(thetas, g):
+        with charges.track("forward"):  # the first use in this process compiles, inside this method's clock
+            return evaluator(thetas, forward.train_scenarios(cfg.train_instances, gen_seed, g, cfg.train_heights,
+                                                            cfg.train_spread), param=param)
+
+    last = [0.0]
+
+    def progress(clk, tr):
+        if clk.elapsed() - last[0] >= 5.0 or tr.done(clk):
+            last[0] = clk.elapsed()
+            row = tr.log[-1] if tr.log else {}
+            val = row.get("iterate_fitness", row.get("loss_at_theta"))
+            what = "fitness" if "iterate_fitness" in row else "window loss"
+            sel = tr.select.best if tr.select is not None else None
+            log(f"  {run_key(method, param.name)}: {clk.elapsed():7.1f} / {cfg.checkpoints_s[-1]:.0f} s, "
+                f"{clk.physics_steps:,} physics steps, {len(tr.log)} iterations"
+                + (f", iterate {what} {val:.3f}" if val is not None else "")
+                + (f", selected: validation clean {sel[0][0]:.3f} ({len(tr.select.log)} validations)" if sel else ""))
+
+    t_wall, stored = time.perf_counter(), (store.load() if store is not None else None)
+    wall_before = 0.0 if stored is None else float(stored["wall_s"])
+    segment = 1 if stored is None else int(stored["segments"]) + 1
+    if stored is not None:
+        clock.restore(stored["clock"])
+        trace.restore(stored["trace"])
+        log(f"  {run_key(method, param.name)}: resuming at {clock.elapsed():.1f} s of its budget, iteration "
+            f"{len(trace.log)} (its programs compile again with the clock stopped)")
+        with clock.paused():
+            _warm_up(method, param, cfg, evaluator, charges, theta0, stored["phase"])
+
+    def hook(phase):
+        def checkpoint(method_state):
+            if store is not None and store.due():
+                store.save(dict(clock=clock.state(), trace=trace.state(), phase=phase, method=method_state(),
+                                wall_s=wall_before + time.perf_counter() - t_wall, segments=segment))
+                if store.segment_over():
+                    raise resume.Paused(run_key(method, param.name))
+        return checkpoint
+
+    beat = heartbeat(log, lambda: f"  {run_key(method, param.name)}: {clock.elapsed():7.1f} / "
+                     f"{cfg.checkpoints_s[-1]:.0f} s (charged compile {clock.charged:.1f} s), "
+                     f"{clock.physics_steps:,} physics steps, {len(trace.log)} iterations"
+                     + ("" if trace.log else " (the first one compiles its programs unless an earlier run did)"))
+    with beat:
+        _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored, hook)
+    points = trace.finish(clock)
+    return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
+                selection=None if selection is None else dict(
+                    instances=cfg.select_instances, seed=cfg.select_seed, every=cfg.select_every,
+                    every_s=cfg.select_every_s, log=selection.log,
+                    physics_steps=int(sum(r["physics_steps_run"] for r in selection.log)),
+                    wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
+                charged_s=clock.charged, wall_s=wall_before + time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
+                segments=segment,
+                physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
+                params=param.describe(np.asarray(points[-1]["theta"])))
+
+
+def validation_scenarios(cfg: WallClockConfig):
+    """The fixed validation batch of the selection: ``select_instances`` scenarios drawn like training (training
+    heights and spread) from ``select_seed``; never the held-out set."""
+    return forward.train_scenarios(cfg.select_instances, cfg.select_seed, 0, cfg.train_heights, cfg.train_spread)
+
+
+def selection_program(cfg: WallClockConfig) -> str:
+    """The charge name of the selection's forward program: the training program's (``forward``) when it has its
+    rows (``select_instances == (popsize + 1) x train_instances``), else a program of its own."""
+    rows = cfg.select_instances
+    return "forward" if rows == (cfg.popsize + 1) * cfg.train_instances else f"forward/{rows}_rows"
+
+
+def forward_programs(method: str, cfg: WallClockConfig) -> list:
+    """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
+    out = ["forward"] if method in search.SEARCH_METHODS or method == "hybrid" else []
+    if cfg.select_instances and selection_program(cfg) not in out:
+        out.append(selection_program(cfg))
+    return out
+
+
+def _warm_up(method, param, cfg, evaluator, charges, theta0, phase) -> None:
+    """A resumed run's forward programs compiled again (their outputs dropped), before its clock goes on."""
+    if method in search.SEARCH_METHODS or phase["name"] == "search":
+        with charges.track("forward"):
+            evaluator(np.repeat(np.asarray(theta0, np.float64)[None], cfg.popsize + 1, 0),
+                      forward.train_scenarios(cfg.train_instances, generation_seed(cfg.seed, param.name), 0,
+                                              cfg.train_heights, cfg.train_spread), param=param)
+    if cfg.select_instances:
+        with charges.track(selection_program(cfg)):
+            evaluator(np.asarray(theta0, np.float64)[None], validation_scenarios(cfg), param=param)
+
+
+def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored=None, hook=None):
+    """The method's loop (the hybrid's two phases); ``stored``: a run's state to go on from (:mod:`.resume`);
+    ``hook(phase)``: the checkpoint function of a phase (``{"name": "search"}`` or ``{"name": "gradient",
+    "theta_start": ...}``)."""
+    phase = {"name": "search"} if stored is None else stored["phase"]
+    state = None if stored is None else stored["method"]
+    hook = hook or (lambda phase: None)
+    if stored is None:
+        charge = clock.charge if cfg.charge_compile else (lambda s: None)
+        for name in forward_programs(method, cfg):
+            if name in charges.seconds:
+                charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
+        trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
+    if method in search.SEARCH_METHODS:
+        search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                          progress=progress, resume=state, checkpoint=hook(phase))
+        return
+    theta_start = theta0
+    if method == "hybrid" and phase["name"] == "search":
+        mean = search.run_search("cma_es", f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                                 progress=progress, stop_at=cfg.hybrid_split * cfg.checkpoints_s[-1],
+                                 resume=state, checkpoint=hook(phase))
+        theta_start, state = (mean if trace.select is None else trace.returned), None
+        log(f"  hybrid: CMA-ES until {clock.elapsed():.1f} s, then the gradient from its "
+            + ("mean" if trace.select is None else "selected iterate"))
+    elif method == "hybrid":
+        theta_start = np.asarray(phase["theta_start"], np.float64)
+    step_fn, evaluate, cost = grad.programs(param)
+    if stored is None or stored["phase"]["name"] == "search":
+        for name in grad.charge_names(param):
+            (clock.charge if cfg.charge_compile else (lambda s: None))(charges.seconds[name])
+    retaken = method == "hybrid" and cfg.retake_windows
+    if retaken:
+        if state is None:
+            t = clock.elapsed()
+            clock.physics_steps += grad.retake(param, theta_start)
+            log(f"  hybrid: windows re-taken at the gradient's start iterate ({clock.elapsed() - t:.1f} s, "
+                f"{int(np.asarray(grad.win.valid).sum())} of {grad.win.size} triggered)")
+        else:  # taken and paid for before the stop; taken again with the clock stopped
+            with clock.paused():
+                grad.retake(param, theta_start)
+    try:
+        search.run_gradient(step_fn, evaluate, theta_start, clock, trace, lr=cfg.lr, step_cost=cost,
+                            progress=progress, resume=state,
+                            checkpoint=hook({"name": "gradient", "theta_start": np.asarray(theta_start, np.float64)}))
+    finally:
+        if retaken:
+            grad.restore()
