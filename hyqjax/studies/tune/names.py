@@ -11,9 +11,9 @@ METHODS = SEARCH_METHODS + GRADIENT_METHODS
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: The default tuner: the best held-out clean success at the longest budget of the equal-wall-clock study
-#: (docs/tuning.md): at 10 minutes on one H200, every compile cold, CMA-ES on the 14 shared coordinates returns
-#: 0.527 [0.506, 0.549], random search 0.502 [0.481, 0.524] (a tie: the intervals overlap), the start point 0.407.
-#: CMA-ES's validated success still rose at 10 minutes; random search's incumbent stopped changing after 4.
-#: Flip these names when a longer study says otherwise.
+#: (docs/tuning.md): at 10 minutes on one GPU, every compile cold, over seven seeds, CMA-ES on the 14 shared
+#: coordinates returns 0.542 [0.516, 0.568] (95% interval over runs), random search 0.449 [0.401, 0.496], the best
+#: hand-set preset 0.406. No method on 56, 68 or 98 coordinates measured clear of it. Flip these names when a
+#: study with repeated runs says otherwise.
 DEFAULT_METHOD = "cma_es"
 DEFAULT_DIM = "shared"
