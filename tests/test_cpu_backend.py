@@ -69,12 +69,18 @@ def test_a_moved_platform_collides_like_a_compiled_one(hyq):
 
 def test_physics_batch_steps_and_packs_the_view(hyq):
     """CPhysics on 2 threads equals a plain mj_step loop; the packed row unpacks into the view's fields, with
-    ``qfrc_gen = qfrc_bias + M qacc``; a frozen instance is not stepped."""
+    ``qfrc_gen = qfrc_bias + M qacc``; a frozen instance is not stepped. A batch of fewer than 2 x
+    ``MIN_ROWS_PER_THREAD`` instances runs on one thread."""
     m, ids = hyq
-    terrain = hmodel.InstanceTerrain.make([0.0, 0.0, 0.0], friction=[0.8, 0.9, 1.0])
+    n = 2 * cpu_physics.MIN_ROWS_PER_THREAD
+    terrain = hmodel.InstanceTerrain.make([0.0] * n, friction=np.linspace(0.5, 1.0, n))
     models = cb.batch_models(m, ids, terrain)
     q0 = hmodel.standing_qpos(m)
-    phys = cpu_physics.CPhysics(models, np.broadcast_to(q0, (3, m.nq)), ids.trunk_body, threads=2, dtype=np.float64)
+    phys = cpu_physics.CPhysics(models, np.broadcast_to(q0, (n, m.nq)), ids.trunk_body, threads=2, dtype=np.float64)
+    assert phys.threads == 2
+    small = cpu_physics.CPhysics(models[:n - 1], np.broadcast_to(q0, (n - 1, m.nq)), ids.trunk_body, threads=2)
+    assert small.threads == 1
+    small.close()
     ref = [mujoco.MjData(mm) for mm in models]
     for d in ref:
         d.qpos[:] = q0
@@ -84,7 +90,7 @@ def test_physics_batch_steps_and_packs_the_view(hyq):
             for d, t, mm in zip(ref, tau, models):
                 d.ctrl[:] = t
                 mujoco.mj_step(mm, d)
-            v = phys.unpack(phys.step(tau, np.zeros(3, bool)))
+            v = phys.unpack(phys.step(tau, np.zeros(n, bool)))
         for i, (d, mm) in enumerate(zip(ref, models)):
             np.testing.assert_array_equal(v.qpos[i], d.qpos)
             np.testing.assert_array_equal(v.qvel[i], d.qvel)
@@ -96,7 +102,7 @@ def test_physics_batch_steps_and_packs_the_view(hyq):
             mujoco.mj_mulM(mm, d, mq, d.qacc)
             np.testing.assert_allclose(v.qfrc_gen[i], d.qfrc_bias + mq, atol=1e-9)
         before = v.qpos[1].copy()
-        v = phys.unpack(phys.step(np.zeros((3, 12)), np.array([False, True, False])))
+        v = phys.unpack(phys.step(np.zeros((n, 12)), np.arange(n) == 1))
         np.testing.assert_array_equal(v.qpos[1], before)
         assert not np.array_equal(v.qpos[0], ref[0].qpos)
     finally:

@@ -30,8 +30,15 @@ def default_threads() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
+#: The fewest instances a stepping thread gets: below about 16 instances handing half of them to a second thread
+#: costs more than it gains (6 instances: 0.24 ms a step on two threads, 0.17 ms on one; 9: 0.56 against 0.21;
+#: 24: 0.46 against 0.77; benchmarks/RESULTS.md).
+MIN_ROWS_PER_THREAD = 8
+
+
 class CPhysics:
-    """``len(models)`` instances of C MuJoCo in float64, one ``MjData`` each, stepped on ``threads`` threads.
+    """``len(models)`` instances of C MuJoCo in float64, one ``MjData`` each, stepped on ``threads`` threads (at most
+    one per :data:`MIN_ROWS_PER_THREAD` instances).
 
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
@@ -53,7 +60,7 @@ class CPhysics:
             d.qpos[:] = q
         self.b, self.substeps, self.trunk = b, int(substeps), int(trunk_body)
         self.dtype = np.dtype(dtype)
-        self.threads = max(1, min(threads or default_threads(), b))
+        self.threads = max(1, min(threads or default_threads(), b // MIN_ROWS_PER_THREAD))
         self._pool = concurrent.futures.ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
         bounds = np.linspace(0, b, self.threads + 1).round().astype(int)
         self._slices = [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
