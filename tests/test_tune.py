@@ -1198,6 +1198,51 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
         repeats.load(str(tmp_path))
 
 
+def test_grid_of_cells_takes_one_value_per_cell_with_the_right_interval_and_refuses_mixtures():
+    """The study as a grid (:mod:`hyqjax.studies.tune.cells`): a cell of one run is its rate with its Wilson interval,
+    a cell of several seeds their mean with the 95% t-interval over runs; a gradient method in reverse mode is a
+    cell of its own; each cell carries its not-completed and diverged counts; runs of another device, another
+    setting, or the same run twice are refused naming it. The stored H200 studies make one grid."""
+    from scipy import stats
+
+    from hyqjax.studies.tune import cells, repeats
+
+    def study(seed, method, dim, clean, grad_mode="jacfwd", device="NVIDIA H200", diverged=0):
+        cfg = dict(seed=seed, methods=[method], dims=[dim], grad_mode=grad_mode)
+        runs = {f"{method}/{dim}": dict(method=method, dim=dim, points=[dict(seconds=600.0, physics_steps=7)])}
+        held = {f"{method}/{dim}@10min": dict(clean=clean, completed=0.75, clean_ci95=[clean - 0.02, clean + 0.02],
+                                               n=2000, failure_counts=dict(diverged=diverged)),
+                "start": dict(clean=0.406, completed=0.6, clean_ci95=[0.39, 0.43], n=2000)}
+        return dict(kind="wallclock", config=cfg, runs=runs, heldout=held, device=device,
+                    heldout_set=dict(seed=7777, instances=2000))
+
+    res = [study(0, "cma_es", "shared", 0.55), study(1, "cma_es", "shared", 0.52), study(0, "snes", "per_leg", 0.58),
+           study(0, "gradient", "per_leg", 0.41, "reverse", diverged=3), study(0, "gradient", "shared", 0.40)]
+    g = cells.gather(res, list("abcde"), 10.0)
+    c = g["cells"]["shared"]["cma_es"]
+    half = stats.t.ppf(0.975, 1) * np.std([0.55, 0.52], ddof=1) / np.sqrt(2)
+    assert c["interval"] == "over_runs" and c["clean_ci95"] == pytest.approx([0.535 - half, 0.535 + half])
+    s = g["cells"]["per_leg"]["snes"]
+    assert s["interval"] == "wilson" and s["clean_ci95"] == pytest.approx([0.56, 0.60]) and s["runs"][0]["not_completed"] == 500
+    assert g["cells"]["per_leg"]["gradient (reverse mode)"]["runs"][0]["diverged"] == 3
+    assert "gradient" in g["cells"]["shared"] and g["start"] == dict(min=0.406, max=0.406)
+    table = cells.markdown(g)
+    assert "**0.580 [0.560, 0.600]** clear; 500 / 0" in table and "(2 runs)" in table and "not run" in table
+    for bad, match in ((study(2, "snes", "shared", 0.5, device="NVIDIA H100 80GB HBM3"), "several kinds of device"),
+                       (study(0, "cma_es", "shared", 0.5), "both hold cma_es on shared with seed 0")):
+        with pytest.raises(ValueError, match=match):
+            cells.gather(res + [bad], list("abcdef"), 10.0)
+    other = study(2, "snes", "shared", 0.5)
+    other["config"]["popsize"] = 32
+    with pytest.raises(ValueError, match="popsize"):
+        cells.gather(res + [other], list("abcdef"), 10.0)
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    stored = os.path.join(repo, "docs", "results", "tune_cells_h200_10min")
+    names = [os.path.join(stored, d) for d in ("cma_es_per_leg", "snes_per_leg", "gradient_per_leg", "hybrid_per_leg")]
+    grid = cells.gather([repeats.load(d) for d in names], names, 10.0)
+    assert set(grid["cells"]["per_leg"]) == {"cma_es", "snes", "gradient", "hybrid"}
+
+
 def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
     """The window-objective ranking (experiments/tune_objective_ranking.py) reads back the configuration a study
     ran with (``WallClockConfig.from_dict``) and collects the start point once and every held-out-evaluated checkpoint of every run, with its

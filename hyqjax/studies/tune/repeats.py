@@ -28,8 +28,9 @@ FREE_SETTINGS = ("seed", "methods")
 
 
 def load(directory: str) -> dict:
-    """``results.json`` of a study directory (a ``ValueError`` naming the directory if it has none)."""
-    path = os.path.join(directory, "results.json")
+    """``results.json`` of a study directory, or a study's results file given by its path (a ``ValueError`` naming
+    it if it has none)."""
+    path = directory if os.path.isfile(directory) else os.path.join(directory, "results.json")
     try:
         with open(path) as f:
             res = json.load(f)
@@ -40,22 +41,23 @@ def load(directory: str) -> dict:
     return res
 
 
-def _settings(config: dict) -> dict:
-    """A run's settings but the free ones; a setting its study predates counts at its default (the behaviour the
-    run had)."""
+def _settings(config: dict, free=FREE_SETTINGS) -> dict:
+    """A run's settings but the ``free`` ones; a setting its study predates counts at its default (the behaviour
+    the run had)."""
     from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     out = {k: v for k, v in WallClockConfig.defaults().items() if k not in config}
     out.update(config)
-    return {k: v for k, v in out.items() if k not in FREE_SETTINGS}
+    return {k: v for k, v in out.items() if k not in free}
 
 
-def check_comparable(results: list[dict], names: list[str]) -> None:
-    """Refuse runs of different configurations (but for their seed and methods) or held-out sets."""
+def check_comparable(results: list[dict], names: list[str], free=FREE_SETTINGS) -> None:
+    """Refuse runs of different configurations (but for the ``free`` settings: by default their seed and methods)
+    or held-out sets."""
     ref, ref_name = results[0], names[0]
-    fixed = _settings(ref["config"])
+    fixed = _settings(ref["config"], free)
     for res, name in zip(results[1:], names[1:]):
-        other = _settings(res["config"])
+        other = _settings(res["config"], free)
         for k in sorted(set(fixed) | set(other)):
             if fixed.get(k) != other.get(k):
                 raise ValueError(f"{name} differs from {ref_name} in {k}: {other.get(k)!r} against {fixed.get(k)!r}")
