@@ -962,8 +962,10 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     scenarios; every method validates its iterates on the fixed validation batch and pays for it (physics steps
     of generations plus validations); every checkpoint's iterate is the best validated one finished before it and
     is evaluated on the same held-out instances; the two calls compose into one results file; a further call keeps
-    every finished stage and runs nothing; another configuration there is refused."""
-    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_results, wallclock_run
+    every finished stage and runs nothing; another configuration there is refused. CMA-ES's call first ends its
+    segment in the middle of the run (``segment_minutes``): the run's state is stored and the next call goes on from
+    it, generations continuing without a gap or a repeat, its clock from the stored seconds."""
+    from hyqjax.studies.tune import forward, resume, schedule, wallclock, wallclock_results, wallclock_run
 
     cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.05, 0.15),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
@@ -980,10 +982,27 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert not np.array_equal(r["columns"]["progress"][0], r["columns"]["progress"][1])
     assert r["physics_steps"] == 3 * 4 * 250
     monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)  # one compiled program for the study
+    logs = []
     for m in cfg.methods:  # one call per method, as one process per method
-        res = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=lambda s: None)
+        if m == "cma_es":  # its first call ends its segment in the middle of the run; the next goes on from there
+            first = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=logs.append,
+                                                  checkpoint_every_s=0.0, segment_minutes=4.0 / 60)
+            assert first["paused"] == "cma_es/shared" and "cma_es/shared" not in first["runs"] and not first["complete"]
+            store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(cfg.to_dict()))
+            stored = store.load()
+            gens_before, t_stop = len(stored["trace"]["log"]), stored["clock"]["elapsed"]
+            assert gens_before >= 1 and 0.0 < t_stop < cfg.checkpoints_s[-1]
+        res = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=logs.append)
         assert res["complete"] and set(res["runs"]) == {f"{x}/shared" for x in cfg.methods[:cfg.methods.index(m) + 1]}
     assert res["config"]["methods"] == ["cma_es", "random_search"]
+    # the resumed run: generations go on without a gap or a repeat, its clock from the stored seconds, its stored
+    # state removed once it is in results.json (physics steps counted once: below)
+    run = res["runs"]["cma_es/shared"]
+    assert run["segments"] == 2 and res["runs"]["random_search/shared"]["segments"] == 1
+    assert any("resuming at" in m for m in logs) and not os.path.exists(store.path)
+    assert [r["generation"] for r in run["log"]] == list(range(len(run["log"]))) and len(run["log"]) > gens_before
+    assert run["log"][:gens_before] == stored["trace"]["log"] and run["log"][gens_before]["wall_s"] >= t_stop
+    assert run["elapsed_s"] >= cfg.checkpoints_s[-1]
     members = {"table1", "start"} | {wallclock_results.member_key(m, "shared", s) for m in cfg.methods
                                      for s in cfg.checkpoints_s}
     assert set(res["heldout"]) == members
@@ -1024,44 +1043,6 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     assert handset.best(hs)[0] in ("start", "default")
     with pytest.raises(ValueError, match="presets must be among"):
         handset.check_names(["start", "trunk_at_90"])
-
-
-@pytest.mark.slow
-def test_study_stopped_at_a_segment_end_goes_on_from_its_stored_state(tmp_path, monkeypatch, c_success):
-    """A study whose segment ends in the middle of a run (CMA-ES, C MuJoCo on the CPU) stores the run's state and
-    stops with the run unfinished; the same call then goes on from it: the generations continue without a gap or
-    a repeat, the clock from the stored seconds, every physics step is counted once, and the stored state is
-    removed when the run is in ``results.json``."""
-    from hyqjax.studies.tune import forward, resume, wallclock
-
-    cfg = wallclock.WallClockConfig(methods=("cma_es",), dims=("shared",), wall_minutes=(0.05, 0.15), popsize=2,
-                                    train_instances=4, train_duration=0.5, heldout=4, heldout_chunk=3,
-                                    heldout_duration=0.5, impl="c", charge_compile=False, select_instances=12,
-                                    select_every=2)
-    ev = c_success
-    ev(np.zeros((3, 14)), forward.train_scenarios(4, 3, 0))  # compiled before either segment
-    monkeypatch.setattr(forward, "SuccessEvaluator", lambda *a, **k: ev)
-    logs = []
-    first = wallclock.run_wallclock_study(cfg, str(tmp_path), log=logs.append, checkpoint_every_s=0.0,
-                                          segment_minutes=4.0 / 60)
-    assert first["paused"] == "cma_es/shared" and not first["runs"] and not first["complete"]
-    store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(cfg.to_dict()))
-    stored = store.load()
-    gens_before, t_stop = len(stored["trace"]["log"]), stored["clock"]["elapsed"]
-    assert gens_before >= 1 and 0.0 < t_stop < 60.0 * cfg.wall_minutes[-1]
-    res = wallclock.run_wallclock_study(cfg, str(tmp_path), log=logs.append)
-    run = res["runs"]["cma_es/shared"]
-    assert res["complete"] and "paused" not in res and run["segments"] == 2
-    assert any("resuming at" in m for m in logs) and not os.path.exists(store.path)
-    assert [r["generation"] for r in run["log"]] == list(range(len(run["log"]))) and len(run["log"]) > gens_before
-    assert run["log"][:gens_before] == stored["trace"]["log"]
-    assert run["log"][gens_before]["wall_s"] >= t_stop
-    walls = [r["wall_s"] for r in run["log"]]
-    assert walls == sorted(walls) and run["elapsed_s"] >= 60.0 * cfg.wall_minutes[-1]
-    sel = run["selection"]["log"]
-    assert run["physics_steps"] == len(run["log"]) * 3 * 4 * 250 + len(sel) * 12 * 250
-    assert [pt["seconds"] for pt in run["points"]] == list(cfg.checkpoints_s)
-    assert all(h["n"] == 4 for h in res["heldout"].values())
 
 
 def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
