@@ -1024,8 +1024,11 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
             assert pt.get("selected_iteration", 0) == best["iteration"]
     assert sum(len(res["runs"][f"{m}/shared"]["selection"]["log"]) for m in cfg.methods) >= 3
     assert {(c["method"], len(c["points"])) for c in res["budget_curves"]} == {(m, 2) for m in cfg.methods}
+    stale = resume.RunCheckpoint(str(tmp_path), "random_search/shared", {})
+    stale.save(dict(left="by a kill after the run was stored"))
     again = wallclock.run_wallclock_study(cfg, str(tmp_path), log=lambda s: None)
     assert again["runs"] == json.loads(json.dumps(res["runs"])) and again["heldout"] == res["heldout"]
+    assert not os.path.exists(stale.path)  # a finished run's stored state is removed, never resumed
     from hyqjax.studies.tune import figure
 
     assert os.path.getsize(figure.plot_wallclock(again, str(tmp_path / "t.png"))) > 0

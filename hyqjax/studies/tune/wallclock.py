@@ -129,6 +129,8 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
     charges = search.Charges()
     n_members = cfg.popsize + 1
     todo = [(m, d) for d in cfg.dims for m in cfg.methods if run_key(m, d) not in res["runs"]]
+    for key in res["runs"]:  # a stored state left by a kill between a run's results.json and its removal
+        resume.RunCheckpoint(out_dir, key, {}).remove()
     log(f"forward success program: {n_members} members x {cfg.train_instances} scenarios x {cfg.train_duration:g} s "
         f"per generation, impl {res['impl']}; it compiles in the first search method's clock and is charged to the "
         f"others")
