@@ -25,8 +25,6 @@ from hyqjax.studies.tune.wallclock_results import member_key
 
 #: Settings in which the runs of one grid may differ.
 FREE_SETTINGS = ("seed", "methods", "dims", "grad_mode")
-#: Coordinates of each parameterisation (``schedule.make(dim).size`` with the default groups).
-SIZES = {"shared": 14, "per_leg": 56, "per_leg_cond": 68, "per_leg_cond_all": 98}
 
 
 def label(method: str, grad_mode: str | None) -> str:
@@ -45,6 +43,7 @@ def gather(results: list[dict], names: list[str], minutes: float) -> dict:
         raise ValueError(f"runs of several kinds of device ({', '.join(sorted(map(str, devices)))}): a wall-clock "
                          f"budget buys other work on each; give one kind")
     cells: dict = {}
+    sizes: dict = {}  # coordinates of each parameterisation, as its runs stored them
     seen: dict = {}
     starts = []
     for res, name in zip(results, names):
@@ -60,6 +59,7 @@ def gather(results: list[dict], names: list[str], minutes: float) -> dict:
             if key in seen:
                 raise ValueError(f"{name} and {seen[key]} both hold {lab} on {run['dim']} with seed {key[2]}; give one")
             seen[key] = name
+            sizes[run["dim"]] = run.get("size")
             pt = next((p for p in run["points"] if abs(p["seconds"] - 60.0 * minutes) < 1e-6), {})
             fc = h.get("failure_counts", {})
             cells.setdefault(run["dim"], {}).setdefault(lab, []).append(dict(
@@ -77,7 +77,7 @@ def gather(results: list[dict], names: list[str], minutes: float) -> dict:
                 mean, ci, kind = o["mean"], o["ci95"], "over_runs"
             out[dim][lab] = dict(runs=runs, clean=mean, clean_ci95=ci, interval=kind,
                                  completed=float(np.mean([r["completed"] for r in runs])))
-    return dict(minutes=minutes, device=devices.pop(), cells=out,
+    return dict(minutes=minutes, device=devices.pop(), cells=out, sizes=sizes,
                 start=dict(min=min(starts), max=max(starts)) if starts else None)
 
 
@@ -92,7 +92,7 @@ def markdown(grid: dict) -> str:
     """The grid as a markdown table: a row per method, a column per parameterisation; the best cell of each column
     in bold, and a cell whose interval lies above every other cell of its column marked "clear"."""
     dims, labels = _order(grid)
-    head = "| method | " + " | ".join(f"{d} ({SIZES.get(d, '?')})" for d in dims) + " |"
+    head = "| method | " + " | ".join(f"{d} ({grid['sizes'].get(d) or '?'})" for d in dims) + " |"
     lines = [f"held-out clean success at {grid['minutes']:g} min ({grid['device']}); one run: [95% Wilson], "
              f"several: mean [95% over runs] (runs); not completed / diverged of the held-out runs", "",
              head, "|---|" + "---|" * len(dims)]
@@ -145,7 +145,7 @@ def plot(grid: dict, path: str) -> str:
                 lo.append(c["clean"] - c["clean_ci95"][0])
                 hi.append(c["clean_ci95"][1] - c["clean"])
         ax.errorbar(xs, ys, yerr=[lo, hi], fmt="o", capsize=3, label=lab)
-    ax.set_xticks(range(len(dims)), [f"{d}\n({SIZES.get(d, '?')} coordinates)" for d in dims])
+    ax.set_xticks(range(len(dims)), [f"{d}\n({grid['sizes'].get(d) or '?'} coordinates)" for d in dims])
     ax.set_ylabel(f"held-out clean success at {grid['minutes']:g} min")
     ax.set_title(f"Tuning methods at equal wall-clock ({grid['device']})", fontsize=10)
     ax.grid(axis="y", alpha=0.3)

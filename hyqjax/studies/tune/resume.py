@@ -76,8 +76,8 @@ def unpack(o):
 
 
 def tree_like(template, leaves: list):
-    """A PyTree of ``template``'s structure with ``leaves`` (stored by :func:`tree_leaves`), each leaf checked
-    against the template's dtype and shape."""
+    """A PyTree of ``template``'s structure with ``leaves`` (``jax.tree.leaves`` of a stored state, through
+    :func:`pack` / :func:`unpack`), each leaf checked against the template's dtype and shape."""
     ref, treedef = jax.tree.flatten(template)
     if len(ref) != len(leaves):
         raise ValueError(f"stored state has {len(leaves)} leaves, this method's has {len(ref)}")

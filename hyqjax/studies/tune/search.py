@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.studies.tune.names import GRADIENT_METHODS, METHODS, SEARCH_METHODS  # noqa: E402,F401
+from hyqjax.studies.tune.resume import tree_like
 
 
 class Clock:
@@ -325,8 +326,6 @@ def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float,
     state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
     ask, tell = jax.jit(es.ask), jax.jit(es.tell)
     if resume is not None:
-        from hyqjax.studies.tune.resume import tree_like
-
         key, state = jax.random.wrap_key_data(jnp.asarray(resume["key"])), tree_like(state, resume["state"])
         with clock.paused():  # compiled again in this process; the run paid for it once
             pop, _ = ask(key, state, params)
@@ -372,8 +371,6 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
     scales = jnp.asarray((0.0,) + tuple(line_search), jnp.float32)
     step = 0
     if resume is not None:
-        from hyqjax.studies.tune.resume import tree_like
-
         theta, step = jnp.asarray(resume["theta"], jnp.float32), int(resume["step"])
         state = tree_like(state, resume["opt"])
         with clock.paused():  # compiled again in this process; the run paid for it once

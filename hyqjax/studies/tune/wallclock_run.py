@@ -153,13 +153,14 @@ def _warm_up(method, param, cfg, evaluator, charges, theta0, phase) -> None:
 
 def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored=None, hook=None):
     """The method's loop (the hybrid's two phases); ``stored``: a run's state to go on from (:mod:`.resume`);
-    ``hook(phase)``: the checkpoint function of a phase (``{"name": "search"}`` or ``{"name": "gradient",
-    "theta_start": ...}``)."""
+    ``hook(phase)``: the checkpoint function of a phase: ``{"name": "search"}`` (every run starts in it; a search
+    method never leaves it) or ``{"name": "gradient", "theta_start": ...}``. The compile charges of a phase are
+    paid when it starts, never again on a resume."""
     phase = {"name": "search"} if stored is None else stored["phase"]
     state = None if stored is None else stored["method"]
     hook = hook or (lambda phase: None)
+    charge = clock.charge if cfg.charge_compile else (lambda s: None)
     if stored is None:
-        charge = clock.charge if cfg.charge_compile else (lambda s: None)
         for name in forward_programs(method, cfg):
             if name in charges.seconds:
                 charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
@@ -179,9 +180,9 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
     elif method == "hybrid":
         theta_start = np.asarray(phase["theta_start"], np.float64)
     step_fn, evaluate, cost = grad.programs(param)
-    if stored is None or stored["phase"]["name"] == "search":
+    if phase["name"] == "search":  # the gradient phase starts here, not in a stored one
         for name in grad.charge_names(param):
-            (clock.charge if cfg.charge_compile else (lambda s: None))(charges.seconds[name])
+            charge(charges.seconds[name])
     retaken = method == "hybrid" and cfg.retake_windows
     if retaken:
         if state is None:
