@@ -15,8 +15,10 @@ import sys
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m experiments.tune_cells", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    from hyqjax.cli.app import Parser  # errors in one line
+
+    p = Parser(prog="python -m experiments.tune_cells", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("inputs", nargs="+", help="study directories or results files")
     p.add_argument("--minutes", type=float, default=10.0, help="the budget (a checkpoint of every run)")
     p.add_argument("--figure", default=None, help="PNG of the grid")

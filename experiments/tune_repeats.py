@@ -14,8 +14,10 @@ import sys
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m experiments.tune_repeats", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    from hyqjax.cli.app import Parser  # errors in one line
+
+    p = Parser(prog="python -m experiments.tune_repeats", description=__doc__,
+               formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dirs", nargs="+", help="study directories (one run each, or several methods per directory)")
     p.add_argument("--minutes", type=float, default=10.0, help="the budget (a checkpoint of every run)")
     p.add_argument("--out", default=None, help="JSON file for the summary")
