@@ -120,7 +120,7 @@ def test_padded_rows_are_never_stepped_and_copy_the_last_real_row(hyq):
     exact = cpu_physics.CPhysics(cb.batch_models(m, ids, hmodel.InstanceTerrain.make([0.0, 0.1, 0.2])), q0, ids.trunk_body,
                         threads=2)
     try:
-        assert padded.b == len(padded.datas) == 3
+        assert padded.b == padded.batch.nsim == 3
         rng = np.random.default_rng(0)
         out = np.empty((8, padded.width), np.float32)
         for _ in range(10):

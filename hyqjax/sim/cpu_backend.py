@@ -1,4 +1,4 @@
-"""The C MuJoCo backend (``impl="c"``): many ``MjData`` stepped in C on all CPU cores, the controller in JAX.
+"""The C MuJoCo backend (``impl="c"``): many simulations stepped in C on all CPU cores, the controller in JAX.
 
 MJX compiled for a CPU spends most of its time in XLA's generic code for the physics (minutes of compile, a
 few thousand env-steps per second for HyQ); C MuJoCo steps HyQ in about 20 us per instance and step with no
@@ -8,12 +8,12 @@ compile. This backend runs the closed loop as ONE jitted ``lax.scan`` over contr
    batch from the :class:`hyqjax.core.types.Observation` of every instance (:func:`hyqjax.sim.observe.observation`,
    the same definition as under MJX);
 2. a host call (:mod:`hyqjax.sim.host_call`: an XLA FFI target that is a Python function) hands the torques to
-   :class:`hyqjax.sim.cpu_physics.CPhysics`, which holds one ``mujoco.MjData`` per instance in float64 and steps
-   them with ``mujoco.mj_step`` on a thread pool (MuJoCo releases the GIL while it steps), and returns the data
+   :class:`hyqjax.sim.cpu_physics.CPhysics`, which holds the instances in float64 in one ``mujoco.batch.Batch`` and
+   steps them with ``mj_step`` in one call into C (a loop over the instances without the GIL), and returns the data
    the metrics read as a :class:`hyqjax.sim.observe.DataView` (float32 unless ``jax_enable_x64``);
 3. divergence, metrics and traces follow the rules of :func:`hyqjax.sim.rollout.rollout_advance`: an instance
    whose state is non-finite or faster than ``SimConfig.max_speed`` is frozen at its last finite tick (its
-   ``MjData`` is no longer stepped), its controller state and metrics stop, and ``diverged_tick`` records when.
+   simulation is no longer stepped), its controller state and metrics stop, and ``diverged_tick`` records when.
 
 The controller and metrics are compiled once per batch bucket and chunk length (seconds, not the minutes of an
 MJX compile); the physics is never compiled. The controller batch is padded to a bucket
@@ -33,7 +33,7 @@ divergence instead of restarting the run silently. Warnings MuJoCo prints for su
 ``hyqjax.sim.cpu_backend`` logger (debug level) while a batch runs, not to ``MUJOCO_LOG.TXT``.
 
 **Shards.** A batch runs as contiguous shards, one per CPU core (:meth:`CBatchRunner.shard_bounds`; at least
-:data:`MIN_SHARD_ROWS` rows each, so a small batch runs as one), each with its own ``MjData`` stepped on one thread
+:data:`MIN_SHARD_ROWS` rows each, so a small batch runs as one), each with its own batch of simulations stepped on one thread
 and its own copy of the compiled chunk program, executed at once from one host thread per shard. A tick of one
 shard is its controller (compiled JAX) and then its physics (C MuJoCo); with one shard the two run one after the
 other, the core that is not stepping physics waiting for the controller. With two, one shard's controller runs while

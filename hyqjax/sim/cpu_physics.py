@@ -1,21 +1,22 @@
-"""C MuJoCo's side of the C MuJoCo backend (:mod:`hyqjax.sim.cpu_backend`): a batch of ``MjData`` stepped on a
-thread pool, and the one packed array its host call returns.
+"""C MuJoCo's side of the C MuJoCo backend (:mod:`hyqjax.sim.cpu_backend`): a batch of simulations stepped in C on
+a thread pool, and the one packed array its host call returns.
 
-:class:`CPhysics` holds one ``mujoco.MjData`` per instance in float64 and steps the instances with
-``mujoco.mj_step`` on :func:`default_threads` threads (MuJoCo releases the GIL while it steps); per instance it
-returns one row of ``time, qpos, qvel`` (``mj_getState``), ``sensordata``, ``site_xpos``, ``geom_xpos``,
-``geom_xmat`` and ``qfrc_gen = qfrc_bias + M qacc`` (``mj_mulM``), laid out by :func:`packed_layout`;
+:class:`CPhysics` holds the batch in a ``mujoco.batch.Batch`` (MuJoCo's own batch of simulations: one state row per
+instance in float64, each instance on its own ``MjModel``, stepped by ``mj_step`` in a C loop over the instances on
+``threads`` threads with the GIL released, bit for bit what a loop over one ``MjData`` per instance gives); per
+instance it returns one row of ``time, qpos, qvel``, ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and
+``qfrc_gen = qfrc_bias + M qacc`` (``M`` from the batch's sparse inertia), laid out by :func:`packed_layout`;
 :func:`unpack` (pure JAX, static slices) makes the :class:`hyqjax.sim.observe.DataView` of such rows, what the
 controllers and metrics read. No JAX program is built here: the backend's runner calls :meth:`CPhysics.step_padded`
 from its host call (:mod:`hyqjax.sim.host_call`).
 """
 from __future__ import annotations
 
-import concurrent.futures
 import os
 
 import jax
 import mujoco
+import mujoco.batch
 import numpy as np
 
 from hyqjax.core.types import Push
@@ -37,16 +38,18 @@ MIN_ROWS_PER_THREAD = 8
 
 
 class CPhysics:
-    """``len(models)`` instances of C MuJoCo in float64, one ``MjData`` each, stepped on ``threads`` threads (at most
-    one per :data:`MIN_ROWS_PER_THREAD` instances).
+    """``len(models)`` instances of C MuJoCo in float64 in one ``mujoco.batch.Batch``, each on its own model, stepped
+    on ``threads`` threads (at most one per :data:`MIN_ROWS_PER_THREAD` instances).
 
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
-    ``frozen``, and returns the batch's :class:`hyqjax.sim.observe.DataView` packed in ONE array ``(B, width)`` of
-    ``dtype`` (one output of the host call instead of eight: as ``io_callback`` outputs each cost about 12 us a
-    tick); :meth:`unpack` (pure JAX, static slices) makes the view of it. Per instance a row holds ``time, qpos, qvel`` (``mj_getState``),
-    ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and ``qfrc_gen = qfrc_bias + M qacc``
-    (``mj_mulM``), the fields of the view in that order.
+    ``frozen`` (one call into C for the whole batch), and returns the batch's :class:`hyqjax.sim.observe.DataView`
+    packed in ONE array ``(B, width)`` of ``dtype`` (one output of the host call instead of eight: as ``io_callback``
+    outputs each cost about 12 us a tick); :meth:`unpack` (pure JAX, static slices) makes the view of it. Per instance
+    a row holds ``time, qpos, qvel``, ``sensordata``, ``site_xpos``, ``geom_xpos``, ``geom_xmat`` and
+    ``qfrc_gen = qfrc_bias + M qacc``, the fields of the view in that order. As after ``mj_step``, the derived fields
+    (all but the state) describe the state before the last substep; before the first step they are zero. An
+    instance in which MuJoCo raises an error keeps its state and reads as NaN, so the runner counts it as diverged.
     """
 
     def __init__(self, models: list[mujoco.MjModel], qpos0: np.ndarray, trunk_body: int, substeps: int = 1,
@@ -54,95 +57,56 @@ class CPhysics:
         self.models = list(models)
         b = len(self.models)
         m0 = self.models[0]
-        qpos0 = np.broadcast_to(np.asarray(qpos0, np.float64), (b, m0.nq))
-        self.datas = [mujoco.MjData(mi) for mi in self.models]
-        for d, q in zip(self.datas, qpos0):
-            d.qpos[:] = q
         self.b, self.substeps, self.trunk = b, int(substeps), int(trunk_body)
         self.dtype = np.dtype(dtype)
         self.threads = max(1, min(threads or default_threads(), b // MIN_ROWS_PER_THREAD))
-        self._pool = concurrent.futures.ThreadPoolExecutor(self.threads - 1) if self.threads > 1 else None
-        bounds = np.linspace(0, b, self.threads + 1).round().astype(int)
-        self._slices = [(int(lo), int(hi)) for lo, hi in zip(bounds[:-1], bounds[1:]) if hi > lo]
+        self.batch = mujoco.batch.Batch(m0, nsim=b, nthread=self.threads)
+        self.batch.set_models(self.models)
+        self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
+        bind = self.batch.bind
+        self._time, self._qpos, self._qvel, self._ctrl = bind("time"), bind("qpos"), bind("qvel"), bind("ctrl")
+        self._qpos[...] = np.broadcast_to(np.asarray(qpos0, np.float64), (b, m0.nq))
+        self._derived = [bind(f) for f in ("sensordata", "site_xpos", "geom_xpos", "geom_xmat")]
+        self._bias, self._qacc, self._inertia = bind("qfrc_bias"), bind("qacc"), bind("M")
+        # M (the lower triangle of the joint-space inertia in MuJoCo's CSR layout) as a dense (nv, nv) gather from
+        # its entries and a zero after them (the index of every entry outside the sparsity pattern).
+        rows = np.repeat(np.arange(m0.nv), m0.M_rownnz)
+        self._dense = np.full((m0.nv, m0.nv), len(rows), np.int64)
+        self._inertia_ext = np.zeros((b, len(rows) + 1))
+        self._dense[rows, m0.M_colind] = self._dense[m0.M_colind, rows] = np.arange(len(rows))
         self.layout = packed_layout(m0)
         self.width = max(hi for _, hi, _ in self.layout.values())
-        self._buf = np.zeros((b, self.width))
-        self._bias = np.zeros((b, m0.nv))
-        lay = self.layout
-        st = mujoco.mjtState
-        self._state_spec = int(st.mjSTATE_TIME | st.mjSTATE_QPOS | st.mjSTATE_QVEL)
-        for i, d in enumerate(self.datas):
-            mujoco.mj_getState(self.models[i], d, self._buf[i, slice(*lay["state"][:2])], self._state_spec)
-        self._cols = {k: (lo, hi) for k, (lo, hi, _) in lay.items()}
-        self._views = [(d.sensordata, d.site_xpos.reshape(-1), d.geom_xpos.reshape(-1), d.geom_xmat.reshape(-1),
-                        d.qfrc_bias, d.qacc, d.ctrl, d.xfrc_applied) for d in self.datas]
+        self._failed = np.zeros(b, bool)
         self._push = None
         if push is not None:
             f, t0, dur = push_rows(push, b)
             has = (dur > 0) & np.any(f != 0, -1)
             if np.any(has):
-                self._push = (f, t0, dur, has)
+                self._push = (f, t0, dur, has, bind("xfrc_applied"))
 
     def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
-            self._pool = None
-
-    def _run(self, lo: int, hi: int, tau: np.ndarray, frozen: np.ndarray) -> None:
-        buf, bias_out, views, push = self._buf, self._bias, self._views, self._push
-        c = self._cols
-        st, sen, sit, gpo, gma, gen = (slice(*c["state"]), slice(*c["sensordata"]), slice(*c["site_xpos"]),
-                                       slice(*c["geom_xpos"]), slice(*c["geom_xmat"]), slice(*c["qfrc_gen"]))
-        step, mul_m, get_state, spec = mujoco.mj_step, mujoco.mj_mulM, mujoco.mj_getState, self._state_spec
-        for i in range(lo, hi):
-            if frozen[i]:
-                continue
-            m, d = self.models[i], self.datas[i]
-            sens, site, gpos, gmat, bias, qacc, ctrl, xfrc = views[i]
-            ctrl[:] = tau[i]
-            if push is not None and push[3][i]:
-                f, t0, dur, _ = push
-                on = t0[i] <= d.time < t0[i] + dur[i]
-                xfrc[self.trunk, :3] = f[i] if on else 0.0
-            for _ in range(self.substeps):
-                step(m, d)
-            row = buf[i]
-            get_state(m, d, row[st], spec)
-            row[sen] = sens
-            row[sit] = site
-            row[gpo] = gpos
-            row[gma] = gmat
-            bias_out[i] = bias
-            mul_m(m, d, row[gen], qacc)
+        """Release the batch's thread pool."""
+        self.batch = None
 
     def step(self, tau, frozen, out: np.ndarray | None = None) -> np.ndarray:
         """Step the instances not ``frozen`` ``(B,)`` with joint torques ``tau`` ``(B, nu)``; the packed view (written
         into ``out`` when given)."""
-        tau = np.asarray(tau, np.float64)
-        frozen = np.asarray(frozen, bool)
-        if self._pool is None or len(self._slices) == 1:
-            self._run(0, self.b, tau, frozen)
-        else:
-            futs = [self._pool.submit(self._run, lo, hi, tau, frozen) for lo, hi in self._slices[1:]]
-            self._run(*self._slices[0], tau, frozen)
-            for f in futs:
-                f.result()
+        frozen = np.asarray(frozen, bool) | self._failed
+        self._ctrl[...] = tau
+        if self._push is not None:
+            f, t0, dur, has, xfrc = self._push
+            on = (t0 <= self._time) & (self._time < t0 + dur)
+            xfrc[has, self.trunk, :3] = np.where(on[has, None], f[has], 0.0)
+        ids = None if not frozen.any() else np.flatnonzero(~frozen)
+        if ids is None or len(ids):
+            try:
+                self.batch.step(ids, nstep=self.substeps)
+            except mujoco.batch.SimulationError as e:  # those instances kept their state; they read as NaN
+                self._failed[np.asarray(e.ids)] = True
         if out is None:
-            return self.packed()
+            out = np.empty((self.b, self.width), self.dtype)
         self.pack_into(out)
         return out
-
-    def packed(self) -> np.ndarray:
-        """The batch's current view, packed ``(B, width)`` in ``dtype`` (``qfrc_gen`` with the bias forces added)."""
-        out = np.empty((self.b, self.width), self.dtype)
-        self.pack_into(out)
-        return out
-
-    def pack_into(self, out: np.ndarray) -> None:
-        """:meth:`packed` written into ``out`` ``(B, width)``."""
-        out[...] = self._buf
-        lo, hi = self._cols["qfrc_gen"]
-        out[:, lo:hi] += self._bias.astype(out.dtype)
 
     def step_padded(self, tau_frozen: np.ndarray, out: np.ndarray) -> None:
         """The host call of a padded batch: ``tau_frozen`` ``(P, nu + 1)`` (torques, then 1 for a frozen instance)
@@ -153,6 +117,31 @@ class CPhysics:
         tau_frozen = np.asarray(tau_frozen)
         self.step(tau_frozen[:b, :-1], tau_frozen[:b, -1] > 0.5, out=out[:b])
         out[b:] = out[b - 1]
+
+    def packed(self) -> np.ndarray:
+        """The batch's current view, packed ``(B, width)`` in ``dtype``."""
+        out = np.empty((self.b, self.width), self.dtype)
+        self.pack_into(out)
+        return out
+
+    def pack_into(self, out: np.ndarray) -> None:
+        """:meth:`packed` written into ``out`` ``(B, width)``: ``qfrc_gen`` is ``M qacc`` and ``qfrc_bias``, each
+        rounded to ``dtype``, added."""
+        b, lay = self.b, self.layout
+        lo, hi, _ = lay["state"]
+        nq = self._qpos.shape[1]
+        out[:, lo] = self._time
+        out[:, lo + 1:lo + 1 + nq] = self._qpos
+        out[:, lo + 1 + nq:hi] = self._qvel
+        for name, field in zip(("sensordata", "site_xpos", "geom_xpos", "geom_xmat"), self._derived):
+            out[:, lay[name][0]:lay[name][1]] = field.reshape(b, -1)
+        lo, hi, _ = lay["qfrc_gen"]
+        self._inertia_ext[:, :-1] = self._inertia
+        m_qacc = np.einsum("bij,bj->bi", self._inertia_ext[:, self._dense], self._qacc)
+        out[:, lo:hi] = m_qacc
+        out[:, lo:hi] += self._bias.astype(out.dtype)
+        if self._failed.any():
+            out[self._failed] = np.nan
 
     def unpack(self, flat: jax.Array) -> hobs.DataView:
         """The :class:`hyqjax.sim.observe.DataView` of a packed batch ``(B, width)`` (JAX or NumPy)."""
