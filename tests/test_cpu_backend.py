@@ -109,6 +109,38 @@ def test_physics_batch_steps_and_packs_the_view(hyq):
         phys.close()
 
 
+def test_an_instance_in_which_mujoco_raises_reads_nan_and_the_others_go_on(hyq):
+    """An instance whose ``mj_step`` raises (here a stack too small for its contacts) keeps its state, reads as NaN
+    from then on (the runner's divergence rule counts it) and is not stepped again, while the other instances of the
+    batch go on bit for bit as a plain ``mj_step`` loop steps them."""
+    m, ids = hyq
+    spec = hmodel.model_spec(hmodel.TerrainLayout())
+    spec.memory = 15000  # enough for a HyQ in the air, too little for its contacts on the ground
+    small = spec.compile()
+    q0 = hmodel.standing_qpos(m)
+    high = q0.copy()
+    high[2] += 2.0  # instance 0 starts 2 m up: no contact within the test's 10 steps
+    qpos = np.stack([high, q0])
+    phys = cpu_physics.CPhysics([small, small], qpos, ids.trunk_body, threads=1, dtype=np.float64)
+    ref = mujoco.MjData(small)
+    ref.qpos[:] = high
+    try:
+        for _ in range(10):
+            out = phys.step(np.zeros((2, 12)), np.zeros(2, bool))
+            mujoco.mj_step(small, ref)
+        v = phys.unpack(out)
+        np.testing.assert_array_equal(v.qpos[0], ref.qpos)
+        np.testing.assert_array_equal(v.qvel[0], ref.qvel)
+        assert np.isfinite(out[0]).all()
+        assert np.isnan(out[1]).all()
+        held = phys.batch.bind("qpos")[1].copy()  # the failed instance's state, no longer stepped
+        for _ in range(3):
+            phys.step(np.zeros((2, 12)), np.zeros(2, bool))
+        np.testing.assert_array_equal(phys.batch.bind("qpos")[1], held)
+    finally:
+        phys.close()
+
+
 def test_padded_rows_are_never_stepped_and_copy_the_last_real_row(hyq):
     """The host call of a batch padded to a bucket (CPhysics.step_padded): the real rows are stepped exactly as an
     unpadded batch (torques of the padded rows, NaN here, never reach C MuJoCo), the padded rows are a copy of the
