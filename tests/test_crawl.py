@@ -33,7 +33,7 @@ def test_joint_velocities_invert_the_foot_jacobian():
 def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
     p = CrawlParams.make()
     st = jax.jit(crawl_state.crawl_init)(p, _obs())
-    swing_state = jax.jit(crawl_state.start_swing_phase)(p, st, _obs())
+    swing_state = jax.jit(crawl_state.start_swing_phase)(p, st, *crawl_state.feet_h(_obs()))
     rp = jnp.zeros(2)
     planned = jax.jit(lambda p, s, rp, rate: swing.planned_feet(p, s, rp, rate)[:2])
     for phase_start, t in ((None, 0.13), ("swing", 0.2), ("swing", 0.31), ("search", 0.6)):
@@ -148,9 +148,10 @@ def test_step_down_options_lower_and_tilt_the_trunk_only_while_a_step_down_is_un
     st = crawl_state.crawl_init(p0, obs)
     st = dataclasses.replace(st, seq_index=jnp.asarray(2))
     start = jax.jit(crawl_state.start_body_phase)
+    feet, rp = crawl_state.feet_h(obs)
     for deep in (False, True):
         s = dataclasses.replace(st, deep=jnp.zeros(4, bool).at[1].set(deep))
-        a, b = start(p0, s, obs), start(p1, s, obs)
+        a, b = start(p0, s, feet, rp), start(p1, s, feet, rp)
         if not deep:  # no step down under way: exactly the default plan
             assert np.array_equal(np.asarray(a.body_delta), np.asarray(b.body_delta))
             assert np.array_equal(np.asarray(a.rp_target), np.asarray(b.rp_target))

@@ -99,7 +99,7 @@ def speed_limited_torques(tau, qd, limit):
 
 def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
-    rp_meas = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))[:2]
+    feet_meas, rp_meas = feet_h(obs)  # feet in the horizontal frame, measured roll and pitch (once a tick)
     in_swing = st.phase == PHASE_SWING
     searching = in_swing & (st.t_phase >= p.t_swing)
     x_plan, xd_plan, swing_down, leg, p_des, v_des, rp_des, r_des = swing.planned_feet(
@@ -159,18 +159,18 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
                                          deep=st.deep.at[leg].set(deep_leg), n_steps=st.n_steps + 1,
                                          n_touchdowns=st.n_touchdowns + touchdown.astype(jnp.int32),
                                          n_limit_stops=st.n_limit_stops + (limit & ~touchdown).astype(jnp.int32))
-    edge_lo, edge_hi, probe_leg, edge_depth = edge.after_swing(p, st, leg, deep_leg, touchdown, feet_h(obs)[0])
+    edge_lo, edge_hi, probe_leg, edge_depth = edge.after_swing(p, st, leg, deep_leg, touchdown, feet_meas)
     st_after_swing = dataclasses.replace(st_after_swing, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
                                          edge_depth=edge_depth)
-    # A probe's end (touchdown or its depth) starts the leg's full swing from where it is (hyqjax.crawl.edge).
-    st_after_probe = start_swing_phase(p, dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi,
-                                                              probe_leg=probe_leg, edge_depth=edge_depth,
-                                                              probing=False,
-                                                              step_back=edge.step_back(p, touchdown)), obs)
-    st_after_swing = start_body_phase(p, st_after_swing, obs)
-    st_after_body = start_swing_phase(p, st1, obs)
     pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
-    st_next = pick(swing_end, pick(st.probing, st_after_probe, st_after_swing), pick(body_end, st_after_body, st1))
+    # A new swing starts after a probe's end (touchdown or its depth: the leg's full swing from where it is,
+    # hyqjax.crawl.edge) or after a body phase. The two never end on one tick, so one swing start a tick is computed,
+    # from the state of whichever ended (before, both were computed every tick and one was selected).
+    after_probe = dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
+                                      edge_depth=edge_depth, probing=False, step_back=edge.step_back(p, touchdown))
+    st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), feet_meas, rp_meas)
+    st_after_swing = start_body_phase(p, st_after_swing, feet_meas, rp_meas)
+    st_next = pick(swing_end, pick(st.probing, st_swing, st_after_swing), pick(body_end, st_swing, st1))
     reflex_failed = (p.use_reflex > 0.5) & rout.failed
     info = CrawlInfo(phase=st.phase, swing_leg=leg, swing_down=swing_down, reflex_active=active, reflex_failed=reflex_failed,
                      mobility=mob, x_plan_b=x_plan, x_cmd_b=x_cmd, q_cmd=q_cmd, qd_cmd=qd_cmd, damping=rout.d_diag,

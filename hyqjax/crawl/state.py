@@ -103,9 +103,9 @@ def feet_h(obs: Observation):
     return jnp.einsum("ij,lj->li", spatial.roll_pitch_to_rot(rp[0], rp[1]), x_b), rp
 
 
-def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
-    """Body phase toward the support triangle of the next swing leg, from the actual state."""
-    feet, rp = feet_h(obs)
+def start_body_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.Array) -> CrawlState:
+    """Body phase toward the support triangle of the next swing leg, from the actual state: the feet in the
+    horizontal frame and the measured roll and pitch, :func:`feet_h`."""
     edge_lo, edge_hi = edge.carry(st, feet)
     st = dataclasses.replace(st, edge_lo=edge_lo, edge_hi=edge_hi)
     leg = st.sequence[st.seq_index]
@@ -123,9 +123,9 @@ def start_body_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlS
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
 
-def start_swing_phase(p: CrawlParams, st: CrawlState, obs: Observation) -> CrawlState:
-    """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7)."""
-    feet, rp = feet_h(obs)
+def start_swing_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.Array) -> CrawlState:
+    """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7), from
+    the feet in the horizontal frame and the measured roll and pitch (:func:`feet_h`)."""
     edge_lo, edge_hi = edge.carry(st, feet)
     leg = st.sequence[st.seq_index]
     n = reflex.terrain_normal(feet[jnp.asarray(robot.STANCE_LEGS)[leg]])
@@ -169,4 +169,4 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.asarray(0), n_touchdowns=jnp.asarray(0), n_limit_stops=jnp.asarray(0),
     )
-    return start_body_phase(p, st, obs)
+    return start_body_phase(p, st, feet, rp)
