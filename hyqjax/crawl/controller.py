@@ -165,7 +165,7 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     # A new swing starts after a probe's end (touchdown or its depth: the leg's full swing from where it is,
     # hyqjax.crawl.edge) or after a body phase. The two never end on one tick, so one swing start a tick is computed,
-    # from the state of whichever ended (before, both were computed every tick and one was selected).
+    # from the state of whichever ended.
     after_probe = dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
                                       edge_depth=edge_depth, probing=False, step_back=edge.step_back(p, touchdown))
     st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), feet_meas, rp_meas)
