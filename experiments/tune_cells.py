@@ -24,13 +24,12 @@ def main(argv=None) -> int:
     p.add_argument("--figure", default=None, help="PNG of the grid")
     p.add_argument("--out", default=None, help="JSON file for the grid")
     args = p.parse_args(argv)
-    if not 0.0 < args.minutes <= 600.0:
-        print(f"tune_cells: --minutes must be in (0, 600], got {args.minutes:g}", file=sys.stderr)
-        return 2
+    from hyqjax.cli.common import check_range
     from hyqjax.io import atomic
     from hyqjax.studies.tune import cells, repeats
 
     try:
+        check_range("--minutes", args.minutes, 0.0, 600.0, "min", lo_open=True)
         grid = cells.gather([repeats.load(d) for d in args.inputs], list(args.inputs), args.minutes)
     except ValueError as e:
         print(f"tune_cells: {e}", file=sys.stderr)

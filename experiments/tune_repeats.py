@@ -22,10 +22,12 @@ def main(argv=None) -> int:
     p.add_argument("--minutes", type=float, default=10.0, help="the budget (a checkpoint of every run)")
     p.add_argument("--out", default=None, help="JSON file for the summary")
     args = p.parse_args(argv)
+    from hyqjax.cli.common import check_range
     from hyqjax.io import atomic
     from hyqjax.studies.tune import repeats
 
     try:
+        check_range("--minutes", args.minutes, 0.0, 600.0, "min", lo_open=True)
         results = [repeats.load(d) for d in args.dirs]
         summary = repeats.collect(results, list(args.dirs), args.minutes)
     except ValueError as e:

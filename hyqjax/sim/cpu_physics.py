@@ -54,14 +54,14 @@ class CPhysics:
 
     def __init__(self, models: list[mujoco.MjModel], qpos0: np.ndarray, trunk_body: int, substeps: int = 1,
                  push: Push | None = None, threads: int | None = None, dtype=np.float32):
-        self.models = list(models)
-        b = len(self.models)
-        m0 = self.models[0]
+        models = list(models)
+        b = len(models)
+        m0 = models[0]
         self.b, self.substeps, self.trunk = b, int(substeps), int(trunk_body)
         self.dtype = np.dtype(dtype)
         self.threads = max(1, min(threads or default_threads(), b // MIN_ROWS_PER_THREAD))
         self.batch = mujoco.batch.Batch(m0, nsim=b, nthread=self.threads)
-        self.batch.set_models(self.models)
+        self.batch.set_models(models)  # the batch keeps them alive
         self.batch.reset(stage=mujoco.mjtStage.mjSTAGE_NONE)
         bind = self.batch.bind
         self._time, self._qpos, self._qvel, self._ctrl = bind("time"), bind("qpos"), bind("qvel"), bind("ctrl")

@@ -90,6 +90,12 @@ def tree_like(template, leaves: list):
     return jax.tree.unflatten(treedef, out)
 
 
+def segment_over(segment_s: float | None, t_start: float) -> bool:
+    """Whether a segment of ``segment_s`` seconds of the process (None: no segment end), counted from the
+    ``time.perf_counter()`` reading ``t_start``, is over (``--segment-minutes``)."""
+    return segment_s is not None and time.perf_counter() - t_start >= segment_s
+
+
 class RunCheckpoint:
     """The stored mid-budget state of one run (module docstring).
 
@@ -129,7 +135,7 @@ class RunCheckpoint:
         return now - self._t_saved >= self.every_s or self.segment_over()
 
     def segment_over(self) -> bool:
-        return self.segment_s is not None and time.perf_counter() - self.t_start >= self.segment_s
+        return segment_over(self.segment_s, self.t_start)
 
     def save(self, state: dict) -> None:
         payload = json.dumps(dict(format=FORMAT, key=self.key, fingerprint=self.fingerprint, state=pack(state)),

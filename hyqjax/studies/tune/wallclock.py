@@ -105,9 +105,6 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
     run's key or ``"held-out"``); the same command goes on from there."""
     t_start, t_process = time.time(), time.perf_counter()
     segment_s = None if segment_minutes is None else 60.0 * float(segment_minutes)
-
-    def segment_over() -> bool:
-        return segment_s is not None and time.perf_counter() - t_process >= segment_s
     os.makedirs(out_dir, exist_ok=True)
     prev = previous(out_dir, cfg) or {}
     if cfg.cold_compile:
@@ -155,7 +152,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
     for m, d in todo:
         store = resume.RunCheckpoint(out_dir, run_key(m, d), _fingerprint(cfg.to_dict()), checkpoint_every_s,
                                      segment_s, log, t_process)
-        if segment_over():
+        if resume.segment_over(segment_s, t_process):
             return pause(run_key(m, d))
         log(f"{run_key(m, d)} ({params[d].size} parameters): {cfg.wall_minutes} min budget")
         try:
@@ -178,7 +175,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
                               heights=[float(h) for h in forward.HELDOUT_HEIGHTS], ranges=forward.HELDOUT_RANGES,
                               trained_heights=[float(h) for h in cfg.train_heights],
                               train_ranges=forward.SPREADS[cfg.train_spread])
-    if left and segment_over():
+    if left and resume.segment_over(segment_s, t_process):
         return pause("held-out")
     if left:
         log(f"held-out: {len(left)} parameter sets x {sc.batch_size} instances x {cfg.heldout_duration:g} s "
