@@ -1,5 +1,6 @@
 """The crawl's pieces without physics: joint velocity references, planned feet velocities, the shin-strike remedy."""
 import dataclasses
+import types
 
 import jax
 import jax.numpy as jnp
@@ -359,3 +360,33 @@ def test_loaded_stance_drops_a_stance_foot_that_stopped_pressing_and_keeps_two()
     np.testing.assert_array_equal(loaded_stance(on, stance, never, pressing), stance)
     only_one = jnp.array([True, False, False, True])  # two of three stance feet slipped: keep all three
     np.testing.assert_array_equal(loaded_stance(on, stance, jnp.ones(4, bool), only_one), stance)
+
+
+def test_crawl_state_keeps_its_types_through_a_step_so_a_scan_traces_its_body_once():
+    """Under x64 every leaf of the crawl's state, and of the step-down metrics, leaves a step with the type it
+    entered with, none weakly typed: ``lax.scan`` traces a rollout's body (MJX and the controller, about 10^5
+    primitives) once. A weakly typed integer (``jnp.asarray(0)``, int64 under x64) that the step turns into int32
+    makes the scan trace the whole body a second time."""
+    from hyqjax.crawl import controller
+    from hyqjax.studies import stepdown_outcome
+
+    with jax.enable_x64(True):
+        obs = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64), _obs())
+        p = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float64) if jnp.issubdtype(jnp.asarray(x).dtype,
+                                   jnp.floating) else x, CrawlParams.make())
+        st = controller.crawl_init(p, obs)
+        traces = []
+
+        def body(s, _):
+            traces.append(1)
+            return controller.crawl_step(p, s, obs, 0.002)[0], None
+
+        jax.make_jaxpr(lambda s: jax.lax.scan(body, s, None, length=3))(st)
+        assert len(traces) == 1
+        st1 = jax.eval_shape(lambda s: controller.crawl_step(p, s, obs, 0.002)[0], st)
+        for a, b in zip(jax.tree_util.tree_leaves(st), jax.tree_util.tree_leaves(st1)):
+            assert (a.shape, a.dtype) == (b.shape, b.dtype) and not jax.typeof(a).weak_type
+        ids = types.SimpleNamespace(contacts=None, foot_sites=np.zeros(4, int), qpos_joints=np.arange(7, 19))
+        view = types.SimpleNamespace(qpos=jnp.zeros(19, jnp.float64))
+        ms = stepdown_outcome.make_metrics(ids, 100.0).init(view)
+        assert not [x for x in jax.tree_util.tree_leaves(ms) if jax.typeof(x).weak_type]
