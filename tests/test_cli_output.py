@@ -297,3 +297,28 @@ def test_success_figure_says_it_plots_clean_success():
     heights = sorted(b.get_height() for b in ax.patches)
     assert heights == [pytest.approx(0.0), pytest.approx(1.0)]  # reflex on: completed but not clean
     plt.close(fig)
+
+
+def test_a_program_compiled_in_the_background_is_kept_and_the_next_one_traces_for_its_outputs():
+    """``AheadOfTime._executable_in_background``: the program's outputs (``out_info``) are known before XLA has
+    compiled it, a second program traced for them runs on the first one's real outputs, each program is compiled
+    once (the second request returns the kept program without compiling), and the phase counts both compiles."""
+    import jax
+    import jax.numpy as jnp
+
+    class Runner(compile_phase.AheadOfTime):
+        def __init__(self):
+            self._executables, self.last_timing = {}, dict(compiled=0, from_cache=0)
+            self._reset_compile_phase()
+
+    r = Runner()
+    first = jax.jit(lambda x: dict(y=2.0 * x, n=jnp.sum(x > 0).astype(jnp.int32)))
+    second = jax.jit(lambda c, k: c["y"] * c["n"] + k, static_argnums=1)
+    x = jnp.arange(5.0)
+    get, out = r._executable_in_background("first", first, (x,), batch=5)
+    assert jax.tree_util.tree_map(lambda s: (s.shape, s.dtype), out) == dict(y=((5,), jnp.float32), n=((), jnp.int32))
+    nxt = r._executable("second", second, (out,), (3,), batch=5)
+    c = get()(x)
+    np.testing.assert_array_equal(np.asarray(nxt(c)), 2.0 * np.arange(5.0) * 4 + 3)
+    again, _ = r._executable_in_background("first", first, (x,), batch=5)
+    assert again() is get() and r.last_timing["compiled"] + r.last_timing["from_cache"] == 2

@@ -24,8 +24,10 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
+import threading
 import time
 
 from hyqjax.crawl import presets
@@ -150,6 +152,29 @@ def _check_duration(args) -> str | None:
     return sdd.check_duration(args.duration, args.heights, timing, START_DISTANCE)
 
 
+def _import_figures_while_xla_compiles(figures: bool):
+    """A compile listener that imports the figure module (matplotlib: about 0.5-0.8 s of a 2-core machine) in a
+    background thread once XLA compiles the chunk program, on the core that XLA's compile (which releases the GIL)
+    leaves idle, instead of after the simulation. A failed import is left to the import after the simulation,
+    which raises it."""
+    started = []
+
+    def listener(event: str, info: dict) -> None:
+        if figures and not started and event == "compile" and info.get("program") == "advance":
+            started.append(threading.Thread(target=_import_quietly, args=("hyqjax.studies.stepdown_figures",),
+                                            daemon=True, name="hyqjax-import-figures"))
+            started[0].start()
+
+    return listener
+
+
+def _import_quietly(name: str) -> None:
+    try:
+        importlib.import_module(name)
+    except Exception:  # noqa: BLE001  (raised again by the import that needs the module)
+        pass
+
+
 def run(args) -> int:
     import jax
     import numpy as np
@@ -158,6 +183,7 @@ def run(args) -> int:
     from hyqjax.cli.common import sim_progress, user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
+    from hyqjax.sim.compile_phase import compile_listener
     from hyqjax.studies import stepdown, stepdown_outcome
 
     if not getattr(args, "options_checked", False):
@@ -177,7 +203,8 @@ def run(args) -> int:
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
           f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
     t0 = time.time()
-    with sim_progress(f"stepdown: {n} instances", args.duration) as progress:
+    with compile_listener(_import_figures_while_xla_compiles(bool(record_every))), \
+            sim_progress(f"stepdown: {n} instances", args.duration) as progress:
         outcome, res = rollout.run(scenario, progress=progress)
     out = stepdown_outcome.to_columns(outcome)
     trace = jax.tree_util.tree_map(np.asarray, res.trace) if record_every else None

@@ -65,11 +65,25 @@ def compile_lowered(lowered) -> tuple[Any, bool]:
     return exe, getattr(_cache_hits, "n", 0) > before
 
 
+_COUNT_LOCK = threading.Lock()
+_BACKGROUND: list = []
+
+
+def _background():
+    """The one thread in which :meth:`AheadOfTime._executable_in_background` compiles (made on first use)."""
+    if not _BACKGROUND:
+        import concurrent.futures
+
+        _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hyqjax-compile"))
+    return _BACKGROUND[0]
+
+
 class AheadOfTime:
     """The compile phase of a batch runner: programs compiled ahead of time (``jit(...).lower(...).compile()``),
     once per shape, kept in ``_executables``; the phase announced to :func:`compile_listener` and timed into
     ``last_timing`` (``compile_s``, ``trace_s``; ``compiled`` and ``from_cache``: programs XLA compiled and
-    programs loaded from the persistent cache). Shared by :class:`hyqjax.sim.runner.BatchRunner` and the C MuJoCo backend's runner."""
+    programs loaded from the persistent cache). Shared by :class:`hyqjax.sim.runner.BatchRunner` and the C MuJoCo
+    backend's runner."""
 
     def _reset_compile_phase(self) -> None:
         self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
@@ -81,20 +95,41 @@ class AheadOfTime:
         key = (name, static, signature(args))
         exe = self._executables.get(key)
         if exe is None:
-            if self._compile_t0 is None:
-                self._compile_t0 = time.perf_counter()
-                self._phase_compiled = 0
-                notify("start", batch=batch)
-            t0 = time.perf_counter()
-            lowered = fn.lower(*args, *static)
-            self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
-            notify("compile", program=name)
-            exe, from_cache = compile_lowered(lowered)
+            exe = self._compile(key, name, self._lower(name, fn, args, static, batch))
+        return exe
+
+    def _executable_in_background(self, name: str, fn, args: tuple, static: tuple = (), batch: int | None = None):
+        """``(get, out_info)``: :meth:`_executable` with XLA's compile in a background thread. ``fn`` is traced and
+        lowered now; ``get()`` waits for the compiled program; ``out_info`` is the shapes and types of its outputs
+        (``jax.ShapeDtypeStruct``), for which the phase's next program can be traced and lowered while XLA compiles
+        this one (XLA releases the GIL; tracing is Python)."""
+        key = (name, static, signature(args))
+        exe = self._executables.get(key)
+        if exe is not None:
+            return (lambda: exe), exe.out_info
+        lowered = self._lower(name, fn, args, static, batch)
+        future = _background().submit(self._compile, key, name, lowered)
+        return future.result, lowered.out_info
+
+    def _lower(self, name: str, fn, args: tuple, static: tuple, batch: int | None):
+        if self._compile_t0 is None:
+            self._compile_t0 = time.perf_counter()
+            self._phase_compiled = 0
+            notify("start", batch=batch)
+        t0 = time.perf_counter()
+        lowered = fn.lower(*args, *static)
+        self.last_timing["trace_s"] = self.last_timing.get("trace_s", 0.0) + time.perf_counter() - t0
+        return lowered
+
+    def _compile(self, key, name: str, lowered):
+        notify("compile", program=name)
+        exe, from_cache = compile_lowered(lowered)
+        with _COUNT_LOCK:
             self._executables[key] = exe
             field = "from_cache" if from_cache else "compiled"
             self.last_timing[field] = self.last_timing.get(field, 0) + 1
             self._phase_compiled += 0 if from_cache else 1
-            notify("compiled", program=name, from_cache=from_cache)
+        notify("compiled", program=name, from_cache=from_cache)
         return exe
 
     def _end_compile_phase(self, batch: int) -> None:

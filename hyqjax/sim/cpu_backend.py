@@ -33,12 +33,12 @@ divergence instead of restarting the run silently. Warnings MuJoCo prints for su
 ``hyqjax.sim.cpu_backend`` logger (debug level) while a batch runs, not to ``MUJOCO_LOG.TXT``.
 
 **Shards.** A batch runs as contiguous shards, one per CPU core (:meth:`CBatchRunner.shard_bounds`; at least
-:data:`MIN_SHARD_ROWS` rows each, so a small batch runs as one), each with its own batch of simulations stepped on one thread
-and its own copy of the compiled chunk program, executed at once from one host thread per shard. A tick of one
-shard is its controller (compiled JAX) and then its physics (C MuJoCo); with one shard the two run one after the
-other, the core that is not stepping physics waiting for the controller. With two, one shard's controller runs while
-the other's physics steps (JAX and MuJoCo both release the GIL). Every shard is padded to the bucket of the largest,
-so all run one compiled program. Each instance's computation is the same whatever the sharding, and so are its
+:data:`MIN_SHARD_ROWS` rows each, so a small batch runs as one), each with its own batch of simulations stepped on
+one thread and its own copy of the compiled chunk program, executed at once from one host thread per shard. A tick
+of one shard is its controller (compiled JAX) and then its physics (C MuJoCo); with one shard the two run one after
+the other, the core that is not stepping physics waiting for the controller. With two, one shard's controller runs
+while the other's physics steps (JAX and MuJoCo both release the GIL). Every shard is padded to the bucket of the
+largest, so all run one compiled program. Each instance's computation is the same whatever the sharding, and so are its
 results, bit for bit (tested).
 
 Forward only: a derivative through this backend is a ``ValueError`` naming ``impl`` (gradients need
@@ -170,9 +170,7 @@ class CBatchRunner(AheadOfTime):
         self.metrics = metrics if metrics is not None else sim.no_metrics()
         self.record = record if cfg.record_every else None
         self.params_axes, self.threads, self.buckets, self.shards = params_axes, threads, buckets, shards
-        self.n_compiles = 0
-        self._layout: dict | None = None
-        self._width = 0
+        self.n_compiles, self._layout, self._width = 0, None, 0
         self._init = jax.jit(self._init_fn, compiler_options=COMPILER_OPTIONS)
         self._advance = jax.jit(self._advance_fn, static_argnums=3, compiler_options=COMPILER_OPTIONS)
         self._executables: dict = {}
@@ -289,8 +287,7 @@ class CBatchRunner(AheadOfTime):
         for sh in shards:
             _ACTIVE[sh.handle] = sh.phys
         host_call.discard_pending(PHYSICS_TARGET)
-        lock = threading.Lock()
-        reported = [0]
+        lock, reported = threading.Lock(), [0]
 
         def chunk_done(sh) -> None:  # progress at the pace of the slowest shard
             with lock:
@@ -316,15 +313,18 @@ class CBatchRunner(AheadOfTime):
 
         try:
             with _warnings_to_log():
-                for sh in shards:
-                    # Unpacked in NumPy, then put (slicing JAX arrays would compile a program per field).
-                    rows0 = sh.phys.packed()[sh.rows - sh.lo]
-                    view0 = jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, rows0))
-                    init = self._executable("init", self._init, (view0, sh.params), batch=plan.size)
-                    sh.carry = init(view0, sh.params)
+                # Unpacked in NumPy, then put (slicing JAX arrays would compile a program per field).
+                views0 = [jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, sh.phys.packed()[sh.rows - sh.lo]))
+                          for sh in shards]
+                # The initial-state program compiles while the chunk program is traced for its output's shapes.
+                init, carry0 = self._executable_in_background("init", self._init, (views0[0], shards[0].params),
+                                                              batch=plan.size)
                 hs = [jnp.asarray(np.asarray(sh.handle, np.int32)) for sh in shards]  # NumPy would compile a conversion
-                advance = self._executable("advance", self._advance, (shards[0].carry, shards[0].params, hs[0]), (k,),
+                advance = self._executable("advance", self._advance, (carry0, shards[0].params, hs[0]), (k,),
                                            batch=plan.size)
+                init = init()
+                for sh, view0 in zip(shards, views0):
+                    sh.carry = init(view0, sh.params)
                 self._end_compile_phase(plan.size)
                 t_sim = time.perf_counter()
                 if len(shards) == 1:
