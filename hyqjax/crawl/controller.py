@@ -181,4 +181,4 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
 
 def crawl_controller(dt: float) -> Controller:
     """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds."""
-    return Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt))
+    return Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt), tie_rollout_carry=True)

@@ -150,7 +150,7 @@ class Parameterisation:
             p = space.params_at(sp, st.sequence[st.seq_index], features(st, obs).astype(sp.table.dtype))
             return crawl.crawl_step(p, st, obs, dt)
 
-        return Controller(init, step)
+        return Controller(init, step, tie_rollout_carry=True)
 
     def rows(self, theta) -> np.ndarray:
         """``(4, P0)`` table rows of a concrete ``theta`` (float64)."""
