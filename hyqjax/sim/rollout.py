@@ -225,8 +225,8 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
         out = record(d_new, obs, info) if record is not None else None
         return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
 
-    if controller.tie_rollout_carry:
-        carry = tie_carry(carry, params)
+    if controller.tie_rollout_carry and not impls.is_warp_model(mx):  # Warp: no derivatives, and Data is not a
+        carry = tie_carry(carry, params)  # tree to map over (its contact buffers are shared by the batch)
     if record is not None and cfg.record_every:
         if n_ticks % cfg.record_every:
             raise ValueError(f"n_ticks ({n_ticks}) must be a multiple of record_every ({cfg.record_every})")
