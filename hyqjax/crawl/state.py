@@ -119,7 +119,7 @@ def start_body_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.Ar
     adapt = edge.tilt_share(p, st, adapt, rp, delta)  # adapt itself at edge_probe = 0
     delta = edge.lowered(p, st, rp, delta)  # delta itself at edge_probe = 0
     rp_target = jnp.clip(adapt * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
-    return dataclasses.replace(st, phase=jnp.asarray(PHASE_BODY, jnp.int32), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
+    return dataclasses.replace(st, phase=jnp.int32(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
 
@@ -143,7 +143,8 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.A
     probing, target, search_dir, search_fwd = edge.probe_swing(p, st, leg, lift, target, search_dir, search_fwd)
     lift_offset = jnp.where(probing, 0.0, lift_offset)
     stance = jnp.ones(4, feet.dtype).at[leg].set(0.0)
-    return dataclasses.replace(st, loaded=st.loaded.at[leg].set(False), phase=jnp.asarray(PHASE_SWING, jnp.int32), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
+    return dataclasses.replace(st, loaded=st.loaded.at[leg].set(False), phase=jnp.int32(PHASE_SWING),
+                               t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=jnp.zeros(3, feet.dtype), rp_start=rp, rp_target=rp, swing_target=target,
                                normal_h0=n, search_dir=search_dir, search_fwd=search_fwd,
                                search_forward_left=p.search_forward_limit - lift_offset,
@@ -159,14 +160,14 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     z = jnp.zeros((), dtype)
     up = jnp.array([0.0, 0.0, 1.0], dtype)
     st = CrawlState(
-        phase=jnp.asarray(PHASE_BODY, jnp.int32), seq_index=jnp.asarray(0, jnp.int32), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
+        phase=jnp.int32(PHASE_BODY), seq_index=jnp.int32(0), sequence=jnp.asarray(p.foot_sequence, jnp.int32),
         t_phase=z, feet_h0=feet, body_delta=jnp.zeros(3, dtype), rp_start=rp, rp_target=rp, swing_target=feet[0],
         normal_h0=up, search_dir=up, search_fwd=jnp.zeros(3, dtype),
         search_forward_left=jnp.asarray(p.search_forward_limit, dtype), search_depth=z, stance=jnp.ones(4, dtype),
         loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool), edge_lo=jnp.asarray(-edge.EDGE_UNKNOWN, dtype),
-        edge_hi=jnp.asarray(edge.EDGE_UNKNOWN, dtype), probe_leg=jnp.asarray(-1, jnp.int32), probing=jnp.asarray(False),
+        edge_hi=jnp.asarray(edge.EDGE_UNKNOWN, dtype), probe_leg=jnp.int32(-1), probing=jnp.asarray(False),
         step_back=z, edge_depth=z,
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
-        n_steps=jnp.asarray(0, jnp.int32), n_touchdowns=jnp.asarray(0, jnp.int32), n_limit_stops=jnp.asarray(0, jnp.int32),
+        n_steps=jnp.int32(0), n_touchdowns=jnp.int32(0), n_limit_stops=jnp.int32(0),
     )
     return start_body_phase(p, st, feet, rp)

@@ -9,7 +9,9 @@ runners build on it: :class:`hyqjax.sim.runner.BatchRunner` (MJX) and the C MuJo
 """
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
+import functools
 import threading
 import time
 from typing import Any, Callable
@@ -66,16 +68,12 @@ def compile_lowered(lowered) -> tuple[Any, bool]:
 
 
 _COUNT_LOCK = threading.Lock()
-_BACKGROUND: list = []
 
 
-def _background():
+@functools.cache
+def _background() -> concurrent.futures.ThreadPoolExecutor:
     """The one thread in which :meth:`AheadOfTime._executable_in_background` compiles (made on first use)."""
-    if not _BACKGROUND:
-        import concurrent.futures
-
-        _BACKGROUND.append(concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hyqjax-compile"))
-    return _BACKGROUND[0]
+    return concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hyqjax-compile")
 
 
 class AheadOfTime:

@@ -317,12 +317,12 @@ class CBatchRunner(AheadOfTime):
                 views0 = [jax.tree_util.tree_map(jnp.asarray, unpack(sh.phys.layout, sh.phys.packed()[sh.rows - sh.lo]))
                           for sh in shards]
                 # The initial-state program compiles while the chunk program is traced for its output's shapes.
-                init, carry0 = self._executable_in_background("init", self._init, (views0[0], shards[0].params),
-                                                              batch=plan.size)
+                get_init, carry0 = self._executable_in_background("init", self._init, (views0[0], shards[0].params),
+                                                                  batch=plan.size)
                 hs = [jnp.asarray(np.asarray(sh.handle, np.int32)) for sh in shards]  # NumPy would compile a conversion
                 advance = self._executable("advance", self._advance, (carry0, shards[0].params, hs[0]), (k,),
                                            batch=plan.size)
-                init = init()
+                init = get_init()
                 for sh, view0 in zip(shards, views0):
                     sh.carry = init(view0, sh.params)
                 self._end_compile_phase(plan.size)

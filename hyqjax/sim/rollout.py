@@ -225,8 +225,10 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
         out = record(d_new, obs, info) if record is not None else None
         return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
 
-    if controller.tie_rollout_carry and not impls.is_warp_model(mx):  # Warp: no derivatives, and Data is not a
-        carry = tie_carry(carry, params)  # tree to map over (its contact buffers are shared by the batch)
+    # The tie serves derivatives only; MJX-Warp has none (and its Data's contact buffers are shared by the batch,
+    # so it is not a tree to map over).
+    if controller.tie_rollout_carry and impls.supports_gradients(impls.model_impl(mx)):
+        carry = tie_carry(carry, params)
     if record is not None and cfg.record_every:
         if n_ticks % cfg.record_every:
             raise ValueError(f"n_ticks ({n_ticks}) must be a multiple of record_every ({cfg.record_every})")

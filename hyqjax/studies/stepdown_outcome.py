@@ -88,8 +88,8 @@ def make_metrics(ids: hmodel.ModelIds, strike_force: float, terminal_tilt: float
         no = jnp.array(False)
         return StepdownMetrics(peak_roll=f, peak_pitch=f, trunk_strike=no, shin_strike=no, shin_contact=no,
                                peak_shin_force=f, peak_trunk_force=f, joint_past_range=no,
-                               min_swing_mobility=f + 10.0, mobility_sum=f, swing_down_ticks=jnp.asarray(0, jnp.int32),
-                               lost_footholds=jnp.asarray(0, jnp.int32), time_all_down=f - 1.0,
+                               min_swing_mobility=f + 10.0, mobility_sum=f, swing_down_ticks=jnp.int32(0),
+                               lost_footholds=jnp.int32(0), time_all_down=f - 1.0,
                                x_start=d.qpos[robot.QPOS_BASE_POS][0], reflex_failure=no, contact_overflow=no)
 
     def update(ms: StepdownMetrics, d, obs, info) -> StepdownMetrics:

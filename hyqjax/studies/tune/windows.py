@@ -207,7 +207,7 @@ def _capture(mx, ids, controller, p, d0, spec: WindowSpec, n_ticks: int, dt: flo
             pend_leg = jnp.where(trig, leg, pend_leg)
         return (d1, cs1, tau1, snaps, (valid, legs, ticks), count + take.astype(jnp.int32), pending, pend_leg), None
 
-    carry = (d0, cs0, tau0, snaps0, meta0, jnp.asarray(0, jnp.int32), jnp.asarray(-1, jnp.int32), jnp.asarray(0, jnp.int32))
+    carry = (d0, cs0, tau0, snaps0, meta0, jnp.int32(0), jnp.int32(-1), jnp.int32(0))
     carry, _ = jax.lax.scan(body, carry, jnp.arange(n_ticks))
     return carry[3], carry[4]
 
