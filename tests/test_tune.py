@@ -1227,6 +1227,34 @@ def test_grid_of_cells_takes_one_value_per_cell_with_the_right_interval_and_refu
     assert set(grid["cells"]["per_leg"]) == {"cma_es", "snes", "gradient", "hybrid"}
 
 
+def test_budget_curves_of_several_runs_merge_the_stored_30_minute_runs(tmp_path):
+    """experiments/tune_budget_curves.py: the four stored 30-minute runs become one figure's four curves, each with
+    its checkpoints at 3, 10 and 30 minutes and the held-out numbers its own run stored; a run given twice and a
+    run of another configuration are refused in one line (exit 2), nothing written."""
+    from experiments import tune_budget_curves as tbc
+    from hyqjax.studies.tune import repeats
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    stored = os.path.join(repo, "docs", "results", "tune_cells_h200_30min")
+    names = [os.path.join(stored, d) for d in ("cma_es_shared_30min", "random_search_shared_30min",
+                                                "cma_es_per_leg_30min", "snes_per_leg_30min")]
+    runs = [repeats.load(d) for d in names]
+    res = tbc.merge(runs, names)
+    got = {(c["method"], c["dim"]): c for c in res["budget_curves"]}
+    assert set(got) == {("cma_es", "shared"), ("random_search", "shared"), ("cma_es", "per_leg"), ("snes", "per_leg")}
+    for run in runs:
+        for c in run["budget_curves"]:
+            assert [p["minutes"] for p in got[(c["method"], c["dim"])]["points"]] == [3.0, 10.0, 30.0]
+            assert got[(c["method"], c["dim"])]["points"] == c["points"]
+    assert res["heldout"]["start"] == runs[0]["heldout"]["start"] and res["device"] == "NVIDIA H200"
+    fig = tmp_path / "curves.png"
+    assert tbc.main([*names, "--figure", str(fig)]) == 0 and fig.stat().st_size > 10_000
+    other = os.path.join(repo, "docs", "results", "tune_cells_h200_10min", "cma_es_per_leg")
+    for argv in ([names[0], names[0]], [names[0], other]):
+        assert tbc.main([*argv, "--figure", str(tmp_path / "no.png")]) == 2
+    assert not (tmp_path / "no.png").exists()
+
+
 def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
     """The window-objective ranking (experiments/tune_objective_ranking.py) reads back the configuration a study
     ran with (``WallClockConfig.from_dict``) and collects the start point once and every held-out-evaluated checkpoint of every run, with its
