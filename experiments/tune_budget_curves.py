@@ -12,6 +12,7 @@ twice is refused: give one run of each.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -21,10 +22,7 @@ def merge(results: list[dict], names: list[str]) -> dict:
     from hyqjax.studies.tune import cells, repeats
 
     repeats.check_comparable(results, names, cells.FREE_SETTINGS)
-    devices = {res.get("device") for res in results}
-    if len(devices) > 1:
-        raise ValueError(f"runs of several kinds of device ({', '.join(sorted(map(str, devices)))}): a wall-clock "
-                         f"budget buys other work on each; give one kind")
+    cells.check_one_device(results)
     curves, seen = [], {}
     for res, name in zip(results, names):
         for c in res.get("budget_curves", []):
@@ -47,9 +45,11 @@ def main(argv=None) -> int:
     p.add_argument("inputs", nargs="+", help="study directories or results files")
     p.add_argument("--figure", required=True, help="PNG of the budget curves")
     args = p.parse_args(argv)
+    from hyqjax.io.atomic import check_writable_dir
     from hyqjax.studies.tune import figure, repeats
 
     try:
+        check_writable_dir(os.path.dirname(args.figure) or ".", "--figure")
         res = merge([repeats.load(d) for d in args.inputs], list(args.inputs))
     except ValueError as e:
         print(f"tune_budget_curves: {e}", file=sys.stderr)

@@ -11,6 +11,7 @@ refused in one line.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 
@@ -30,6 +31,9 @@ def main(argv=None) -> int:
 
     try:
         check_range("--minutes", args.minutes, 0.0, 600.0, "min", lo_open=True)
+        for option, path in (("--figure", args.figure), ("--out", args.out)):
+            if path:
+                atomic.check_writable_dir(os.path.dirname(path) or ".", option)
         grid = cells.gather([repeats.load(d) for d in args.inputs], list(args.inputs), args.minutes)
     except ValueError as e:
         print(f"tune_cells: {e}", file=sys.stderr)

@@ -90,8 +90,7 @@ class AheadOfTime:
     def _executable(self, name: str, fn, args: tuple, static: tuple = (), batch: int | None = None):
         """The compiled ``fn`` for the shapes of ``args`` (compiled ahead of time on first use; opens the compile
         phase, see :meth:`_end_compile_phase`)."""
-        key = (name, static, signature(args))
-        exe = self._executables.get(key)
+        key, exe = self._cached(name, args, static)
         if exe is None:
             exe = self._compile(key, name, self._lower(name, fn, args, static, batch))
         return exe
@@ -101,13 +100,17 @@ class AheadOfTime:
         lowered now; ``get()`` waits for the compiled program; ``out_info`` is the shapes and types of its outputs
         (``jax.ShapeDtypeStruct``), for which the phase's next program can be traced and lowered while XLA compiles
         this one (XLA releases the GIL; tracing is Python)."""
-        key = (name, static, signature(args))
-        exe = self._executables.get(key)
+        key, exe = self._cached(name, args, static)
         if exe is not None:
             return (lambda: exe), exe.out_info
         lowered = self._lower(name, fn, args, static, batch)
         future = _background().submit(self._compile, key, name, lowered)
         return future.result, lowered.out_info
+
+    def _cached(self, name: str, args: tuple, static: tuple):
+        """``(key, executable or None)``: the program kept for ``name`` at the shapes of ``args``."""
+        key = (name, static, signature(args))
+        return key, self._executables.get(key)
 
     def _lower(self, name: str, fn, args: tuple, static: tuple, batch: int | None):
         if self._compile_t0 is None:

@@ -89,7 +89,7 @@ def sensed_controller(inner: sim.Controller, max_delay: int) -> sim.Controller:
         cs, tau, info = inner.step(p.crawl, s.inner, seen)
         return SensedState(cs, buf, key), tau, info
 
-    return sim.Controller(init, step, inner.tie_rollout_carry)
+    return sim.Controller(init, step, tie_rollout_carry=inner.tie_rollout_carry)
 
 
 def build_scenario(rows: dict[str, np.ndarray], spec: SweepSpec) -> tuple[stepdown.Scenario, SensorParams | None]:

@@ -32,16 +32,21 @@ def label(method: str, grad_mode: str | None) -> str:
     return f"{method} (reverse mode)" if method in ("gradient", "hybrid") and grad_mode == "reverse" else method
 
 
+def check_one_device(results: list[dict]) -> None:
+    """Refuse runs of several kinds of device: a wall-clock budget buys other work on each."""
+    devices = {res.get("device") for res in results}
+    if len(devices) > 1:
+        raise ValueError(f"runs of several kinds of device ({', '.join(sorted(map(str, devices)))}): a wall-clock "
+                         f"budget buys other work on each; give one kind")
+
+
 def gather(results: list[dict], names: list[str], minutes: float) -> dict:
     """``{"cells": {dim: {label: cell}}, "start": {...}, "device": ...}`` of the runs in ``results`` (module
     docstring); ``names`` name the inputs in refusals and in each run's record."""
     if not results:
         raise ValueError("no study given")
     repeats.check_comparable(results, names, FREE_SETTINGS)
-    devices = {res.get("device") for res in results}
-    if len(devices) > 1:
-        raise ValueError(f"runs of several kinds of device ({', '.join(sorted(map(str, devices)))}): a wall-clock "
-                         f"budget buys other work on each; give one kind")
+    check_one_device(results)
     cells: dict = {}
     sizes: dict = {}  # coordinates of each parameterisation, as its runs stored them
     seen: dict = {}
@@ -77,7 +82,7 @@ def gather(results: list[dict], names: list[str], minutes: float) -> dict:
                 mean, ci, kind = o["mean"], o["ci95"], "over_runs"
             out[dim][lab] = dict(runs=runs, clean=mean, clean_ci95=ci, interval=kind,
                                  completed=float(np.mean([r["completed"] for r in runs])))
-    return dict(minutes=minutes, device=devices.pop(), cells=out, sizes=sizes,
+    return dict(minutes=minutes, device=results[0].get("device"), cells=out, sizes=sizes,
                 start=dict(min=min(starts), max=max(starts)) if starts else None)
 
 
