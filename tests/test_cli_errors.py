@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 
 import jax.monitoring
 import numpy as np
@@ -504,6 +505,36 @@ def test_usage_errors_refused_before_heavy_imports():
     for case in SPEC_REFUSALS:
         p = run_python(code.format(cases=[case]), timeout=120)
         assert p.stdout.strip() == "2 ['jax']", (case, p.stdout, p.stderr)
+
+
+def test_the_executable_exits_at_once_with_its_output_flushed_and_its_status():
+    """``python -m hyqjax.cli`` (what the ``hyqjax`` executable runs: ``console_main``) ends the process with
+    ``os._exit`` once the command returned: what the command printed to a pipe (block-buffered standard output)
+    is all there, its exit status is the command's, and no exit handler of the interpreter runs."""
+    import subprocess
+    import textwrap
+
+    from conftest import REPO_ROOT
+
+    env = {**os.environ, "PYTHONPATH": REPO_ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    # An exit handler registered before the command runs: os._exit skips it, sys.exit would run it.
+    code = textwrap.dedent("""
+        import atexit, sys
+        atexit.register(lambda: print("EXIT HANDLER RAN", file=sys.stderr))
+        sys.argv = ["hyqjax", *sys.argv[1:]]
+        import runpy
+        runpy.run_module("hyqjax.cli", run_name="__main__")
+    """)
+    for argv, stream, expect in (([], "stdout", "usage: hyqjax"), (["stepdown", "--heights", "0.9"], "stderr",
+                                                                    "hyqjax stepdown: --heights")):
+        p = subprocess.run([sys.executable, "-c", code, *argv], cwd=REPO_ROOT, env=env, capture_output=True,
+                           text=True, timeout=120)
+        assert p.returncode == 2, (argv, p.returncode, p.stderr)
+        assert expect in getattr(p, stream), (argv, p.stdout, p.stderr)
+        assert "EXIT HANDLER RAN" not in p.stderr, p.stderr
+    # The full help text arrives whole (larger than what a pipe's first write would carry unflushed).
+    assert p.stdout == "" and len(subprocess.run([sys.executable, "-m", "hyqjax.cli"], cwd=REPO_ROOT, env=env,
+                                                 capture_output=True, text=True, timeout=120).stdout) > 500
 
 
 def test_compilation_cache_is_kept_per_host_cpu(monkeypatch, tmp_path):

@@ -1,4 +1,4 @@
 """The ``hyqjax`` command line."""
-from hyqjax.cli.app import main
+from hyqjax.cli.app import console_main, main
 
-__all__ = ["main"]
+__all__ = ["console_main", "main"]

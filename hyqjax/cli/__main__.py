@@ -1,6 +1,4 @@
 """``python -m hyqjax.cli COMMAND ...``: the ``hyqjax`` command line."""
-import sys
+from hyqjax.cli.app import console_main
 
-from hyqjax.cli.app import main
-
-sys.exit(main())
+console_main()

@@ -24,6 +24,7 @@ Examples:
 from __future__ import annotations
 
 import argparse
+import concurrent.futures
 import importlib
 import os
 import sys
@@ -216,7 +217,14 @@ def run(args) -> int:
     os.makedirs(args.out, exist_ok=True)
     from hyqjax.studies import stepdown_figures  # matplotlib, imported once the simulation is done
 
-    figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
+    traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    # traces.npz is compressed (zlib, without the GIL) while matplotlib draws; both are done when the block ends.
+    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hyqjax-traces") as pool:
+        saving = pool.submit(recording.save, traces_path, trace, table, recorded, record_every,
+                             cfg.control_dt) if trace is not None and len(recorded) else None
+        figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
+    if saving is not None:
+        saving.result()  # its error, if any
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
     config = user_options(args)
     config.pop("duration_warning", None)
@@ -226,10 +234,8 @@ def run(args) -> int:
     io.write_json(os.path.join(args.out, "results.json"), dict(
         provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
         instances=instances, figures=figs, wall_time_s=wall, timing=timing))
-    traces_path = os.path.join(args.out, recording.TRACES_FILE)
     wrote = ["results.json (summary and one row per instance)"]
-    if trace is not None and len(recorded):
-        recording.save(traces_path, trace, table, recorded, record_every, cfg.control_dt)
+    if saving is not None:
         wrote.append(f"{recording.TRACES_FILE} ({len(recorded)} recorded instances: `hyqjax render {args.out}` makes "
                      f"a video, `hyqjax view {args.out}` replays one)")
     elif os.path.exists(traces_path):
