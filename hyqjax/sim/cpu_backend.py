@@ -75,8 +75,10 @@ log = logging.getLogger(__name__)
 
 #: XLA options of the programs this backend compiles (the controller and metrics, on the CPU): XLA:CPU's
 #: elemental emitters instead of its fusion emitters compile the crawl's closed loop in about half the time
-#: (5 instead of 9.5 s of CPU for 18 instances) and run its ticks as fast (benchmarks/bench_cpu_backend.py).
-COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: (5 instead of 9.5 s of CPU for 18 instances) and run its ticks as fast (benchmarks/bench_cpu_backend.py); the
+#: controller's small matrix products in Eigen's single-threaded kernels (each shard is one thread already) take
+#: 12-15% off a tick of the controller, bitwise the same (benchmarks/RESULTS.md).
+COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_multi_thread_eigen": False}
 
 #: The fewest rows a shard of a batch has (a smaller batch runs as fewer shards, down to one).
 MIN_SHARD_ROWS = 8
