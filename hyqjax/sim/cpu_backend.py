@@ -358,11 +358,11 @@ class CBatchRunner(AheadOfTime):
         # arrays compiles a program per shape (0.7 s for the 25 fields of a step-down's trace, after the simulation).
         results = []
         for sh in shards:
-            trace = None if self.record is None else sh.traces[0] if len(sh.traces) == 1 else jax.device_put(
-                jax.tree_util.tree_map(lambda *xs: np.concatenate([np.asarray(x) for x in xs], axis=1), *sh.traces))
+            trace = None if self.record is None else sh.traces[0] if len(sh.traces) == 1 else jax.tree_util.tree_map(
+                lambda *xs: np.concatenate([np.asarray(x) for x in xs], axis=1), *sh.traces)
             results.append((sim.rollout_result(sh.carry, trace), sh.hi - sh.lo))
         if len(results) == 1 and plan.size == n:
-            return results[0][0]
+            return jax.device_put(results[0][0])
         return jax.device_put(jax.tree_util.tree_map(
             lambda *xs: np.concatenate([np.asarray(x)[:m] for x, (_, m) in zip(xs, results)]),
             *(r for r, _ in results)))
