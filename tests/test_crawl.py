@@ -34,9 +34,9 @@ def test_joint_velocities_invert_the_foot_jacobian():
 def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
     p = CrawlParams.make()
     st = jax.jit(crawl_state.crawl_init)(p, _obs())
-    swing_state = jax.jit(crawl_state.start_swing_phase)(p, st, *crawl_state.feet_h(_obs()))
-    rp = jnp.zeros(2)
-    planned = jax.jit(lambda p, s, rp, rate: swing.planned_feet(p, s, rp, rate)[:2])
+    swing_state = jax.jit(crawl_state.start_swing_phase)(p, st, crawl_state.measure(_obs()))
+    level = jnp.eye(3)  # hR_b of a level trunk
+    planned = jax.jit(lambda p, s, h_r_b, rate: swing.planned_feet(p, s, h_r_b, rate)[:2])
     for phase_start, t in ((None, 0.13), ("swing", 0.2), ("swing", 0.31), ("search", 0.6)):
         s = st
         if phase_start is not None:
@@ -44,12 +44,12 @@ def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
         rate = jnp.asarray(p.search_speed if phase_start == "search" else 0.0, jnp.float32)
         depth = 0.05 if phase_start == "search" else 0.0
         s = dataclasses.replace(s, t_phase=jnp.asarray(t, jnp.float32), search_depth=jnp.asarray(depth, jnp.float32))
-        x, xd = planned(p, s, rp, rate)
+        x, xd = planned(p, s, level, rate)
         eps = 1e-3
         xp = planned(p, dataclasses.replace(s, t_phase=s.t_phase + eps, search_depth=s.search_depth + rate * eps),
-                     rp, rate)[0]
+                     level, rate)[0]
         xm = planned(p, dataclasses.replace(s, t_phase=s.t_phase - eps, search_depth=s.search_depth - rate * eps),
-                     rp, rate)[0]
+                     level, rate)[0]
         fd = (np.asarray(xp) - np.asarray(xm)) / (2 * eps)
         np.testing.assert_allclose(np.asarray(xd), fd, atol=5e-3)
         assert np.abs(np.asarray(xd)).max() > 0.01  # something moves in each case
@@ -149,10 +149,10 @@ def test_step_down_options_lower_and_tilt_the_trunk_only_while_a_step_down_is_un
     st = crawl_state.crawl_init(p0, obs)
     st = dataclasses.replace(st, seq_index=jnp.asarray(2))
     start = jax.jit(crawl_state.start_body_phase)
-    feet, rp = crawl_state.feet_h(obs)
+    measured = crawl_state.measure(obs)
     for deep in (False, True):
         s = dataclasses.replace(st, deep=jnp.zeros(4, bool).at[1].set(deep))
-        a, b = start(p0, s, feet, rp), start(p1, s, feet, rp)
+        a, b = start(p0, s, measured), start(p1, s, measured)
         if not deep:  # no step down under way: exactly the default plan
             assert np.array_equal(np.asarray(a.body_delta), np.asarray(b.body_delta))
             assert np.array_equal(np.asarray(a.rp_target), np.asarray(b.rp_target))
@@ -265,11 +265,11 @@ def test_footholds_one_step_ahead_on_the_terrain_plane_and_shortened_to_the_work
     for yaw in (0.0, 0.2):
         t = np.asarray(swing_target(lift, lift + jnp.asarray([0.0, 0.03, 0.0]), 0.12, yaw, n))
         assert abs(np.dot(t - np.asarray(lift), np.asarray(n))) < 1e-6  # on the terrain plane through lift-off
-    rp = jnp.zeros(2)
+    level = jnp.eye(3)  # hR_b of a level trunk
     easy = lift + jnp.asarray([0.08, 0.0, 0.0])
-    np.testing.assert_allclose(np.asarray(reach(0.1, 0.75, leg, lift, easy, up, rp)), np.asarray(easy), atol=1e-7)
+    np.testing.assert_allclose(np.asarray(reach(0.1, 0.75, leg, lift, easy, up, level)), np.asarray(easy), atol=1e-7)
     far = lift + jnp.asarray([0.6, 0.0, 0.0])
-    got = np.asarray(reach(0.1, 0.75, leg, lift, far, up, rp))
+    got = np.asarray(reach(0.1, 0.75, leg, lift, far, up, level))
     frac = (got[0] - float(lift[0])) / 0.6
     assert frac < 1.0 and np.any(np.isclose(frac, footholds.STEP_FRACTIONS, atol=1e-5))
     np.testing.assert_allclose(got[1:], np.asarray(lift)[1:], atol=1e-7)  # on the segment lift -> target

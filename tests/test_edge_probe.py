@@ -58,17 +58,18 @@ def test_the_trunk_is_lowered_only_while_a_front_hip_is_behind_the_edge():
     class Unknown:  # no step down yet
         edge_lo, edge_hi = np.float32(-edge.EDGE_UNKNOWN), np.float32(edge.EDGE_UNKNOWN)
 
-    rp, delta = jnp.zeros(2, jnp.float32), jnp.array([-0.3, 0.0, 0.5], jnp.float32)  # front hips end at about +0.07 m
+    level = jnp.eye(3, dtype=jnp.float32)  # hR_b of a level trunk
+    delta = jnp.array([-0.3, 0.0, 0.5], jnp.float32)  # front hips end at about +0.07 m
 
     def same(p, st):
-        return np.asarray(edge.lowered(p, st, rp, delta)).tobytes() == np.asarray(delta).tobytes()
+        return np.asarray(edge.lowered(p, st, level, delta)).tobytes() == np.asarray(delta).tobytes()
 
     base = CrawlParams.make(**REMEDY, edge_probe=0.1, edge_tilt=0.3)
-    assert bool(edge.behind(base, St, rp, delta)) and same(base, St)
+    assert bool(edge.behind(base, St, level, delta)) and same(base, St)
     low = base.replace(edge_lowering=np.float32(0.03))
-    np.testing.assert_allclose(np.asarray(edge.lowered(low, St, rp, delta)), [-0.3, 0.0, 0.47], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(edge.lowered(low, St, level, delta)), [-0.3, 0.0, 0.47], atol=1e-6)
     past = low.replace(edge_margin=np.float32(-0.2))  # the hips are past 0.2 - 0.2 = 0
-    assert not bool(edge.behind(past, St, rp, delta)) and same(past, St) and same(low, Unknown)
+    assert not bool(edge.behind(past, St, level, delta)) and same(past, St) and same(low, Unknown)
     assert same(low.replace(edge_probe=np.float32(0.0)), St)
 
 
@@ -112,14 +113,15 @@ def test_the_gate_tilts_by_the_measured_depth():
     """Behind the edge the gate follows ``edge_tilt_deep`` where the measured step is deeper than ``edge_deep``,
     ``edge_tilt`` where it is not, and the crawl's own share where the hips are past (or the probe is off)."""
     p = CrawlParams.make(**REMEDY, edge_probe=0.1, edge_tilt=0.3, edge_deep=0.255, edge_tilt_deep=0.5)
-    rp, behind_delta = jnp.zeros(2), jnp.zeros(3)
+    level, behind_delta = jnp.eye(3), jnp.zeros(3)
 
     class St:
         edge_lo, edge_hi = np.float32(0.2), np.float32(0.6)  # the hips (x about 0.37) are behind it
 
     for depth, want in ((0.24, 0.3), (0.27, 0.5)):
         St.edge_depth = np.float32(depth)
-        assert float(edge.tilt_share(p, St, 0.8, rp, behind_delta)) == pytest.approx(want)
+        assert float(edge.tilt_share(p, St, 0.8, level, behind_delta)) == pytest.approx(want)
     St.edge_lo, St.edge_hi = np.float32(-0.6), np.float32(-0.2)  # hips past the edge
-    assert float(edge.tilt_share(p, St, 0.8, rp, behind_delta)) == pytest.approx(0.8)
-    assert float(edge.tilt_share(p.replace(edge_probe=np.float32(0.0)), St, 0.8, rp, behind_delta)) == pytest.approx(0.8)
+    assert float(edge.tilt_share(p, St, 0.8, level, behind_delta)) == pytest.approx(0.8)
+    off = p.replace(edge_probe=np.float32(0.0))
+    assert float(edge.tilt_share(off, St, 0.8, level, behind_delta)) == pytest.approx(0.8)

@@ -30,7 +30,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.core import kinematics
 from hyqjax.core import robot, smallmat
 from hyqjax.core import spatial
 
@@ -171,8 +170,8 @@ def distribute_weight(r_feet_h, stance, mass, mu, up=(0.0, 0.0, 1.0)):
     return distribute_wrench(r_feet_h, stance, mass * robot.GRAVITY * up_v, jnp.zeros(3, r_feet_h.dtype), mu, up)
 
 
-def feedforward_torques(q, b_r_h, f_h):
-    """``tau_ff = -J_f(q)^T (B_R_H f)`` per leg, (12,): the torques that make the feet push ``f`` on the ground."""
+def feedforward_torques(jac, b_r_h, f_h):
+    """``tau_ff = -J_f(q)^T (B_R_H f)`` per leg, (12,): the torques that make the feet push ``f`` on the ground;
+    ``jac``: the feet's Jacobians ``J_f(q)``, ``(4, 3, 3)`` (:func:`hyqjax.core.kinematics.foot_jacobians`)."""
     f_b = jnp.einsum("ij,lj->li", b_r_h, f_h)
-    jac = kinematics.foot_jacobians(q)
     return -jnp.einsum("lij,li->lj", jac, f_b).reshape(robot.N_JOINTS)

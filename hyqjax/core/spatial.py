@@ -45,8 +45,21 @@ def rpy_to_rot(rpy):
 
 def roll_pitch_to_rot(roll, pitch):
     """``R_y(pitch) R_x(roll)``: ZYX with the yaw removed, the trunk's orientation in the horizontal frame
-    ``H`` (``h_x = hR_b b_x``); broadcasts over ``roll`` and ``pitch``."""
-    return rpy_to_rot(jnp.stack([roll, pitch, jnp.zeros_like(roll)], -1))
+    ``H`` (``h_x = hR_b b_x``); broadcasts over ``roll`` and ``pitch``.
+
+    Entry for entry the arithmetic of :func:`rpy_to_rot` at yaw 0, so bitwise its result: its factors
+    ``cos 0 = 1`` are left out, its terms in ``sin 0 = 0`` kept (they set the signs of exact zeros and flush
+    denormals as it does)."""
+    cr, sr, cp, sp = jnp.cos(roll), jnp.sin(roll), jnp.cos(pitch), jnp.sin(pitch)
+    z = jnp.zeros_like(cr)  # sin 0
+    return jnp.stack(
+        [
+            jnp.stack([cp, sp * sr - z * cr, sp * cr + z * sr], -1),
+            jnp.stack([z * cp, z * sp * sr + cr, z * sp * cr - sr], -1),
+            jnp.stack([-sp, cp * sr, cp * cr], -1),
+        ],
+        -2,
+    )
 
 
 def euler_rates(rpy, omega_b):

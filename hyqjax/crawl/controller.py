@@ -31,14 +31,13 @@ from hyqjax.control import impedance
 from hyqjax.control import trunk as trunk_control
 from hyqjax.core import kinematics
 from hyqjax.core import robot
-from hyqjax.core import spatial
 from hyqjax.crawl import edge
 from hyqjax.crawl import remedy
 from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
 from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
     LIMIT_DEPTH, LIMIT_END_STOP, LIMIT_EXTENSION, LIMIT_NONE, PHASE_BODY, PHASE_SWING,
-    CrawlInfo, CrawlState, crawl_init, feet_h, start_body_phase, start_swing_phase,
+    CrawlInfo, CrawlState, Measured, crawl_init, measure, start_body_phase, start_swing_phase,
 )
 from hyqjax.reflex import step as reflex
 from hyqjax.core.types import Controller, Observation
@@ -61,18 +60,17 @@ def loaded_stance(p: CrawlParams, stance, loaded, pressing):
     return jnp.where((p.stance_min_force > 0) & (jnp.sum(gated) >= 2), gated, stance)
 
 
-def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas, p_des, v_des, rp_des, pressing):
+def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, m: Measured, p_des, v_des, rp_des, pressing):
     """Trunk PD wrench relative to ``H0`` (leg odometry), distributed by the QP over the loaded stance feet
-    (:func:`loaded_stance`), as joint torques ``(12,)``."""
+    (:func:`loaded_stance`), as joint torques ``(12,)``; ``m``: the tick's measured kinematics."""
     dtype = p_des.dtype
-    h_r_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1])
-    x_meas_b = kinematics.foot_positions(obs.q)
+    h_r_b, x_meas_b, rp_meas = m.h_r_b, m.x_b, m.rp
     r_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b - jnp.asarray(COM_OFFSET_B, dtype))
     # Trunk pose relative to H0 by leg odometry: stance feet are fixed in H0.
     feet_now_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b)
     w = st.stance / jnp.sum(st.stance)
     p_meas = jnp.sum(w[:, None] * (st.feet_h0 - feet_now_h), 0)
-    v_feet_b = kinematics.foot_velocities(obs.q, obs.qd)
+    v_feet_b = jnp.einsum("lij,lj->li", m.jac, obs.qd.reshape(4, 3))  # J_f(q) qd
     v_meas = -jnp.sum(w[:, None] * jnp.einsum("ij,lj->li", h_r_b, v_feet_b + jnp.cross(obs.gyro, x_meas_b)), 0)
     up_h = jnp.array([0.0, 0.0, 1.0], dtype)
     force = p.mass * robot.GRAVITY * up_h + p.k_com * (p_des - p_meas) + p.d_com * (v_des - v_meas)
@@ -80,7 +78,7 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, rp_meas,
     torque = p.k_rot * rp_err - p.d_rot * (h_r_b @ obs.gyro)
     distribute = trunk_control.distribute_wrench if p.weight_qp else trunk_control.clipped_least_norm  # static
     f_h = distribute(r_h, loaded_stance(p, st.stance, st.loaded, pressing), force, torque, p.mu)
-    return trunk_control.feedforward_torques(obs.q, h_r_b.T, f_h)
+    return trunk_control.feedforward_torques(m.jac, h_r_b.T, f_h)
 
 
 def speed_limited_torques(tau, qd, limit):
@@ -99,11 +97,12 @@ def speed_limited_torques(tau, qd, limit):
 
 def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     """One control tick: plan, reflex, IK, joint impedance + feed-forward, phase transitions."""
-    feet_meas, rp_meas = feet_h(obs)  # feet in the horizontal frame, measured roll and pitch (once a tick)
+    m = measure(obs)  # the measured kinematics (once a tick)
+    feet_meas, rp_meas = m.feet, m.rp
     in_swing = st.phase == PHASE_SWING
     searching = in_swing & (st.t_phase >= p.t_swing)
     x_plan, xd_plan, swing_down, leg, p_des, v_des, rp_des, r_des = swing.planned_feet(
-        p, st, rp_meas, jnp.where(searching, p.search_speed, 0.0))
+        p, st, m.h_r_b, jnp.where(searching, p.search_speed, 0.0))
     # --- height reflex (Fig. 2/3): active in the downward part of the swing.
     up_b = r_des.T @ jnp.array([0.0, 0.0, 1.0], x_plan.dtype)
     normal_b = r_des.T @ st.normal_h0
@@ -119,15 +118,14 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     # A reference held at a joint limit does not move further out.
     qd_cmd = jnp.where(((q_cmd <= q_min + p.joint_margin) & (qd_cmd < 0))
                        | ((q_cmd >= q_max - p.joint_margin) & (qd_cmd > 0)), 0.0, qd_cmd)
-    pressing = pressing_feet(p, obs.foot_force, spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]))
+    pressing = pressing_feet(p, obs.foot_force, m.h_r_b)
     st = dataclasses.replace(st, loaded=st.loaded | (pressing & (st.stance > 0)))
-    tau_ff = trunk_feedforward(p, st, obs, rp_meas, p_des, v_des, rp_des, pressing)
+    tau_ff = trunk_feedforward(p, st, obs, m, p_des, v_des, rp_des, pressing)
     tau = impedance.joint_impedance(p.gains, q_cmd, qd_cmd, obs.q, obs.qd, tau_ff)
     tau = speed_limited_torques(tau, obs.qd, p.joint_speed_limit)
 
     # --- mobility of every leg along the terrain normal (Eq. 12), at the measured configuration.
-    jac = kinematics.foot_jacobians(obs.q)
-    mob = jax.vmap(lambda j: reflex.transmission_ratio(j, normal_b))(jac)  # m of Eq. 12 (no SVD)
+    mob = jax.vmap(lambda j: reflex.transmission_ratio(j, normal_b))(m.jac)  # m of Eq. 12 (no SVD)
 
     # --- phase logic.
     t_new = st.t_phase + dt
@@ -168,8 +166,8 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     # from the state of whichever ended.
     after_probe = dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
                                       edge_depth=edge_depth, probing=False, step_back=edge.step_back(p, touchdown))
-    st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), feet_meas, rp_meas)
-    st_after_swing = start_body_phase(p, st_after_swing, feet_meas, rp_meas)
+    st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), m)
+    st_after_swing = start_body_phase(p, st_after_swing, m)
     st_next = pick(swing_end, pick(st.probing, st_swing, st_after_swing), pick(body_end, st_swing, st1))
     reflex_failed = (p.use_reflex > 0.5) & rout.failed
     info = CrawlInfo(phase=st.phase, swing_leg=leg, swing_down=swing_down, reflex_active=active, reflex_failed=reflex_failed,

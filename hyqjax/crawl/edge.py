@@ -34,7 +34,6 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from hyqjax.core import robot
-from hyqjax.core import spatial
 from hyqjax.crawl import remedy
 from hyqjax.crawl.params import CrawlParams
 
@@ -110,26 +109,26 @@ def max_depth(p: CrawlParams, st):
     return jnp.where(st.probing, p.edge_probe_depth, p.max_search_depth)
 
 
-def behind(p: CrawlParams, st, rp, delta):
+def behind(p: CrawlParams, st, h_r_b, delta):
     """Whether the probe is on, the edge known and a front hip at the end of a body phase (trunk displaced by
-    ``delta``, tilt ``rp`` at its start) is behind ``edge_hi + edge_margin`` (``st`` carries the bounds in this
-    phase's ``H0``)."""
-    hips = jnp.asarray(robot.B_P_HIP[:2], delta.dtype) @ spatial.roll_pitch_to_rot(rp[0], rp[1]).T
+    ``delta``, tilted by ``h_r_b = hR_b`` at its start, :func:`hyqjax.core.spatial.roll_pitch_to_rot`) is behind
+    ``edge_hi + edge_margin`` (``st`` carries the bounds in this phase's ``H0``)."""
+    hips = jnp.asarray(robot.B_P_HIP[:2], delta.dtype) @ h_r_b.T
     hip_x = jnp.min(hips[:, 0]) + delta[0]
     return (p.edge_probe > 0) & known(st.edge_hi) & (hip_x < st.edge_hi + p.edge_margin)
 
 
-def tilt_share(p: CrawlParams, st, adapt, rp, delta):
+def tilt_share(p: CrawlParams, st, adapt, h_r_b, delta):
     """Share of the feet plane's tilt a body phase follows: ``edge_tilt`` while a front hip is behind the edge
     (:func:`behind`; ``edge_tilt_deep`` where the measured step is deeper than ``edge_deep``), ``adapt``
     otherwise."""
     tilt = jnp.where(st.edge_depth > p.edge_deep, p.edge_tilt_deep, p.edge_tilt)
-    return jnp.where(behind(p, st, rp, delta), tilt, adapt)
+    return jnp.where(behind(p, st, h_r_b, delta), tilt, adapt)
 
 
-def lowered(p: CrawlParams, st, rp, delta):
+def lowered(p: CrawlParams, st, h_r_b, delta):
     """The body phase's trunk displacement ``delta`` with the trunk ``edge_lowering`` lower while a front hip is
     behind the edge (:func:`behind`): the legs of a trunk held near level over the step (``edge_tilt``) stand
     stretched down it, and the lower trunk gives them range. ``delta`` itself where the hips are past and at
     ``edge_lowering = 0``."""
-    return jnp.where(behind(p, st, rp, delta), delta.at[2].add(-p.edge_lowering), delta)
+    return jnp.where(behind(p, st, h_r_b, delta), delta.at[2].add(-p.edge_lowering), delta)

@@ -14,7 +14,6 @@ import numpy as np
 
 from hyqjax.core import kinematics
 from hyqjax.core import robot, smallmat
-from hyqjax.core import spatial
 
 #: Step fractions tried, longest first, when the full step leaves the leg's workspace.
 STEP_FRACTIONS = np.array([1.0, 0.85, 0.7, 0.55, 0.4, 0.25, 0.1])
@@ -74,7 +73,7 @@ def body_target(feet, leg, com_h, margin, body_height):
     return jnp.concatenate([target_xy - com_h[:2], dz[None]])
 
 
-def reachable_foothold(step_height, max_leg_extension, leg, lift, target, n, rp):
+def reachable_foothold(step_height, max_leg_extension, leg, lift, target, n, h_r_b):
     """Shorten the step so the foothold and the swing apex stay inside the leg's workspace.
 
     The trunk holds still during a swing (Section II), so the swing foot's path is fixed in the trunk
@@ -84,7 +83,7 @@ def reachable_foothold(step_height, max_leg_extension, leg, lift, target, n, rp)
     A hind leg folded under a trunk that has lowered over the step cannot reach a full step forward
     (its HFE hits the end stop); without this the swing would stop at the end stop in mid-air.
     """
-    r_b = spatial.roll_pitch_to_rot(rp[0], rp[1]).T
+    r_b = h_r_b.T
     q_min = jnp.asarray(robot.Q_MIN, lift.dtype).reshape(4, 3)[leg]
     q_max = jnp.asarray(robot.Q_MAX, lift.dtype).reshape(4, 3)[leg]
     hip = kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, lift.dtype))

@@ -16,6 +16,7 @@ fixed in ``H0``; the desired trunk pose relative to ``H0`` is ``(p_des(t), R_des
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -95,49 +96,70 @@ class CrawlInfo:
     tilt_rp: jax.Array  # (2,) measured roll, pitch
 
 
-def feet_h(obs: Observation):
-    """Feet in the current horizontal frame from the actual joints and IMU roll/pitch, and that roll/pitch."""
+class Measured(NamedTuple):
+    """The robot's measured kinematics at one tick, computed once a tick (:func:`measure`) for every part of the
+    controller that reads them.
+
+    Attributes:
+      feet: ``(4, 3)`` feet in the current horizontal frame ``H``, ``hR_b x_b``.
+      rp: ``(2,)`` the IMU's roll and pitch.
+      h_r_b: ``(3, 3)`` ``hR_b = R_y(pitch) R_x(roll)`` (:func:`hyqjax.core.spatial.roll_pitch_to_rot`).
+      x_b: ``(4, 3)`` feet in the trunk frame from the measured joints, ``K(q)``.
+      jac: ``(4, 3, 3)`` the feet's Jacobians ``J_f(q)`` at the measured joints (Eq. 11).
+    """
+
+    feet: jax.Array
+    rp: jax.Array
+    h_r_b: jax.Array
+    x_b: jax.Array
+    jac: jax.Array
+
+
+def measure(obs: Observation) -> Measured:
+    """:class:`Measured` of an observation: the actual joints and the IMU's roll and pitch."""
     rpy = spatial.rot_to_rpy(spatial.quat_to_rot(obs.quat))
     rp = rpy[:2]
+    h_r_b = spatial.roll_pitch_to_rot(rp[0], rp[1])
     x_b = kinematics.foot_positions(obs.q)
-    return jnp.einsum("ij,lj->li", spatial.roll_pitch_to_rot(rp[0], rp[1]), x_b), rp
+    return Measured(jnp.einsum("ij,lj->li", h_r_b, x_b), rp, h_r_b, x_b, kinematics.foot_jacobians(obs.q))
 
 
-def start_body_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.Array) -> CrawlState:
-    """Body phase toward the support triangle of the next swing leg, from the actual state: the feet in the
-    horizontal frame and the measured roll and pitch, :func:`feet_h`."""
+def start_body_phase(p: CrawlParams, st: CrawlState, m: Measured) -> CrawlState:
+    """Body phase toward the support triangle of the next swing leg, from the actual state ``m``: the feet in the
+    horizontal frame and the measured roll and pitch (:func:`measure`)."""
+    feet, rp = m.feet, m.rp
     edge_lo, edge_hi = edge.carry(st, feet)
     st = dataclasses.replace(st, edge_lo=edge_lo, edge_hi=edge_hi)
     leg = st.sequence[st.seq_index]
-    com_h = spatial.roll_pitch_to_rot(rp[0], rp[1]) @ jnp.asarray(COM_OFFSET_B, feet.dtype)
+    com_h = m.h_r_b @ jnp.asarray(COM_OFFSET_B, feet.dtype)
     # While a step down is under way (a leg's last swing found one) the options lower the trunk and let it follow
     # more of the feet plane's tilt; at their defaults (0) both terms are exactly zero.
     stepping = jnp.any(st.deep).astype(feet.dtype)
     height = p.body_height - p.step_down_lowering * stepping
     adapt = p.terrain_adaptation + p.terrain_adaptation_step * (1.0 - p.terrain_adaptation) * stepping
     delta = footholds.body_target(feet, leg, com_h, p.stability_margin, height)
-    adapt = edge.tilt_share(p, st, adapt, rp, delta)  # adapt itself at edge_probe = 0
-    delta = edge.lowered(p, st, rp, delta)  # delta itself at edge_probe = 0
+    adapt = edge.tilt_share(p, st, adapt, m.h_r_b, delta)  # adapt itself at edge_probe = 0
+    delta = edge.lowered(p, st, m.h_r_b, delta)  # delta itself at edge_probe = 0
     rp_target = jnp.clip(adapt * footholds.feet_plane(feet), -p.max_tilt, p.max_tilt)
     return dataclasses.replace(st, phase=jnp.int32(PHASE_BODY), t_phase=jnp.zeros_like(st.t_phase), feet_h0=feet,
                                body_delta=delta, rp_start=rp, rp_target=rp_target, stance=jnp.ones(4, feet.dtype))
 
 
-def start_swing_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.Array) -> CrawlState:
+def start_swing_phase(p: CrawlParams, st: CrawlState, m: Measured) -> CrawlState:
     """Swing of ``sequence[seq_index]`` to a reachable foothold one step ahead, in the terrain frame (Eq. 7), from
-    the feet in the horizontal frame and the measured roll and pitch (:func:`feet_h`)."""
+    the feet in the horizontal frame and the measured roll and pitch (:func:`measure`)."""
+    feet, rp = m.feet, m.rp
     edge_lo, edge_hi = edge.carry(st, feet)
     leg = st.sequence[st.seq_index]
     n = reflex.terrain_normal(feet[jnp.asarray(robot.STANCE_LEGS)[leg]])
     t_cycle = 4.0 * (p.t_body + p.t_swing)
     step = jnp.clip(p.forward_velocity * t_cycle, -p.max_step_length, p.max_step_length)
-    nominal_h = (spatial.roll_pitch_to_rot(rp[0], rp[1])
-                 @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg])
+    nominal_h = m.h_r_b @ kinematics.foot_positions(jnp.asarray(robot.Q_STANDING, feet.dtype))[leg]
     lift = feet[leg]
     target = footholds.swing_foothold(lift, nominal_h, step - st.step_back, p.heading_velocity * t_cycle, n)
     lift_offset = remedy.lift_drop_offset(p, lift, target)
     target = target + lift_offset * remedy.search_forward_unit(p, leg, n, target - lift)
-    target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, rp)
+    target = footholds.reachable_foothold(p.step_height, p.max_leg_extension, leg, lift, target, n, m.h_r_b)
     search_dir = remedy.search_direction(p, leg, n, target - lift)
     search_fwd = remedy.search_forward_unit(p, leg, n, target - lift)
     probing, target, search_dir, search_fwd = edge.probe_swing(p, st, leg, lift, target, search_dir, search_fwd)
@@ -155,7 +177,8 @@ def start_swing_phase(p: CrawlParams, st: CrawlState, feet: jax.Array, rp: jax.A
 
 def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
     """Initial state: a body phase toward the first swing leg's support triangle."""
-    feet, rp = feet_h(obs)
+    m = measure(obs)
+    feet, rp = m.feet, m.rp
     dtype = feet.dtype
     z = jnp.zeros((), dtype)
     up = jnp.array([0.0, 0.0, 1.0], dtype)
@@ -170,4 +193,4 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
         n_steps=jnp.int32(0), n_touchdowns=jnp.int32(0), n_limit_stops=jnp.int32(0),
     )
-    return start_body_phase(p, st, feet, rp)
+    return start_body_phase(p, st, m)

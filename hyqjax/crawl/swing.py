@@ -34,7 +34,7 @@ from hyqjax.crawl.state import PHASE_BODY, CrawlState
 JACOBIAN_DAMPING = 0.02
 
 
-def _feet_at(p: CrawlParams, st: CrawlState, t, search, rp_meas):
+def _feet_at(p: CrawlParams, st: CrawlState, t, search, h_r_b):
     in_body = st.phase == PHASE_BODY
     s_body, _, _ = trajectories.quintic(t / p.t_body)
     s_body = jnp.where(in_body, s_body, 0.0)
@@ -48,19 +48,20 @@ def _feet_at(p: CrawlParams, st: CrawlState, t, search, rp_meas):
     # the remedy's saturating forward search
     swing_pos = swing_pos - remedy.search_forward_excess(p, search, st.search_forward_left) * st.search_fwd
     x_b = jnp.einsum("ji,lj->li", r_des, st.feet_h0 - p_des)
-    x_sw_b = spatial.roll_pitch_to_rot(rp_meas[0], rp_meas[1]).T @ (swing_pos - p_des)
+    x_sw_b = h_r_b.T @ (swing_pos - p_des)
     x_b = jnp.where((~in_body) & (jnp.arange(4) == leg)[:, None], x_sw_b[None, :], x_b)
     return x_b, (p_des, rp_des, r_des)
 
 
-def planned_feet(p: CrawlParams, st: CrawlState, rp_meas, search_rate):
+def planned_feet(p: CrawlParams, st: CrawlState, h_r_b, search_rate):
     """Planned feet ``(4, 3)`` and velocities ``(4, 3)`` in the trunk frame, plus the body plan.
 
-    Returns ``(x_b, xd_b, swing_down, leg, p_des, v_des, rp_des, r_des)``; ``search_rate`` is the search speed
-    now (0 before the nominal swing ends).
+    Returns ``(x_b, xd_b, swing_down, leg, p_des, v_des, rp_des, r_des)``; ``h_r_b`` is ``hR_b`` of the measured
+    roll and pitch (:class:`hyqjax.crawl.state.Measured`), ``search_rate`` the search speed now (0 before the
+    nominal swing ends).
     """
     def f(t, s):
-        return _feet_at(p, st, t, s, rp_meas)
+        return _feet_at(p, st, t, s, h_r_b)
 
     (x_b, (p_des, rp_des, r_des)), (xd_b, (v_des, _, _)) = jax.jvp(
         f, (st.t_phase, st.search_depth), (jnp.ones_like(st.t_phase), jnp.asarray(search_rate, st.t_phase.dtype)))
