@@ -30,6 +30,29 @@ def test_joint_velocities_invert_the_foot_jacobian():
     np.testing.assert_allclose(np.asarray(kinematics.foot_velocities(q, qd)), np.asarray(xd), atol=2e-3)
 
 
+def test_quintic_is_rest_to_rest_and_the_swing_rises_to_its_apex_and_back():
+    """``s(0) = 0``, ``s(1) = 1``, increasing, with zero first and second derivatives at both ends (forward-mode
+    derivatives, as the controller takes them); the swing's offset along the normal is 0 at lift-off and
+    touchdown and ``step_height`` at mid-swing, its highest point, where its rate is 0 from both sides."""
+    from hyqjax.control import trajectories
+
+    ds = jax.jacfwd(trajectories.quintic)
+    dds = jax.jacfwd(ds)
+    assert float(trajectories.quintic(0.0)) == 0.0 and float(trajectories.quintic(1.0)) == 1.0
+    for t in (0.0, 1.0):
+        assert float(ds(t)) == 0.0 and float(dds(t)) == 0.0
+    grid = np.linspace(0.0, 1.0, 201)
+    s = np.asarray(trajectories.quintic(jnp.asarray(grid)))
+    assert np.all(np.diff(s) > 0)
+    h = 0.1
+    tan, z = (np.asarray(a) for a in trajectories.swing_profile(jnp.asarray(grid), h))
+    np.testing.assert_array_equal(tan, s)
+    assert z[0] == 0.0 and z[-1] == 0.0 and z[100] == pytest.approx(h) and z.max() == pytest.approx(h)
+    dz = jax.jacfwd(lambda t: trajectories.swing_profile(t, h)[1])
+    for t in (0.5 - 1e-4, 0.5 + 1e-4):
+        assert abs(float(dz(t))) < 1e-3
+
+
 @pytest.mark.slow
 def test_planned_feet_velocities_are_the_time_derivative_of_the_plan():
     p = CrawlParams.make()

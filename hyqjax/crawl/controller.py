@@ -168,7 +168,10 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
                                       edge_depth=edge_depth, probing=False, step_back=edge.step_back(p, touchdown))
     st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), m)
     st_after_swing = start_body_phase(p, st_after_swing, m)
-    st_next = pick(swing_end, pick(st.probing, st_swing, st_after_swing), pick(body_end, st_swing, st1))
+    # The next state, one selection a leaf: the new swing after a probe's end or a body phase's end, the body phase
+    # after any other swing's end, else the tick's own state.
+    case = jnp.where(swing_end, jnp.where(st.probing, 1, 2), jnp.where(body_end, 1, 0)).astype(jnp.int32)
+    st_next = jax.tree_util.tree_map(lambda a, b, c: jax.lax.select_n(case, a, b, c), st1, st_swing, st_after_swing)
     reflex_failed = (p.use_reflex > 0.5) & rout.failed
     info = CrawlInfo(phase=st.phase, swing_leg=leg, swing_down=swing_down, reflex_active=active, reflex_failed=reflex_failed,
                      mobility=mob, x_plan_b=x_plan, x_cmd_b=x_cmd, q_cmd=q_cmd, qd_cmd=qd_cmd, damping=rout.d_diag,

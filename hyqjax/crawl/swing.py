@@ -36,13 +36,13 @@ JACOBIAN_DAMPING = 0.02
 
 def _feet_at(p: CrawlParams, st: CrawlState, t, search, h_r_b):
     in_body = st.phase == PHASE_BODY
-    s_body, _, _ = trajectories.quintic(t / p.t_body)
+    s_body = trajectories.quintic(t / p.t_body)
     s_body = jnp.where(in_body, s_body, 0.0)
     p_des = s_body * st.body_delta
     rp_des = st.rp_start + s_body * (st.rp_target - st.rp_start)
     r_des = spatial.roll_pitch_to_rot(rp_des[0], rp_des[1])
     leg = st.sequence[st.seq_index]
-    s_tan, z_n, _ = trajectories.swing_profile(t / p.t_swing, p.step_height)
+    s_tan, z_n = trajectories.swing_profile(t / p.t_swing, p.step_height)
     start = st.feet_h0[leg]
     swing_pos = start + s_tan * (st.swing_target - start) + z_n * st.normal_h0 - search * st.search_dir
     # the remedy's saturating forward search
