@@ -96,9 +96,11 @@ def stacked_jacobian(q: jax.Array) -> jax.Array:
     return out
 
 
-def foot_velocities(q: jax.Array, qd: jax.Array) -> jax.Array:
-    """Foot velocities in the trunk frame, ``J_f(q) qd`` per leg (Eq. 11); ``(..., 4, 3)``."""
-    return jnp.einsum("...lij,...lj->...li", foot_jacobians(q), _as_legs(qd, "foot_velocities", "qd"))
+def foot_velocities(q: jax.Array, qd: jax.Array, jac: jax.Array | None = None) -> jax.Array:
+    """Foot velocities in the trunk frame, ``J_f(q) qd`` per leg (Eq. 11); ``(..., 4, 3)``. ``jac``: ``J_f(q)``
+    where the caller has it already (:func:`foot_jacobians` of the same ``q``)."""
+    jac = foot_jacobians(q) if jac is None else jac
+    return jnp.einsum("...lij,...lj->...li", jac, _as_legs(qd, "foot_velocities", "qd"))
 
 
 def inverse_kinematics(x_feet: jax.Array, knee_sign: jax.Array | None = None) -> jax.Array:

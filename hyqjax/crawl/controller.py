@@ -70,7 +70,7 @@ def trunk_feedforward(p: CrawlParams, st: CrawlState, obs: Observation, m: Measu
     feet_now_h = jnp.einsum("ij,lj->li", h_r_b, x_meas_b)
     w = st.stance / jnp.sum(st.stance)
     p_meas = jnp.sum(w[:, None] * (st.feet_h0 - feet_now_h), 0)
-    v_feet_b = jnp.einsum("lij,lj->li", m.jac, obs.qd.reshape(4, 3))  # J_f(q) qd
+    v_feet_b = kinematics.foot_velocities(obs.q, obs.qd, jac=m.jac)
     v_meas = -jnp.sum(w[:, None] * jnp.einsum("ij,lj->li", h_r_b, v_feet_b + jnp.cross(obs.gyro, x_meas_b)), 0)
     up_h = jnp.array([0.0, 0.0, 1.0], dtype)
     force = p.mass * robot.GRAVITY * up_h + p.k_com * (p_des - p_meas) + p.d_com * (v_des - v_meas)

@@ -82,6 +82,7 @@ def reachable_foothold(step_height, max_leg_extension, leg, lift, target, n, h_r
     IK solutions within the joint ranges minus ``REACH_MARGIN`` and within ``max_leg_extension``.
     A hind leg folded under a trunk that has lowered over the step cannot reach a full step forward
     (its HFE hits the end stop); without this the swing would stop at the end stop in mid-air.
+    ``h_r_b``: ``hR_b`` of the measured roll and pitch (:class:`hyqjax.crawl.state.Measured`).
     """
     r_b = h_r_b.T
     q_min = jnp.asarray(robot.Q_MIN, lift.dtype).reshape(4, 3)[leg]
