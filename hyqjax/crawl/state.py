@@ -190,7 +190,7 @@ def crawl_init(p: CrawlParams, obs: Observation) -> CrawlState:
         loaded=jnp.zeros(4, bool), deep=jnp.zeros(4, bool), edge_lo=jnp.asarray(-edge.EDGE_UNKNOWN, dtype),
         edge_hi=jnp.asarray(edge.EDGE_UNKNOWN, dtype), probe_leg=jnp.int32(-1), probing=jnp.asarray(False),
         step_back=z, edge_depth=z,
-        reflex=reflex.reflex_init(kinematics.foot_positions(obs.q)), q_cmd=obs.q,
+        reflex=reflex.reflex_init(m.x_b), q_cmd=obs.q,
         n_steps=jnp.int32(0), n_touchdowns=jnp.int32(0), n_limit_stops=jnp.int32(0),
     )
     return start_body_phase(p, st, m)
