@@ -91,6 +91,9 @@ def test_issue_examples_refused():
         with pytest.raises(ParameterError, match=r"kinematics\.foot_positions\.q=array of shape .* must be of shape "
                                                  r"\(\.\.\., 12\) or \(\.\.\., 4, 3\)"):
             kinematics.foot_positions(jnp.zeros(shape))
+    with pytest.raises(ParameterError, match=r"kinematics\.foot_velocities\.jac=array of shape \(4, 3\) .* must be of "
+                                             r"shape \(\.\.\., 4, 3, 3\)"):
+        kinematics.foot_velocities(jnp.zeros(12), jnp.zeros(12), jac=jnp.zeros((4, 3)))
     with pytest.raises(ParameterError, match=r"kinematics\.inverse_kinematics\.x_feet"):
         kinematics.inverse_kinematics(jnp.zeros((3, 3)))
 

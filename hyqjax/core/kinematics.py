@@ -99,7 +99,10 @@ def stacked_jacobian(q: jax.Array) -> jax.Array:
 def foot_velocities(q: jax.Array, qd: jax.Array, jac: jax.Array | None = None) -> jax.Array:
     """Foot velocities in the trunk frame, ``J_f(q) qd`` per leg (Eq. 11); ``(..., 4, 3)``. ``jac``: ``J_f(q)``
     where the caller has it already (:func:`foot_jacobians` of the same ``q``)."""
-    jac = foot_jacobians(q) if jac is None else jac
+    if jac is None:
+        jac = foot_jacobians(q)
+    else:
+        jac = check_shape(jac, ((..., 4, 3, 3),), "kinematics.foot_velocities", "jac")
     return jnp.einsum("...lij,...lj->...li", jac, _as_legs(qd, "foot_velocities", "qd"))
 
 

@@ -358,7 +358,7 @@ class CBatchRunner(AheadOfTime):
         # arrays compiles a program per shape (0.7 s for the 25 fields of a step-down's trace, after the simulation).
         results = []
         for sh in shards:
-            trace = None if self.record is None else sh.traces[0] if len(sh.traces) == 1 else jax.tree_util.tree_map(
+            trace = None if self.record is None else jax.tree_util.tree_map(
                 lambda *xs: np.concatenate([np.asarray(x) for x in xs], axis=1), *sh.traces)
             results.append((sim.rollout_result(sh.carry, trace), sh.hi - sh.lo))
         if len(results) == 1 and plan.size == n:
