@@ -160,13 +160,13 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
     edge_lo, edge_hi, probe_leg, edge_depth = edge.after_swing(p, st, leg, deep_leg, touchdown, feet_meas)
     st_after_swing = dataclasses.replace(st_after_swing, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
                                          edge_depth=edge_depth)
-    pick = lambda c, a, b: jax.tree_util.tree_map(lambda x, y: jnp.where(c, x, y), a, b)  # noqa: E731
     # A new swing starts after a probe's end (touchdown or its depth: the leg's full swing from where it is,
     # hyqjax.crawl.edge) or after a body phase. The two never end on one tick, so one swing start a tick is computed,
     # from the state of whichever ended.
     after_probe = dataclasses.replace(st1, edge_lo=edge_lo, edge_hi=edge_hi, probe_leg=probe_leg,
                                       edge_depth=edge_depth, probing=False, step_back=edge.step_back(p, touchdown))
-    st_swing = start_swing_phase(p, pick(swing_end, after_probe, st1), m)
+    swing_from = jax.tree_util.tree_map(lambda a, b: jnp.where(swing_end, a, b), after_probe, st1)
+    st_swing = start_swing_phase(p, swing_from, m)
     st_after_swing = start_body_phase(p, st_after_swing, m)
     # The next state, one selection a leaf: the new swing after a probe's end or a body phase's end, the body phase
     # after any other swing's end, else the tick's own state.
