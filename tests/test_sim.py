@@ -1,9 +1,11 @@
 """Closed-loop batched simulation (hyqjax.sim.rollout) with the standing controller, in float32 MJX.
 
-One 10 s scenario (:func:`run_scenario`, batch 4 on flat ground) serves most tests: instances 0-2
-stand under joint PD (``hyqjax.control.stand``) on three friction values; instance 3 gets a 1 MN push at
+One 2 s scenario (:func:`run_scenario`, batch 4 on flat ground, :data:`DURATION`) serves most tests: instances
+0-2 stand under joint PD (``hyqjax.control.stand``) on three friction values; instance 3 gets a 1 MN push at
 t = 0.5 s and must be flagged as diverged. The same scenario runs sharded over a 1-device mesh
-here and over a 2-device mesh in a subprocess (``--xla_force_host_platform_device_count=2``).
+here and over a 2-device mesh in a subprocess (``--xla_force_host_platform_device_count=2``), and in chunks. The
+controller's long-horizon property, standing for 10 s, is checked on the C MuJoCo backend (:func:`run_scenario_c`):
+a property of the controller, not of MJX, in about a second of simulation instead of MJX's half minute.
 The CPU deadlock regression runs in a subprocess with a timeout so a hang fails instead of blocking CI.
 """
 from __future__ import annotations
@@ -18,7 +20,7 @@ import pytest
 from conftest import start_python, user_xla_flags
 from mujoco import mjx
 
-from hyqjax.sim import compile_phase
+from hyqjax.sim import backend, compile_phase
 from hyqjax.sim import model as hmodel
 from hyqjax.core import robot
 from hyqjax.sim import rollout as sim
@@ -32,15 +34,19 @@ PUSH_T0 = 0.5
 FRICTION = (0.8, 0.6, 1.0, 0.8)
 WEIGHT = robot.TOTAL_MASS * robot.GRAVITY
 SUBPROCESS_TIMEOUT = 300.0
+#: Simulated seconds of the MJX scenario (the runner's properties: sharding, chunks, padding, divergence; the
+#: standing robot is settled, |qvel| about 2e-3, by then).
+DURATION = 2.0
+#: Simulated seconds of the stand on C MuJoCo.
+LONG_STAND = 10.0
 
 
 # ---------------------------------------------------------------- the shared scenario
 
 
-def scenario(m, ids, duration=10.0):
+def scenario(m, ids, duration=DURATION):
     """Batched model, initial data, pushes and config of the standing scenario."""
-    terrain = hmodel.InstanceTerrain.make(np.zeros(BATCH), friction=FRICTION)
-    mxb = hmodel.batch_model(mjx.put_model(m), ids, terrain)
+    mxb = hmodel.batch_model(mjx.put_model(m), ids, terrain())
     # x = 1 m: all four feet on the floor, clear of the platform (its front edge is at x = 0).
     d0 = sim.initial_data(mxb, hmodel.standing_qpos(m, base_xy=(1.0, 0.0)), batch=BATCH)
     force = np.zeros((BATCH, 3), np.float32)
@@ -48,6 +54,11 @@ def scenario(m, ids, duration=10.0):
     push = sim.Push(jnp.asarray(force), jnp.full((BATCH,), PUSH_T0, jnp.float32), jnp.full((BATCH,), 0.1, jnp.float32))
     cfg = sim.SimConfig(duration=duration, record_every=50)
     return mxb, d0, push, cfg
+
+
+def terrain():
+    """Flat ground under the scenario's four instances, each with its friction."""
+    return hmodel.InstanceTerrain.make(np.zeros(BATCH), friction=FRICTION)
 
 
 def height_metrics() -> sim.Metrics:
@@ -66,16 +77,33 @@ def record(d, obs, info):
     return dict(qpos=d.qpos, foot_force=obs.foot_force, quat=obs.quat, tau=obs.tau)
 
 
-def run_scenario(m, ids, mesh=None, duration=10.0, runner=None) -> dict:
+def run_scenario(m, ids, mesh=None, duration=DURATION, runner=None) -> dict:
     """Run the scenario (through ``runner`` if given, else a new one); returns numpy arrays."""
     mxb, d0, push, cfg = scenario(m, ids, duration)
     if runner is None:
         runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record,
                                               params_axes=None, mesh=mesh)
-    res = jax.block_until_ready(runner(mxb, d0, stand.StandParams.make(), push))
-    out = dict(qpos=res.data.qpos, qvel=res.data.qvel, qfrc_bias=res.data.qfrc_bias, diverged=res.diverged, diverged_tick=res.diverged_tick,
+    return _arrays(jax.block_until_ready(runner(mxb, d0, stand.StandParams.make(), push)))
+
+
+def run_scenario_c(m, ids, duration=LONG_STAND) -> dict:
+    """The scenario on the C MuJoCo backend (``impl="c"``: float64 physics, the controller compiled in JAX), the
+    same instances, pushes, metrics and record; returns numpy arrays."""
+    c = backend.get("c")
+    models = c.batch_model(c.put_model(m), ids, terrain())
+    d0 = c.initial_data(None, models, np.broadcast_to(hmodel.standing_qpos(m, base_xy=(1.0, 0.0)), (BATCH, 19)), m)
+    _, _, push, cfg = scenario(m, ids, duration)
+    runner = c.make_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
+    return _arrays(runner(models, d0, stand.StandParams.make(), push))
+
+
+def _arrays(res) -> dict:
+    """A result's final state (with MJX's bias forces where the data has them), flags, metrics and trace."""
+    out = dict(qpos=res.data.qpos, qvel=res.data.qvel, diverged=res.diverged, diverged_tick=res.diverged_tick,
                max_dz=res.metrics["max_dz"], max_qvel=res.metrics["max_qvel"],
                **{f"trace_{k}": v for k, v in res.trace.items()})
+    if hasattr(res.data, "qfrc_bias"):
+        out["qfrc_bias"] = res.data.qfrc_bias
     return {k: np.asarray(v) for k, v in out.items()}
 
 
@@ -164,23 +192,40 @@ def standing_run(hyq, deadlock_job, two_device_job):
 STANDING = [i for i in range(BATCH) if i != PUSHED]
 
 
-@pytest.mark.slow
-def test_stands_for_10_s(standing_run):
-    r = standing_run
-    assert r["qpos"].dtype == np.float32
+def _assert_stands(r, seconds):
+    """Instances 0-2 of result ``r`` stood for ``seconds``: never diverged, trunk height within 1 cm of its start at
+    every tick and at the end, upright, in place, at rest, joints at the standing posture."""
     assert not r["diverged"][STANDING].any()
     assert np.all(np.isfinite(r["qpos"])) and np.all(np.isfinite(r["qvel"]))
     assert np.all(np.isfinite(r["trace_qpos"]))
-    # Trunk height within 1 cm of its start over all 5000 ticks, and at the end.
+    assert r["trace_qpos"].shape[1] == int(round(seconds / 0.002)) // 50  # every 50th of the run's ticks recorded
+    # Trunk height within 1 cm of its start over all ticks, and at the end.
     assert np.all(r["max_dz"][STANDING] < 0.01), r["max_dz"]
     z0 = robot.STANDING_BASE_Z
     assert np.all(np.abs(r["qpos"][STANDING, 2] - z0) < 0.01)
-    # Upright, in place, and at rest after 10 s.
-    rpy = np.asarray(spatial.rot_to_rpy(spatial.quat_to_rot(jnp.asarray(r["qpos"][STANDING, 3:7]))))
+    # Upright, in place, and at rest at the end.
+    rpy = np.asarray(spatial.rot_to_rpy(spatial.quat_to_rot(jnp.asarray(r["qpos"][STANDING, 3:7], jnp.float32))))
     assert np.all(np.abs(rpy) < 0.02), rpy
     assert np.all(np.abs(r["qpos"][STANDING, :2] - (1.0, 0.0)) < 0.01)
     assert np.all(np.abs(r["qvel"][STANDING]) < 0.01)
     np.testing.assert_allclose(r["qpos"][STANDING, 7:], np.broadcast_to(robot.Q_STANDING, (3, 12)), atol=0.05)
+
+
+@pytest.mark.slow
+def test_stands_on_mjx_through_the_run(standing_run):
+    """MJX (float32): the three unpushed instances stand through the scenario's :data:`DURATION`."""
+    assert standing_run["qpos"].dtype == np.float32
+    _assert_stands(standing_run, DURATION)
+
+
+@pytest.mark.slow
+def test_stands_for_10_s_on_c_mujoco(hyq):
+    """The stand controller holds HyQ for 10 s (C MuJoCo's float64 physics, the controller compiled in JAX), and
+    the pushed instance is flagged diverged there too."""
+    m, ids = hyq
+    r = run_scenario_c(m, ids)
+    _assert_stands(r, LONG_STAND)
+    np.testing.assert_array_equal(r["diverged"], np.arange(BATCH) == PUSHED)
 
 
 @pytest.mark.slow
@@ -321,9 +366,10 @@ def test_sharded_two_device_mesh_matches_and_runs_twice(standing_run, two_device
     with np.load(out) as f:
         r2 = {k: f[k] for k in f.files}
     # The two-device job compiles with a user's XLA options, the session's run with the session's
-    # (conftest.SESSION_XLA_FLAGS: other code generator, LLVM at level 0): float32 rounding differs, and over 5,000
-    # ticks the standing robot's residual joint velocities (~3e-4 rad/s) differ by up to 1.3e-4 (measured).
-    _assert_same_result(r2, standing_run, atol=3e-4)
+    # (conftest.SESSION_XLA_FLAGS: other code generator, LLVM at level 0): float32 rounding differs, and over the
+    # 1,000 ticks the standing robot's residual joint velocities (~2e-3 rad/s) differ by up to 1.9e-4 (measured;
+    # positions 1.7e-6, foot forces 0.03 N).
+    _assert_same_result(r2, standing_run, atol=4e-4)
 
 
 def _assert_same_result(a, b, atol):
@@ -435,9 +481,13 @@ def test_importing_hyqjax_prints_no_warp_import_failure():
 # ---------------------------------------------------------------- the batch runner: chunks, progress, retrace guard
 
 
+#: Seconds per chunk of the chunked run: four chunks.
+CHUNK = DURATION / 4
+
+
 @pytest.fixture(scope="module")
 def chunked_run(hyq):
-    """The scenario through a kept runner in chunks of 2.5 s (progress reported after each): the runner, its inputs,
+    """The scenario through a kept runner in chunks of :data:`CHUNK` s (progress reported after each): the runner, its inputs,
     the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced. Its
     batched inputs are host (NumPy) arrays, the form in which the runner hands a padded pass its rows, so that the
     padded batch below runs the same program (an input on the device is declared with its sharding in the lowered
@@ -450,23 +500,23 @@ def chunked_run(hyq):
     runner = runner_mod.make_batch_runner(ids, stand.stand_controller, cfg, height_metrics(), record, params_axes=None)
     seen = []
     res = runner(mxb, d0, stand.StandParams.make(), push, progress=lambda done, total: seen.append((done, total)),
-                 chunk_seconds=2.5)
+                 chunk_seconds=CHUNK)
     return runner, (mxb, d0, push), seen, jax.block_until_ready(res), runner.n_compiles
 
 
 @pytest.mark.slow
 def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(standing_run, chunked_run):
-    """The runner in chunks of 2.5 s (progress reported after each) gives exactly the one-scan result; a second
+    """The runner in chunks of :data:`CHUNK` s (progress reported after each) gives exactly the one-scan result; a second
     call with new values (another push) reuses the compiled programs."""
     runner, (mxb, d0, push), seen, res, compiled = chunked_run
-    assert seen == [pytest.approx((2.5 * (k + 1), 10.0)) for k in range(4)]
+    assert seen == [pytest.approx((CHUNK * (k + 1), DURATION)) for k in range(4)]
     r = dict(qpos=res.data.qpos, qvel=res.data.qvel, diverged_tick=res.diverged_tick, max_dz=res.metrics["max_dz"],
              **{f"trace_{k}": v for k, v in res.trace.items()})
     for k, v in r.items():
         np.testing.assert_array_equal(np.asarray(v), standing_run[k], err_msg=k)
     assert compiled == 2  # the initial carry and one chunk program
     push2 = sim.Push(push.force * 0.5, push.t_start + 0.1, push.duration)
-    res2 = runner(mxb, d0, stand.StandParams.make(), push2, chunk_seconds=2.5)
+    res2 = runner(mxb, d0, stand.StandParams.make(), push2, chunk_seconds=CHUNK)
     assert runner.n_compiles == compiled
     assert not np.array_equal(np.asarray(res2.data.qpos)[PUSHED], standing_run["qpos"][PUSHED])
     np.testing.assert_array_equal(np.asarray(res2.data.qpos)[STANDING], standing_run["qpos"][STANDING])
@@ -488,7 +538,7 @@ def test_padded_batch_rows_equal_the_unpadded_ones(chunked_run):
                                             params_axes=None)
     events = []
     with compile_phase.compile_listener(lambda e, info: events.append(e)):
-        res = bucketed(mx3, three[0], params, three[1], chunk_seconds=2.5)
+        res = bucketed(mx3, three[0], params, three[1], chunk_seconds=CHUNK)
     assert bucketed.last_timing["batch"] == 4 and bucketed.last_timing["instances"] == 3
     assert events == ["start", "compile", "compiled", "compile", "compiled", "end", "done"]
     assert bucketed.last_timing["compile_s"] > 0
