@@ -487,8 +487,8 @@ CHUNK = DURATION / 4
 
 @pytest.fixture(scope="module")
 def chunked_run(hyq):
-    """The scenario through a kept runner in chunks of :data:`CHUNK` s (progress reported after each): the runner, its inputs,
-    the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced. Its
+    """The scenario through a kept runner in chunks of :data:`CHUNK` s (progress reported after each): the runner, its
+    inputs, the progress reports, the result (a batch of 4 at its own size, unpadded) and the programs it traced. Its
     batched inputs are host (NumPy) arrays, the form in which the runner hands a padded pass its rows, so that the
     padded batch below runs the same program (an input on the device is declared with its sharding in the lowered
     program, a host array is not: the two would be two entries of the persistent compilation cache)."""
@@ -506,8 +506,8 @@ def chunked_run(hyq):
 
 @pytest.mark.slow
 def test_chunked_run_is_bitwise_the_unchunked_one_and_compiles_once(standing_run, chunked_run):
-    """The runner in chunks of :data:`CHUNK` s (progress reported after each) gives exactly the one-scan result; a second
-    call with new values (another push) reuses the compiled programs."""
+    """The runner in chunks of :data:`CHUNK` s (progress reported after each) gives exactly the one-scan result; a
+    second call with new values (another push) reuses the compiled programs."""
     runner, (mxb, d0, push), seen, res, compiled = chunked_run
     assert seen == [pytest.approx((CHUNK * (k + 1), DURATION)) for k in range(4)]
     r = dict(qpos=res.data.qpos, qvel=res.data.qvel, diverged_tick=res.diverged_tick, max_dz=res.metrics["max_dz"],
