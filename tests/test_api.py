@@ -1,11 +1,12 @@
 """The examples of docs/api.md, run as written (public names only), with checks of what they compute:
 a batch step-down with per-instance reflex parameters, and the forward-mode gradient of a closed-loop metric
 with respect to K_base and the reflex's damping bounds against central finite differences (float64); a bounding
-batch (the batch runner against the single-instance rollout under vmap), the forward-mode derivative of the
-bound's final speed with respect to the commanded speed against central finite differences (float64), and the
+batch (the batch runner against the single-instance rollout under vmap, and against the same batch on C MuJoCo),
+the forward-mode derivative of the bound's final speed with respect to the commanded speed against central finite differences (float64), and the
 retrace guard of the bounding rollout."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import re
 import sys
@@ -200,6 +201,35 @@ def test_bounding_rollout_is_cached_and_a_new_batch_compiles_nothing():
     assert rollout.runner().n_compiles == compiled, "a batch with new parameter values traced the runner again"
     assert len(COMPILES) == compiles, f"a batch with new parameter values compiled {len(COMPILES) - compiles} programs"
     assert not np.array_equal(np.asarray(out2.final_speed), np.asarray(ns["outcome"].final_speed))
+
+
+@pytest.mark.slow
+def test_bounding_batch_on_c_mujoco_follows_mjx():
+    """Block 2's batch (in place and 0.5 m/s, 0.8 s from the air) on C MuJoCo (float64; the controller compiled in
+    JAX) against MJX-JAX (float32): the same outcome flags, and the final states, lowest trunk heights, largest
+    angles and final speeds close (measured: trunk position 2.2 mm, joints 0.010 rad, lowest height 2.8 mm, final
+    speed 5.5 mm/s, angles 1.2 mrad; impacts amplify float32 rounding). C MuJoCo refuses the one-instance rollout
+    (batches only)."""
+    import hyqjax
+
+    ns = _run_block(2)
+    out_j, res_j, cfg = ns["outcome"], ns["result"], ns["cfg"]
+    out_c, res_c = hyqjax.make_bounding_rollout(dataclasses.replace(cfg, impl="c")).run(ns["batch"])
+    for k in ("fell", "low_trunk", "roll", "pitch", "diverged"):
+        np.testing.assert_array_equal(np.asarray(getattr(out_c, k)), np.asarray(getattr(out_j, k)), err_msg=k)
+    q_c, q_j = np.asarray(res_c.data.qpos), np.asarray(res_j.data.qpos)
+    np.testing.assert_allclose(q_c[:, :3], q_j[:, :3], atol=0.01)
+    np.testing.assert_allclose(q_c[:, 3:7], q_j[:, 3:7], atol=0.005)
+    np.testing.assert_allclose(q_c[:, 7:], q_j[:, 7:], atol=0.03)
+    np.testing.assert_allclose(np.asarray(out_c.min_z), np.asarray(out_j.min_z), atol=0.01)
+    np.testing.assert_allclose(np.asarray(out_c.final_speed), np.asarray(out_j.final_speed), atol=0.02)
+    for k in ("max_roll", "max_pitch"):
+        np.testing.assert_allclose(np.asarray(getattr(out_c, k)), np.asarray(getattr(out_j, k)), atol=0.005,
+                                   err_msg=k)
+    assert res_c.data.qpos.dtype == res_j.data.qpos.dtype  # the view is in JAX's float width on both
+    one = jax.tree_util.tree_map(lambda x: x[0], hyqjax.bounding.instance_args(ns["batch"]))
+    with pytest.raises(ValueError, match="one-instance rollout needs impl='jax'"):  # C MuJoCo runs batches only
+        hyqjax.make_bounding_rollout(dataclasses.replace(cfg, impl="c"))(*one)
 
 
 def _resolve(dotted: str):

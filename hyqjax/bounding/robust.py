@@ -22,7 +22,7 @@ whole command envelope instead:
   sequence: it does not see how ``theta`` moves a touchdown in time, nor a fall (a step; the margins are its
   smooth surrogate).
 * CMA-ES (:func:`cma_es`): evosax's ``CMA_ES`` (jitted ask / tell) on the same ``theta`` and the same training
-  batch, every candidate judged by the same cost from forward runs (either MJX implementation), stopped at a
+  batch, every candidate judged by the same cost from forward runs (any simulator), stopped at a
   wall-clock limit (equal wall-clock comparison).
 
 The optimised parameters are stored as JSON (:func:`save_params`, :func:`load_params`);

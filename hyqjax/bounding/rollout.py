@@ -54,8 +54,8 @@ from hyqjax.studies import tasks
 #: Largest controller period (s) and trace decimation (ticks) of a :class:`BoundingRolloutConfig`.
 MAX_CONTROL_DT = 0.02
 MAX_RECORD_EVERY = 10_000
-#: The simulators bounding runs on (:mod:`hyqjax.sim.backend`): MJX (its initial apex state is MJX-JAX data);
-#: declared once, in the task registry.
+#: The simulators bounding runs on (:mod:`hyqjax.sim.backend`: MJX-JAX, MuJoCo Warp, C MuJoCo; its initial apex state
+#: is made on MJX-JAX and handed to the simulator by ``from_jax_data``); declared once, in the task registry.
 SUPPORTED_IMPLS = tasks.get("bound").impls
 
 
@@ -69,7 +69,8 @@ class BoundingRolloutConfig:
       control_dt: controller period and physics timestep (s), in ``(0, MAX_CONTROL_DT]``.
       record_every: trace decimation in ticks (0: no trace), an int in ``[0, MAX_RECORD_EVERY]`` dividing the
         ticks of a gait period.
-      impl: MJX implementation, ``auto | jax | warp`` (:mod:`hyqjax.sim.backend`); derivatives need ``jax``.
+      impl: simulator, ``auto | jax | warp | c`` (:mod:`hyqjax.sim.backend`); derivatives need ``jax``, and
+        ``c`` runs batches only (``rollout.run``).
     """
 
     duration: float = 6.0
@@ -219,10 +220,11 @@ class BoundingSetup:
         return backend.get(self.impl)
 
 
-def setup(control_dt: float, impl: str) -> BoundingSetup:
+def setup(control_dt: float, impl: str, differentiable: bool = False) -> BoundingSetup:
     """The :class:`BoundingSetup` for timestep ``control_dt`` and ``impl`` (cached per resolved ``impl`` and JAX's
-    float width: under ``jax.enable_x64`` the JAX model is float64)."""
-    return _setup_cached(float(control_dt), backend.resolve_impl(impl, SUPPORTED_IMPLS),
+    float width: under ``jax.enable_x64`` the JAX model is float64); ``differentiable``: for a pure JAX function of
+    one instance, where ``auto`` is ``jax`` (:func:`hyqjax.sim.backend.resolve_impl`)."""
+    return _setup_cached(float(control_dt), backend.resolve_impl(impl, SUPPORTED_IMPLS, differentiable),
                          bool(jax.config.jax_enable_x64))
 
 
@@ -262,7 +264,7 @@ class BoundingTask(task.Task):
         self.record = record
 
     def setup(self, differentiable: bool = False) -> BoundingSetup:
-        return setup(self.cfg.control_dt, self.cfg.impl)
+        return setup(self.cfg.control_dt, self.cfg.impl, differentiable)
 
     def outcome(self, res: sim.RolloutResult) -> BoundingOutcome:
         return outcome(res)
@@ -340,7 +342,7 @@ def apex_initial_data(batch: bbatch.Batch, m: mujoco.MjModel, mx: mjx.Model) -> 
 def run(batch: bbatch.Batch, duration: float, control_dt: float = 0.002, record_every: int = 10, progress=None,
         impl: str = "jax"):
     """Simulate the batch; returns ``(RolloutResult, trace as NumPy dict)``. ``progress(done, total)`` (simulated
-    seconds) is called after every simulated second. ``impl``: MJX implementation, ``auto | jax | warp``
+    seconds) is called after every simulated second. ``impl``: simulator, ``auto | jax | warp | c``
     (:mod:`hyqjax.sim.backend`; the cycle optimisation and the return map need ``jax``).
 
     The batch goes through ``make_bounding_rollout(BoundingRolloutConfig(duration, control_dt, record_every,

@@ -212,8 +212,8 @@ def columns(ms: TrackingMetrics, diverged, diverged_tick, control_dt: float = 0.
 
 @functools.lru_cache(maxsize=16)
 def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str):
-    """One batch runner per static config, cost spec and MJX implementation (a runner fixes the batched model's
-    pytree structure, which differs between the implementations)."""
+    """One batch runner per static config, cost spec and simulator (a runner fixes the batched model's pytree
+    structure, which differs between the simulators)."""
     from hyqjax.bounding import controller as bctrl
     from hyqjax.bounding import cycle as bc
 
@@ -249,7 +249,7 @@ def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: Co
     terms (``cost_<term>``).
 
     Instances run in chunks of at most ``max_batch`` (the last padded by repeating its first instance, so one
-    program serves every chunk; the padding is dropped). ``impl``: MJX implementation (``auto | jax | warp``).
+    program serves every chunk; the padding is dropped). ``impl``: simulator (``auto | jax | warp | c``).
     ``progress(done, total)`` is called after every chunk with the instances done.
     """
     cfg = brollout.BoundingRolloutConfig(duration=duration, control_dt=control_dt, impl=impl)

@@ -65,7 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "in 4,096 held-out runs), optimised over commands, friction and payload (docs/bounding.md); "
                         "default: the paper's reference cycle with the default gains")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    add_impl_argument(p, TASK.impls)  # bounding runs on MJX
+    add_impl_argument(p, TASK.impls)
 
 
 def validate(args) -> None:

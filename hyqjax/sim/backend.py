@@ -10,7 +10,7 @@ implementation that the rest of hyqjax talks to (:func:`get`).
 * ``c``: C MuJoCo in float64, one ``MjData`` per instance stepped on all CPU cores, the controller in JAX
   (:mod:`hyqjax.sim.cpu_backend`). Forward only, batches only, no compile of the physics: on a CPU it runs the
   step-down several times faster than MJX-JAX. Tasks that run on it list it in their supported implementations
-  (the step-down and its sweeps; bounding runs on ``jax`` and ``warp``).
+  (the step-down and its sweeps, bounding).
 * ``auto``: ``warp`` when a CUDA device and warp-lang are both available; else ``c`` on a machine without an
   accelerator when the task supports it; else ``jax``. For a pure JAX function of one instance (gradients, a
   jitted single rollout) ``auto`` is ``jax`` (``resolve_impl(..., differentiable=True)``).

@@ -54,7 +54,7 @@ import logging
 import threading
 import time
 import types
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -127,16 +127,12 @@ def _warnings_to_log():
         mujoco.set_mju_user_warning(prev)
 
 
-class CInitialData:
-    """Initial state of a C MuJoCo batch: ``qpos`` ``(B, nq)`` in float64, zero velocity, time 0 (what
-    :func:`hyqjax.sim.rollout.initial_data` makes for MJX)."""
+class CInitialData(NamedTuple):
+    """Initial state of a C MuJoCo batch at time 0: ``qpos`` ``(B, nq)`` and ``qvel`` ``(B, nv)`` in float64 (None:
+    zero velocity, what :func:`hyqjax.sim.rollout.initial_data` makes for MJX)."""
 
-    def __init__(self, qpos: np.ndarray):
-        self.qpos = np.asarray(qpos, np.float64)
-
-    @property
-    def batch_size(self) -> int:
-        return int(self.qpos.shape[0])
+    qpos: np.ndarray
+    qvel: np.ndarray | None = None
 
 
 #: Name of the FFI target that steps the C MuJoCo batches (:mod:`hyqjax.sim.host_call`).
@@ -278,7 +274,7 @@ class CBatchRunner(AheadOfTime):
             rows = lo + np.minimum(np.arange(plan.size), hi - lo - 1)  # the padded rows repeat the shard's last
             sp = None if pushes is None else Push(*(x[lo:hi] for x in pushes))
             phys = CPhysics(models[lo:hi], d0.qpos[lo:hi], self.ids.trunk_body, self.cfg.substeps, sp, per_shard,
-                            dtype)
+                            dtype, qvel0=None if d0.qvel is None else d0.qvel[lo:hi])
             shards.append(types.SimpleNamespace(lo=lo, hi=hi, rows=rows, phys=phys, handle=next(_next_handle),
                                                 params=hrunner._rows(params, self.params_axes, rows), carry=None,
                                                 traces=[], done=0))
@@ -389,6 +385,10 @@ class CBackend:
 
     def initial_data(self, model, batched_model, qpos, m) -> CInitialData:
         return CInitialData(np.asarray(qpos, np.float64))
+
+    def from_jax_data(self, models, d, m) -> CInitialData:
+        """The state (``qpos``, ``qvel``) of batched MJX-JAX data ``d`` as a batch's initial data."""
+        return CInitialData(np.asarray(d.qpos, np.float64), np.asarray(d.qvel, np.float64))
 
     def make_runner(self, ids, controller, cfg, metrics=None, record=None, params_axes: Any = 0, mesh=None,
                     buckets: bool = True):

@@ -39,7 +39,8 @@ MIN_ROWS_PER_THREAD = 8
 
 class CPhysics:
     """``len(models)`` instances of C MuJoCo in float64 in one ``mujoco.batch.Batch``, each on its own model, stepped
-    on ``threads`` threads (at most one per :data:`MIN_ROWS_PER_THREAD` instances).
+    on ``threads`` threads (at most one per :data:`MIN_ROWS_PER_THREAD` instances), starting at ``qpos0`` with
+    velocity ``qvel0`` (None: zero).
 
     ``step(tau, frozen)`` sets the controls (and the trunk push of each instance, as
     :func:`hyqjax.sim.rollout._physics` does), calls ``mj_step`` ``substeps`` times on every instance not
@@ -53,7 +54,8 @@ class CPhysics:
     """
 
     def __init__(self, models: list[mujoco.MjModel], qpos0: np.ndarray, trunk_body: int, substeps: int = 1,
-                 push: Push | None = None, threads: int | None = None, dtype=np.float32):
+                 push: Push | None = None, threads: int | None = None, dtype=np.float32,
+                 qvel0: np.ndarray | None = None):
         models = list(models)
         b = len(models)
         m0 = models[0]
@@ -66,6 +68,8 @@ class CPhysics:
         bind = self.batch.bind
         self._time, self._qpos, self._qvel, self._ctrl = bind("time"), bind("qpos"), bind("qvel"), bind("ctrl")
         self._qpos[...] = np.broadcast_to(np.asarray(qpos0, np.float64), (b, m0.nq))
+        if qvel0 is not None:
+            self._qvel[...] = np.broadcast_to(np.asarray(qvel0, np.float64), (b, m0.nv))
         self._derived = [bind(f) for f in ("sensordata", "site_xpos", "geom_xpos", "geom_xmat")]
         self._bias, self._qacc, self._inertia = bind("qfrc_bias"), bind("qacc"), bind("M")
         # M (the lower triangle of the joint-space inertia in MuJoCo's CSR layout) as a dense (nv, nv) gather from

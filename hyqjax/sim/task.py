@@ -60,8 +60,10 @@ class Task(abc.ABC):
       metrics: device metrics accumulated every tick (:class:`hyqjax.core.types.Metrics`; ``terminal`` ends an
         instance's episode).
       record: ``record(d, obs, info)``, one trace sample, or None (no trace).
-      one_instance_on_every_backend: the one-instance rollout runs on the task's own simulator whatever it is
-        (False: it needs a backend whose ``one_instance_error`` is None, else a ``ValueError``).
+      one_instance_on_every_backend: the one-instance rollout runs on the task's own simulator where that has one
+        (``backend.one_instance_error`` is None; a forward run under Warp included). False, or on a simulator
+        without one (C MuJoCo), it runs on ``setup(differentiable=True)``'s (``auto``: MJX-JAX), and a request for
+        a simulator without one is a ``ValueError``.
     """
 
     cfg: Any
@@ -118,9 +120,11 @@ class Rollout:
         """Simulate ONE instance for the task's duration; returns its outcome and final data (pure JAX)."""
         task = self.task
         task.check_instance(params, instance)
-        st = self.setup if task.one_instance_on_every_backend else task.setup(differentiable=True)
+        st = self.setup
+        if not task.one_instance_on_every_backend or st.backend.one_instance_error is not None:
+            st = task.setup(differentiable=True)
         params, instance = st.backend.forbid_derivatives((params, instance))
-        if not task.one_instance_on_every_backend and st.backend.one_instance_error is not None:
+        if st.backend.one_instance_error is not None:
             raise ValueError(f"the one-instance rollout needs impl='jax' ({st.backend.one_instance_error}); run "
                              f"{st.impl} batches with rollout.run(...)")
         mx1, d0, push = task.instance_inputs(st, params, instance)

@@ -71,7 +71,7 @@ REGISTRY: dict[str, TaskEntry] = {
                   ALL_IMPLS, "stepdown"),
         TaskEntry("bound", "Orsolino et al.: bounding from optimised feed-forward impulses with speed and turning "
                            "control", "hyqjax.bounding.rollout", "BoundingRolloutConfig", "make_bounding_rollout",
-                  MJX_IMPLS, "bound"),
+                  ALL_IMPLS, "bound"),
     )
 }
 
