@@ -1,14 +1,17 @@
-"""The step-down closed loop on a CPU: C MuJoCo (``impl="c"``) against MJX-JAX (``impl="jax"``), in one run.
+"""A task's closed loop on a CPU: C MuJoCo (``impl="c"``) against MJX-JAX (``impl="jax"``), in one run.
 
 Sections:
 
-  throughput  one batch of exactly ``--batch`` step-down instances (the first ``--batch`` of
+  throughput  one batch of exactly ``--batch`` instances of ``--task``: step-down instances (the first ``--batch`` of
               ``stepdown.make_scenarios`` over 3 heights x reflex off/on at ``ceil(batch / 6)`` per cell; no
               traces; a batch of 64 fills the C backend's controller bucket of 64 with no padded row) for ``--duration`` simulated seconds, through
               ``make_stepdown_rollout(cfg).run`` as ``hyqjax stepdown`` runs it, under each simulator: the first
               call (compile included: a fresh process has nothing compiled; the persistent compilation cache is
               off here) and a second call of the same batch (compiled). env-steps/s = batch x ticks / wall, and
-              the ratios C / MJX-JAX with and without compile.
+              the ratios C / MJX-JAX with and without compile. ``--task bound``: bounding instances cycling over
+              seven commands (in place, 0.5 and 0.8 m/s, +-0.4 rad/s at 0.5 m/s) from randomised apex states,
+              through ``make_bounding_rollout(cfg).run`` (``--duration`` a multiple of the 0.4 s gait period);
+              the success column is the share that neither fell nor diverged.
   first       (``--first-command``) the README's first command, ``hyqjax stepdown --instances 3 --out DIR``, in a
               fresh Python process with an empty compilation cache (what a user sees right after the install):
               its wall time, and the wall time it prints for the batch itself.
@@ -20,6 +23,7 @@ Usage::
 
     PYTHONPATH=. python benchmarks/bench_cpu_backend.py --batch 64 --duration 24 --first-command --out out/cpu.json
     PYTHONPATH=. python benchmarks/bench_cpu_backend.py --batch 6 --duration 0.2 --out out/cpu_backend_tiny.json
+    PYTHONPATH=. python benchmarks/bench_cpu_backend.py --task bound --batch 7 --duration 6 --out out/cpu_bound.json
 """
 from __future__ import annotations
 
@@ -48,19 +52,38 @@ from bench_physics import host_info  # noqa: E402
 HEIGHTS = (0.16, 0.21, 0.24)
 
 
-def closed_loop(impl: str, scen, duration: float) -> dict:
-    """Wall time of the first (compile included) and second run of ``scen`` under ``impl``."""
-    cfg = stepdown.StepdownConfig(duration=duration, impl=impl)
-    ro = stepdown.make_stepdown_rollout(cfg)
+#: The bounding commands ``--task bound`` cycles over (tests/test_bounding.py's closed-loop batch).
+BOUND_COMMANDS = (dict(), dict(speed=0.5), dict(speed=0.8), dict(speed=0.5, yaw_rate=0.4),
+                  dict(speed=0.5, yaw_rate=-0.4))
+
+
+def workload(task: str, impl: str, batch: int, duration: float, seed: int):
+    """``(rollout, batch of exactly `batch` instances)`` of ``task`` under ``impl``."""
+    if task == "bound":
+        from hyqjax.bounding import batch as bbatch
+        from hyqjax.bounding import params as bparams
+        from hyqjax.bounding import rollout as brollout
+
+        plist = [bparams.default_params(**BOUND_COMMANDS[i % len(BOUND_COMMANDS)]) for i in range(batch)]
+        ro = brollout.make_bounding_rollout(brollout.BoundingRolloutConfig(duration=duration, impl=impl))
+        return ro, bbatch.make_batch(plist, seed=seed)
+    scen, _ = stepdown.make_scenarios(HEIGHTS, [False, True], -(-batch // 6), seed)
+    ro = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=duration, impl=impl))
+    return ro, jax.tree_util.tree_map(lambda x: x[:batch], scen)
+
+
+def closed_loop(ro, batch) -> dict:
+    """Wall time of the first (compile included) and second run of ``batch`` through rollout ``ro``."""
     out = {}
     for name in ("first", "second"):
         t = time.perf_counter()
-        o, res = ro.run(scen)
+        o, res = ro.run(batch)
         jax.block_until_ready((o, res))
         out[f"{name}_wall_s"] = time.perf_counter() - t
-    n = scen.batch_size * cfg.sim_config().n_ticks
+    n = int(np.shape(res.diverged)[0]) * ro.sim_config.n_ticks
+    key = "success" if hasattr(o, "success") else "clean"  # bounding: neither fell nor diverged
     out.update(env_steps=n, rate_with_compile=n / out["first_wall_s"], rate_compiled=n / out["second_wall_s"],
-               clean=float(np.mean(np.asarray(o.clean))), impl=ro.setup.impl)
+               impl=ro.setup.impl, **{key: float(np.mean(np.asarray(getattr(o, key))))})
     return out
 
 
@@ -86,6 +109,7 @@ def first_command(out_dir: str) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--task", choices=["stepdown", "bound"], default="stepdown")
     ap.add_argument("--batch", type=int, default=64, help="instances")
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
     ap.add_argument("--impls", nargs="+", choices=["c", "jax"], default=["c", "jax"])
@@ -95,16 +119,13 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.batch < 1 or not args.duration > 0:
         raise SystemExit("--batch must be >= 1 and --duration > 0")
-    per_cell = -(-args.batch // 6)
-    scen, _ = stepdown.make_scenarios(HEIGHTS, [False, True], per_cell, args.seed)
-    scen = jax.tree_util.tree_map(lambda x: x[:args.batch], scen)
-    res = dict(info=host_info(), args=vars(args), batch=scen.batch_size, threads=cpu_physics.default_threads(),
+    res = dict(info=host_info(), args=vars(args), batch=args.batch, threads=cpu_physics.default_threads(),
                provenance=hio.provenance(argv if argv is not None else sys.argv[1:]), throughput={})
     print(json.dumps({k: res["info"][k] for k in ("date", "device", "jax", "mujoco")}), flush=True)
     for impl in args.impls:
-        res["throughput"][impl] = closed_loop(impl, scen, args.duration)
+        res["throughput"][impl] = closed_loop(*workload(args.task, impl, args.batch, args.duration, args.seed))
         t = res["throughput"][impl]
-        print(f"{impl}: batch {scen.batch_size} x {args.duration:g} s: first {t['first_wall_s']:.1f} s "
+        print(f"{impl}: {args.task} batch {args.batch} x {args.duration:g} s: first {t['first_wall_s']:.1f} s "
               f"({t['rate_with_compile']:,.0f} env-steps/s with compile), second {t['second_wall_s']:.1f} s "
               f"({t['rate_compiled']:,.0f} env-steps/s)", flush=True)
         if args.out:
