@@ -54,4 +54,5 @@ def test_registry_rollout_is_the_factorys_compiled_once_per_configuration():
     assert isinstance(ro.task, stepdown.StepdownTask) and ro.cfg.duration == 0.5
     assert ro.setup.impl == "c" and ro.sim_config.n_ticks == 250
     with pytest.raises(ValueError, match="impl must be one of"):
-        tasks.rollout("bound", impl="c")  # bounding runs on MJX only: the configuration says so before any compile
+        tasks.rollout("bound", impl="cuda")  # not a simulator: the configuration says so before any compile
+    assert tasks.get("bound").impls == tasks.get("stepdown").impls  # both tasks run on every simulator
