@@ -21,7 +21,7 @@ import dataclasses
 import importlib
 from typing import Any
 
-from hyqjax.sim.impls import ALL_IMPLS, MJX_IMPLS
+from hyqjax.sim.impls import ALL_IMPLS
 
 
 @dataclasses.dataclass(frozen=True)
