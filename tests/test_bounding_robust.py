@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import envelope as be
 from hyqjax.bounding import falls
 from hyqjax.bounding import params as bp
