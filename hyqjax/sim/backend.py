@@ -16,9 +16,9 @@ implementation that the rest of hyqjax talks to (:func:`get`).
   jitted single rollout) ``auto`` is ``jax`` (``resolve_impl(..., differentiable=True)``).
 
 :func:`get` returns the backend object of a resolved ``impl``: ``put_model``, ``batch_model``, ``initial_data``,
-``make_runner``, ``forbid_derivatives``, ``supports_gradients`` and ``one_instance_error`` (why a one-instance
-rollout outside a batch is refused, or ``None``); the MJX backends also ``from_jax_data`` (MJX-JAX data as this
-implementation's). Code above ``hyqjax.sim`` asks these (and :func:`describe` for a help text of the choices),
+``make_runner``, ``forbid_derivatives``, ``supports_gradients``, ``one_instance_error`` (why a one-instance
+rollout outside a batch is refused, or ``None``) and ``from_jax_data`` (MJX-JAX data as this implementation's;
+C MuJoCo: a batch's). Code above ``hyqjax.sim`` asks these (and :func:`describe` for a help text of the choices),
 never compares ``impl`` names. Asking for a derivative through a forward-only backend raises a ``ValueError``
 naming ``impl`` (:func:`hyqjax.sim.impls.forbid_derivatives`), instead of silently falling back.
 
