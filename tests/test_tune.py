@@ -177,10 +177,14 @@ def su64():
 def cl64(su64):
     """Float64 windows of one 24 cm step-down with the shin-strike remedy (what ``hyqjax tune`` tunes), both front
     legs' snapshots, and the jitted per-robot jacfwd objective (``objective.make_per_robot_value_and_jac``) of two
-    robots on copies of the window that runs from just before the first front leg's swing is planned into its
-    haptic search over the edge (the tuned search direction acts there). Two robots in one call give a central
-    difference in one evaluation. Built under x64 and returned outside it: the tests turn x64 on where they use
-    them (yielded inside ``enable_x64``, the fixture left x64 on for every later test of this module)."""
+    robots with one window each (``wins``: two copies of the window that runs from just before the first front
+    leg's swing is planned into its haptic search over the edge, where the tuned search direction acts), through
+    the crawl that the shared parameterisation of the five groups schedules (``schedule.Parameterisation("shared",
+    sp)``: the tuner's forward-mode step; its ``theta`` is ``sp``'s). Built under x64 and returned outside it: the
+    tests turn x64 on where they use them (yielded inside ``enable_x64``, the fixture left x64 on for every later
+    test of this module)."""
+    from hyqjax.studies.tune import schedule
+
     su = su64
     with jax.enable_x64(True):
         from hyqjax.studies.tune import evaluate
@@ -194,8 +198,59 @@ def cl64(su64):
             jnp.asarray(x).dtype, jnp.floating) else x, start)
         obj = objective.ClosedLoopObjective(ticks=260)
         wins, axes = windows.grouped(win.take([0, 0]), 2)
-        pr = objective.make_per_robot_value_and_jac(base, sp, obj, su, axes)
+        pr = objective.make_per_robot_value_and_jac(base, schedule.Parameterisation("shared", sp), obj, su, axes)
     return win, sp, pr, wins, base, obj, both
+
+
+@pytest.fixture(scope="module")
+def pr_start(cl64):
+    """``theta`` at the start point and the per-robot program's first call there, both front legs' windows as its
+    two robots (robot 0 the first window, robot 1 the second; numpy)."""
+    _, sp, pr, _, base, _, both = cl64
+    with jax.enable_x64(True):
+        th = np.asarray(sp.theta_of(base), np.float64)
+        r = pr(jnp.asarray(np.stack([th, th])), windows.grouped(both, 2)[0])
+        return th, jax.tree_util.tree_map(np.asarray, r)
+
+
+@pytest.fixture(scope="module")
+def fwd64(cl64, su64):
+    """Forward evaluation alone (no derivative program) of both windows of ``cl64`` under the per-leg crawl of the
+    five groups with ``K_base`` conditioned on the three features (``par``, 35 coordinates), 260 ticks and the
+    130-tick prefix: ``central(theta, dirs)`` evaluates ``theta`` and ``theta +- 1e-6 dirs`` (8 directions) in one
+    call of one compiled program and returns the central differences of every window's prefix losses
+    ``(8, W, 2)`` and the evaluation at ``theta`` (per-window ``loss``, ``terms``, ``finite``). ``per_leg(x)``: the
+    shared parameterisation's ``x`` as ``par``'s (every leg's row ``x``, no conditioning: the same crawl)."""
+    from hyqjax.studies.tune import schedule
+
+    _, sp, _, _, base, _, both = cl64
+    par = schedule.Parameterisation("per_leg", sp, per_leg=True, conditioned=("k_base",))
+    obj = objective.ClosedLoopObjective(ticks=260, prefixes=(130,))
+    eps = 1e-6
+
+    @jax.jit
+    def evaluate(ths, win):
+        def one(th):
+            loss, terms, finite = objective.window_losses(th, win, base, par, obj, su64)
+            return dict(loss=loss, terms=terms, finite=finite)
+
+        return jax.vmap(one)(ths)
+
+    def central(theta, dirs):
+        dirs = np.asarray(dirs, np.float64)
+        assert dirs.shape == (8, par.size)  # one batch size, one program
+        with jax.enable_x64(True):
+            out = jax.tree_util.tree_map(np.asarray, evaluate(jnp.asarray(np.concatenate(
+                [np.asarray(theta, np.float64)[None], theta + eps * dirs, theta - eps * dirs])), both))
+        pre = out["terms"]["prefix_loss"]
+        return (pre[1:9] - pre[9:]) / (2 * eps), jax.tree_util.tree_map(lambda x: x[0], out)
+
+    def per_leg(x):
+        return np.concatenate([np.tile(np.asarray(x, np.float64), 4), np.zeros(par.size - 4 * sp.size)])
+
+    from types import SimpleNamespace
+
+    return SimpleNamespace(par=par, obj=obj, central=central, per_leg=per_leg)
 
 
 @pytest.mark.slow
@@ -248,125 +303,132 @@ def test_windows_retaken_under_a_parameterised_crawl(cl64, su64):
 
 
 @pytest.mark.slow
-def test_closed_loop_gradient_matches_central_differences_per_robot(cl64):
-    """The closed-loop window objective's jacfwd against central differences (along random directions and along
-    the remedy's forward search alone), per robot: each robot's loss and gradient depend on its own parameters
-    only (changing or swapping the other robot's leaves its row as it was), and the step with new parameter
-    values reuses its program."""
+def test_closed_loop_gradient_matches_central_differences_per_robot(cl64, pr_start, fwd64):
+    """The closed-loop window objective's jacfwd (the per-robot program; each robot on one front leg's window)
+    against central differences of the objective's forward evaluation (``fwd64`` with every leg's row the robot's
+    ``theta``: the same crawl, the same losses to 1e-12), for both robots along two random directions and along six
+    coordinates alone, the remedy's forward search among them (its gradient is not zero); per robot: each robot's
+    loss and gradient depend on its own parameters and window only (a robot keeps its row when the other robot
+    takes other parameters and another window and the two swap slots), and the step with new parameter values and
+    other windows reuses its program."""
     win, sp, pr, wins, base, _, _ = cl64
+    th, r = pr_start
     with jax.enable_x64(True):
         assert bool(win.valid[0])
-        th = jnp.asarray(sp.theta_of(base))
-        r = pr(jnp.stack([th, th + 0.3]), wins)
         traced = TRACED.count(pr.__name__)
-        g = np.asarray(r["grad"][0])
-        assert np.all(np.isfinite(np.asarray(r["grad"]))) and np.any(g != 0)
-
-        def central(v, eps):
-            loss = np.asarray(pr(jnp.stack([th + eps * v, th - eps * v]), wins)["loss"])
-            return float(loss[0] - loss[1]) / (2 * eps)
-
+        g = r["grad"][0]
+        assert np.all(np.isfinite(r["grad"])) and np.any(g != 0)
+        assert abs(g[sp.names.index("search_forward")]) > 1e-7  # it moves the searching foot
         rng = np.random.default_rng(0)
-        for _ in range(2):
-            v = rng.standard_normal(sp.size)
-            assert float(g @ v) == pytest.approx(central(v, 1e-6), rel=2e-3, abs=1e-9)
-        # the remedy's forward search, alone: it moves the searching foot, so its gradient is not zero
-        e = np.zeros(sp.size)
-        e[sp.names.index("search_forward")] = 1.0
-        assert abs(g[sp.names.index("search_forward")]) > 1e-7
-        assert float(g @ e) == pytest.approx(central(e, 1e-6), rel=2e-3, abs=1e-10)
-        # Per robot: another value, or the swap, of the other robot's parameters leaves a robot's row unchanged.
-        other = pr(jnp.stack([th, th - 0.3]), wins)
-        swapped = pr(jnp.stack([th + 0.3, th]), wins)
-        for res, row in ((other, 0), (swapped, 1)):
-            np.testing.assert_allclose(float(res["loss"][row]), float(r["loss"][0]), rtol=1e-9)
-            np.testing.assert_allclose(np.asarray(res["grad"][row]), g, rtol=1e-6, atol=1e-12)
-        np.testing.assert_allclose(np.asarray(swapped["grad"][0]), np.asarray(r["grad"][1]), rtol=1e-6, atol=1e-12)
-        assert not np.allclose(np.asarray(r["grad"][0]), np.asarray(r["grad"][1]))
-        # Retrace guard: the tuner step with new values of theta reuses its program.
+        axes = [sp.names.index(n) for n in ("search_forward", "k_base", "d_sw_max", "d_st_min", "d_st_max",
+                                            "body_height")]
+        dirs = np.concatenate([rng.standard_normal((2, sp.size)), np.eye(sp.size)[axes]])
+        fd, at = fwd64.central(fwd64.per_leg(th), np.stack([fwd64.per_leg(v) for v in dirs]))
+        np.testing.assert_allclose(at["loss"], r["loss"], rtol=1e-12)
+        for robot in (0, 1):  # robot r on window r, its whole length
+            for v, d in zip(dirs, fd[:, robot, -1]):
+                assert float(r["grad"][robot] @ v) == pytest.approx(float(d), rel=2e-3, abs=1e-10), (robot, v)
+        # Per robot: robot 1 at theta on the first window, next to theta - 0.3 on it, has robot 0's row of the first
+        # call (next to theta on the second window).
+        moved = jax.tree_util.tree_map(np.asarray, pr(jnp.asarray(np.stack([th - 0.3, th])), wins))
+        np.testing.assert_allclose(moved["loss"][1], r["loss"][0], rtol=1e-9)
+        np.testing.assert_allclose(moved["grad"][1], g, rtol=1e-6, atol=1e-12)
+        assert not np.allclose(moved["grad"][0], g) and not np.allclose(r["grad"][0], r["grad"][1])
+        # Retrace guard: the tuner step with new values of theta (and other windows) reuses its program.
         assert TRACED.count(pr.__name__) == traced, "the closed-loop tuner step was traced again"
 
 
 @pytest.mark.slow
-def test_closed_loop_gradient_steps_lower_objective(cl64):
-    win, sp, pr, wins, base, _, _ = cl64
+def test_closed_loop_gradient_steps_lower_objective(cl64, pr_start):
+    """Two normalised gradient steps with backtracking (length 0.5, quartered until the objective falls) from the
+    start point each lower the closed-loop objective; the program's two robots try a length and its quarter in
+    one call."""
+    _, _, pr, wins, _, _, _ = cl64
+    th, r = pr_start
+    losses, g = [float(r["loss"][0])], r["grad"][0]
     with jax.enable_x64(True):
-        def vj(theta):  # robot 0's loss and gradient (both robots run the same parameters)
-            res = pr(jnp.stack([theta, theta]), wins)
-            return float(res["loss"][0]), np.asarray(res["grad"][0])
-
-        th = jnp.asarray(sp.theta_of(base))
-        loss0, g = vj(th)
-        losses = [loss0]
-        for _ in range(3):  # normalised gradient steps with backtracking
-            step = 0.5
+        for _ in range(2):
+            d, step = g / (np.linalg.norm(g) + 1e-12), 0.5
             while step > 1e-3:
-                cand = th - step * g / (np.linalg.norm(g) + 1e-12)
-                lc, gc = vj(cand)
-                if lc < losses[-1]:
-                    th, g = cand, gc
-                    losses.append(lc)
+                cands = np.stack([th - step * d, th - step / 4 * d])
+                res = jax.tree_util.tree_map(np.asarray, pr(jnp.asarray(cands), wins))
+                lower = np.nonzero(res["loss"] < losses[-1])[0]
+                if lower.size:
+                    i = int(lower[0])  # the longer step when both lower the objective
+                    th, g = cands[i], res["grad"][i]
+                    losses.append(float(res["loss"][i]))
                     break
-                step /= 4
-        assert len(losses) >= 3 and losses[-1] < losses[0]
+                step /= 16
+    assert len(losses) == 3 and losses[2] < losses[1] < losses[0], losses
 
 
-#: The reverse-mode comparison's programs are compiled at XLA's backend optimisation level 0: the same traced
-#: programs (what is compared), about 40 % less compile time on the CPU.
+#: The reverse-mode program is compiled at XLA's backend optimisation level 0: the same traced program (what is
+#: compared), about 40 % less compile time on the CPU.
 FAST_COMPILE = {"xla_backend_optimization_level": 0}
 
 
 @pytest.mark.slow
-def test_reverse_mode_and_scheduled_parameterisation_gradients(cl64, su64):
-    """The window objective through the per-leg, feature-conditioned crawl (parameters selected per tick; the
-    parameterisation's two coordinate kinds: a per-leg row and a conditioning column) on both front legs' float64
-    windows, two prefix lengths:
+def test_reverse_mode_and_scheduled_parameterisation_gradients(cl64, su64, fwd64, pr_start):
+    """The reverse-mode tuning step (:func:`objective.make_value_and_grad_reverse`: MJX's solver as a fixed-length
+    loop, the checkpointed tick scan, one backward pass per prefix) through the per-leg, feature-conditioned crawl
+    (parameters selected per tick; the parameterisation's two coordinate kinds: a per-leg row of the five groups
+    and ``K_base``'s conditioning columns) on both front legs' float64 windows, two prefix lengths:
 
-    * ``jacfwd`` (:func:`objective.make_value_and_jac`) against central differences, along a random direction and
-      along the first swinging front leg's own ``K_base`` row; the hind legs' rows do not act in these windows;
-    * the reverse-mode tuning step (:func:`objective.make_value_and_grad_reverse`: MJX's solver as a fixed-length
-      loop, the checkpointed tick scan, one backward pass per prefix) gives ``jacfwd``'s per-window rows of both
-      windows and both prefixes, the same losses and terms.
+    * forward mode: at the start point every leg runs the same row, so a window's rows summed over the legs are its
+      gradient in the shared parameterisation, jacfwd's (the per-robot program of ``cl64`` with the two windows as
+      its two robots, ``pr_start``): the same to 1e-6, and the same losses;
+    * central differences of the forward evaluation (``fwd64``), for every window and both prefixes, along a
+      random direction, each window's own leg's ``K_base`` row, the first window's leg's ``d_sw_max`` row (it acts
+      within the first 130 ticks), the three conditioning columns and a random direction in the hind legs' rows;
+    * a window's rows of the legs other than its own swinging front leg (the hind legs among them) do not act
+      (parameters are selected per swing leg); every window's row is not zero, and its prefix rows differ;
+    * the forward evaluation gives the reverse step's per-window losses and terms.
 
-    One program per mode (the central differences reuse ``jacfwd``'s)."""
+    One derivative program is compiled here (the forward-mode one is the per-robot test's)."""
     from hyqjax.studies.tune import schedule
 
-    _, _, _, _, base, _, both = cl64
-
-    def compiled(fn, *args):
-        prog = fn.lower(*args).compile(compiler_options=FAST_COMPILE)
-        return lambda *a: jax.tree_util.tree_map(np.asarray, prog(*a))
-
+    _, sp, _, _, base, _, both = cl64
+    par, obj = fwd64.par, fwd64.obj
+    legs = [schedule.LEGS[int(x)] for x in np.asarray(both.leg)]
     with jax.enable_x64(True):
-        obj = objective.ClosedLoopObjective(ticks=260, prefixes=(130,))
-        sp = spmod.ParamSpace.make(("k_base",))
-        par = schedule.Parameterisation("test", sp, per_leg=True, conditioned=("k_base",))
-        th = jnp.asarray(par.theta_of(base))
-        jac = compiled(objective.make_value_and_jac(both, base, par, obj, su64), th, both)
-        ref = jac(th, both)
-        res = compiled(objective.make_value_and_grad_reverse(base, par, obj, su64, checkpoint=True), th, both)(th, both)
-        g = ref["grad"]
-        assert np.all(np.isfinite(g)) and ref["ok"].all()
+        th = np.asarray(par.theta_of(base), np.float64)
+        assert np.array_equal(th[:sp.size], pr_start[0])
+        fwd_mode = pr_start[1]  # jacfwd's rows of both windows at the start point
+        prog = objective.make_value_and_grad_reverse(base, par, obj, su64, checkpoint=True)
+        res = prog.lower(jnp.asarray(th), both).compile(compiler_options=FAST_COMPILE)(jnp.asarray(th), both)
+        res = jax.tree_util.tree_map(np.asarray, res)
         rng = np.random.default_rng(1)
-        leg = schedule.LEGS[int(both.leg[0])]
-        for v in [rng.standard_normal(par.size), np.eye(par.size)[par.names.index(f"k_base[{leg}]")]]:
-            eps = 1e-6
-            fd = (float(jac(th + eps * v, both)["loss"]) - float(jac(th - eps * v, both)["loss"])) / (2 * eps)
-            assert float(g @ v) == pytest.approx(fd, rel=2e-3, abs=1e-9)
-        hind = [i for i, n in enumerate(par.names) if n.endswith("[LH]") or n.endswith("[RH]")]
-        assert np.abs(g[hind]).max() < 1e-3 * np.abs(g).max()
-    assert res["ok"].all()
-    np.testing.assert_allclose(res["per_window_loss"], ref["per_window_loss"], rtol=1e-12)
-    g, g0 = res["per_window_grad"], ref["per_window_grad"]
-    assert np.all(np.abs(g0).max(1) > 1e-6)  # every window's row is not zero (the parameters act)
-    np.testing.assert_allclose(g, g0, rtol=1e-6, atol=1e-9 * np.abs(g0).max())
-    np.testing.assert_allclose(res["grad"], ref["grad"], rtol=1e-6, atol=1e-9 * np.abs(g0).max())
-    np.testing.assert_allclose(res["loss"], ref["loss"], rtol=1e-12)
-    for k, v in ref["terms"].items():
-        np.testing.assert_allclose(res["terms"][k], v, rtol=1e-10, atol=1e-14)
-    pg, pg0 = res["per_window_prefix_grad"], ref["per_window_prefix_grad"]  # every prefix's rows, 130 ticks included
-    np.testing.assert_allclose(pg, pg0, rtol=1e-6, atol=1e-9 * np.abs(pg0).max())
-    assert not np.allclose(pg0[:, 0], pg0[:, 1])
+        hind = np.asarray([n.endswith("[LH]") or n.endswith("[RH]") for n in par.names])
+        unit = np.eye(par.size)
+        dirs = np.stack([rng.standard_normal(par.size), unit[par.names.index(f"k_base[{legs[0]}]")],
+                         unit[par.names.index(f"k_base[{legs[1]}]")], unit[par.names.index(f"d_sw_max[{legs[0]}]")],
+                         *(unit[par.names.index(f"k_base~{f}")] for f in schedule.FEATURES),
+                         np.where(hind, rng.standard_normal(par.size), 0.0)])
+        fd, at = fwd64.central(th, dirs)
+    assert res["ok"].all() and at["finite"].all()
+    pg, pw = res["per_window_prefix_grad"], res["per_window_grad"]  # (W, 2, P), (W, P)
+    # forward mode: the rows summed over the legs, the shared parameterisation's jacfwd rows
+    n0 = sp.size
+    np.testing.assert_allclose(pw[:, :4 * n0].reshape(2, 4, n0).sum(1), fwd_mode["grad"], rtol=1e-6,
+                               atol=1e-9 * np.abs(fwd_mode["grad"]).max())
+    np.testing.assert_allclose(res["per_window_loss"], fwd_mode["loss"], rtol=1e-12)
+    # central differences, every window and prefix
+    an = np.einsum("wlp,dp->dwl", pg, dirs)
+    np.testing.assert_allclose(an, fd, rtol=2e-3, atol=1e-9)
+    assert np.abs(fd[1:3, [0, 1], -1].diagonal()).min() > 1e-7  # each window's own K_base row acts
+    assert np.abs(fd[:, 0, 0]).max() > 1e-7 and np.abs(fd[3:7, :, -1]).max() > 1e-7
+    # the rows of the legs that do not swing in a window do not act (the parameters are selected per swing leg)
+    for w, leg in enumerate(legs):
+        rows = pg[w, :, :4 * n0].reshape(2, 4, n0)
+        other = [i for i, x in enumerate(schedule.LEGS) if x != leg]
+        assert np.abs(rows[:, other]).max() < 1e-3 * np.abs(pw[w]).max()
+    assert np.abs(res["grad"][hind]).max() < 1e-3 * np.abs(res["grad"]).max()
+    assert np.all(np.abs(pw).max(1) > 1e-6) and not np.allclose(pg[:, 0], pg[:, 1])
+    # the forward evaluation's per-window losses and terms: the reverse step's primal
+    np.testing.assert_allclose(res["per_window_loss"], at["loss"], rtol=1e-12)
+    np.testing.assert_allclose(res["loss"], at["loss"].mean(), rtol=1e-12)
+    for k, v in res["terms"].items():
+        np.testing.assert_allclose(v, at["terms"][k].mean(), rtol=1e-10, atol=1e-14)
 
 
 def test_line_search_never_raises_the_objective_even_with_a_biased_gradient(tmp_path):
