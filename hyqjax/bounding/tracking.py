@@ -222,20 +222,6 @@ def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str):
                                          tracking_metrics(spec, sim_cfg.control_dt), None)
 
 
-_INITIAL: dict = {}
-
-
-def _initial_data(st):
-    """Jitted :func:`hyqjax.bounding.rollout.apex_initial_data` of the JAX model of setup ``st`` (every instance in
-    the air at its apex state; one compile per batch shape instead of an op-by-op ``vmap`` per call)."""
-    from hyqjax.bounding import cycle as bc
-
-    if id(st) not in _INITIAL:  # setups are cached (rollout.setup), so their ids are stable; keep st alive
-        _INITIAL[id(st)] = (st, jax.jit(jax.vmap(
-            lambda p, s, r, y: bc.apex_data(st.mx_jax, st.m, p, s, roll=r, yaw_rate=y))))
-    return _INITIAL[id(st)][1]
-
-
 def take(batch: bbatch.Batch, idx) -> bbatch.Batch:
     """The instances ``idx`` of a batch (NumPy fancy indexing on every leaf)."""
     idx = np.asarray(idx)
@@ -266,7 +252,7 @@ def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: Co
         pad = np.concatenate([idx, np.full(size - idx.size, idx[0])])
         b = take(batch, pad)
         mb = st.backend.batch_model(st.mx, st.ids, b.terrain)
-        d0 = _initial_data(st)(b.params, *(jnp.asarray(x, jnp.float32) for x in (b.apex0, b.roll0, b.yaw_rate0)))
+        d0 = brollout.apex_initial_data(b, st.m, st.mx_jax)
         d0 = st.backend.from_jax_data(mb, d0, st.m)  # the JAX state as the simulator's data of the batch
         res = run(mb, d0, b.params, b.push)
         ms = jax.tree_util.tree_map(np.asarray, res.metrics)
