@@ -1,8 +1,8 @@
-"""The examples of docs/api.md, run as written (public names only), with checks of what they compute:
-a batch step-down with per-instance reflex parameters, and the forward-mode gradient of a closed-loop metric
-with respect to K_base and the reflex's damping bounds against central finite differences (float64); a bounding
-batch (the batch runner against the single-instance rollout under vmap, and against the same batch on C MuJoCo),
-the forward-mode derivative of the bound's final speed with respect to the commanded speed against central finite differences (float64), and the
+"""The examples of docs/api.md, run as written (public names only), with checks of what they compute: a batch step-down
+with per-instance reflex parameters, and the forward-mode gradient of a closed-loop metric with respect to K_base
+and the reflex's damping bounds against central finite differences (float64); a bounding batch (the batch runner
+against the single-instance rollout under vmap, and against the same batch on C MuJoCo), the forward-mode derivative
+of the bound's final speed with respect to the commanded speed against central finite differences (float64), and the
 retrace guard of the bounding rollout."""
 from __future__ import annotations
 
