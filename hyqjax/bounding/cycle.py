@@ -251,7 +251,9 @@ def initial_guesses(params: BoundingParams, n: int, seed: int = 0, z_des: float 
 
 def least_squares_residual(params: BoundingParams, z_des: float, prior_weight: float):
     """``x -> (r(x s), sqrt(lambda) prior(x s))`` (9,) on the scaled decision ``x = u / DECISION_SCALE`` (Eq. C2),
-    with a ``custom_jvp`` whose rule materialises the Jacobian by one ``jax.jacfwd``."""
+    with a ``custom_jvp`` whose rule materialises the Jacobian by one ``jax.jacfwd``. The function returned is jitted:
+    optimistix's ``init`` and ``step`` each differentiate it, and as one jitted function its JVP rule is traced once
+    and its transformed program reused (benchmarks/RESULTS.md, "Tracing the bounding cycle's least squares")."""
     scale = jnp.asarray(DECISION_SCALE, jnp.float32)
 
     @jax.jit  # traced once per shape: optimistix's init and step trace f and its JVP several times
@@ -269,7 +271,7 @@ def least_squares_residual(params: BoundingParams, z_des: float, prior_weight: f
         jac, r = jax.jacfwd(lambda xx: (full(xx),) * 2, has_aux=True)(x)
         return r, jac @ t
 
-    return f
+    return jax.jit(f)
 
 
 def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10, z_des: float = 0.6,

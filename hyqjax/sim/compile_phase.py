@@ -54,16 +54,16 @@ def _count_cache_hit(event: str, **_) -> None:
         _cache_hits.n = getattr(_cache_hits, "n", 0) + 1
 
 
-def compile_lowered(lowered) -> tuple[Any, bool]:
-    """``(executable, from_cache)``: ``lowered.compile()``, and whether JAX loaded the program from its persistent
-    compilation cache instead of compiling it (``jax.monitoring``'s ``/jax/compilation_cache/cache_hits`` event,
-    fired in this thread while it compiles)."""
+def compile_lowered(lowered, compiler_options: dict | None = None) -> tuple[Any, bool]:
+    """``(executable, from_cache)``: ``lowered.compile(compiler_options)`` (XLA options added to those of the jit,
+    None: none), and whether JAX loaded the program from its persistent compilation cache instead of compiling it
+    (``jax.monitoring``'s ``/jax/compilation_cache/cache_hits`` event, fired in this thread while it compiles)."""
     global _monitoring_installed
     if not _monitoring_installed:
         jax.monitoring.register_event_listener(_count_cache_hit)
         _monitoring_installed = True
     before = getattr(_cache_hits, "n", 0)
-    exe = lowered.compile()
+    exe = lowered.compile(compiler_options=dict(compiler_options) if compiler_options else None)
     return exe, getattr(_cache_hits, "n", 0) > before
 
 
@@ -81,7 +81,15 @@ class AheadOfTime:
     once per shape, kept in ``_executables``; the phase announced to :func:`compile_listener` and timed into
     ``last_timing`` (``compile_s``, ``trace_s``; ``compiled`` and ``from_cache``: programs XLA compiled and
     programs loaded from the persistent cache). Shared by :class:`hyqjax.sim.runner.BatchRunner` and the C MuJoCo
-    backend's runner."""
+    backend's runner.
+
+    ``compiler_options``: XLA options for every program the runner compiles from then on, added to its own and to the
+    process's ``XLA_FLAGS`` (None: none), e.g. ``{"xla_backend_optimization_level": 0}``: LLVM at level 0 compiles a
+    program faster and runs it slower than XLA's default (level 2). The code generated differs, and results with it in
+    their last bits (an MJX-JAX step-down: 3e-6 m in the positions after 300 ticks), which a long closed-loop run
+    amplifies (the same step-down's final state after 24 s differs visibly; its outcome did not)."""
+
+    compiler_options: dict | None = None
 
     def _reset_compile_phase(self) -> None:
         self._compile_t0 = None  # a compile phase left open by a failed call does not carry over
@@ -109,7 +117,7 @@ class AheadOfTime:
 
     def _cached(self, name: str, args: tuple, static: tuple):
         """``(key, executable or None)``: the program kept for ``name`` at the shapes of ``args``."""
-        key = (name, static, signature(args))
+        key = (name, static, signature(args), tuple(sorted((self.compiler_options or {}).items())))
         return key, self._executables.get(key)
 
     def _lower(self, name: str, fn, args: tuple, static: tuple, batch: int | None):
@@ -124,7 +132,7 @@ class AheadOfTime:
 
     def _compile(self, key, name: str, lowered):
         notify("compile", program=name)
-        exe, from_cache = compile_lowered(lowered)
+        exe, from_cache = compile_lowered(lowered, self.compiler_options)
         with _COUNT_LOCK:
             self._executables[key] = exe
             field = "from_cache" if from_cache else "compiled"
