@@ -205,6 +205,32 @@ def test_host_call_runs_python_in_a_jitted_scan_and_reports_its_errors():
         host_call.raise_pending("hyqjax_test_double")
 
 
+def test_a_runners_compiler_options_reach_xla_and_key_its_programs():
+    """``AheadOfTime.compiler_options`` goes to XLA with every program the runner compiles (an option XLA does not
+    know is refused, naming it), and a program compiled under other options is kept apart from the first, each
+    compiled once."""
+    import jax.numpy as jnp
+
+    class Runner(compile_phase.AheadOfTime):
+        def __init__(self):
+            self._executables, self.last_timing = {}, {}
+            self._reset_compile_phase()
+
+    f = jax.jit(lambda x: jnp.sin(x) * 2.0)
+    x = jnp.arange(3.0, dtype=jnp.float32)
+    r = Runner()
+    plain = r._executable("f", f, (x,))
+    r.compiler_options = {"xla_backend_optimization_level": 0}
+    level0 = r._executable("f", f, (x,))
+    assert level0 is not plain and r._executable("f", f, (x,)) is level0 and len(r._executables) == 2
+    r.compiler_options = None
+    assert r._executable("f", f, (x,)) is plain
+    np.testing.assert_allclose(np.asarray(level0(x)), 2.0 * np.sin(np.arange(3.0)), rtol=1e-6)
+    r.compiler_options = {"xla_no_such_option": 1}
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        r._executable("f", f, (x,))
+
+
 _CACHED_HOST_CALL = """
 import sys, jax, jax.numpy as jnp
 jax.config.update("jax_compilation_cache_dir", sys.argv[1])
