@@ -237,6 +237,27 @@ def test_stored_cycle_is_periodic(cycle_check):
     assert np.linalg.norm(r0) < PERIODIC_TOL, r0
 
 
+def test_levenberg_marquardt_batch_rows_are_their_single_runs():
+    """The cycle's Levenberg-Marquardt driver on Rosenbrock's residual ``(10 (x1 - x0^2), 1 - x0)``: a batch of two
+    guesses (``vmap``) gives each guess's run alone (no ``vmap``, ``_batch_of_one``) to float32 rounding, both
+    reach the minimum (1, 1) within 1e-3, the second stopping early, and a guess that starts there keeps it."""
+    def f(x):
+        return jnp.stack([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+
+    x0 = jnp.asarray([[-1.2, 1.0], [0.5, -0.3]], jnp.float32)
+    xb, rb, sb = bc.levenberg_marquardt(f, x0, 30, 1e-6, 1e-6)
+    for i in range(2):
+        x1, r1, s1 = bc.levenberg_marquardt(f, x0[i:i + 1], 30, 1e-6, 1e-6)
+        np.testing.assert_allclose(np.asarray(xb[i]), np.asarray(x1[0]), atol=1e-5)
+        np.testing.assert_allclose(rb[:, i], r1[:, 0], atol=1e-4)
+        assert sb[i] == s1[0]
+    np.testing.assert_allclose(np.asarray(xb), 1.0, atol=1e-3)
+    assert rb.shape == (30, 2, 2) and sb[1] < 30
+    xs, _, ss = bc.levenberg_marquardt(f, jnp.ones((1, 2), jnp.float32), 3, 1e-6, 1e-6)
+    np.testing.assert_array_equal(np.asarray(xs), 1.0)
+    assert ss[0] <= 1
+
+
 @pytest.mark.slow
 def test_levenberg_marquardt_returns_to_the_cycle():
     """optimistix's LM with forward-mode Jacobians, from the stored cycle with its vertical impulses moved by

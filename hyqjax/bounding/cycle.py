@@ -274,6 +274,18 @@ def least_squares_residual(params: BoundingParams, z_des: float, prior_weight: f
     return jax.jit(f)
 
 
+def _batch_of_one(fn):
+    """``fn`` over a batch of one, as ``eqx.filter_vmap(fn)`` computes it, without ``vmap``: the leading axis taken
+    off every array input and put back on every array output. Batching the cycle's Jacobian program for one guess
+    only costs its trace (about 20 s of ``scan``'s batching rule on a CPU, benchmarks/RESULTS.md)."""
+
+    def one(*args):
+        out = fn(*jax.tree_util.tree_map(lambda x: x[0] if eqx.is_array(x) else x, args))
+        return jax.tree_util.tree_map(lambda x: x[None] if eqx.is_array(x) else x, out)
+
+    return one
+
+
 def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10, z_des: float = 0.6,
                    prior_weight: float = 1e-2, rtol: float = 1e-6, atol: float = 1e-6,
                    progress: bool = True) -> CycleResult:
@@ -290,41 +302,48 @@ def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10,
     if not (np.isfinite(prior_weight) and prior_weight >= 0):
         raise ValueError(f"prior_weight must be finite and >= 0, got {prior_weight}")
     f = least_squares_residual(params, z_des, prior_weight)
+    x, r, steps = levenberg_marquardt(f, jnp.asarray(u0 / DECISION_SCALE, jnp.float32), iterations, rtol, atol,
+                                      "cycle optimisation (Levenberg-Marquardt)" if progress else None)
+    hist = 0.5 * np.sum(r**2, -1)
+    final = r[-1][:, :6]
+    rn = np.linalg.norm(final, axis=-1)
+    rn = np.where(np.isfinite(rn), rn, np.inf)
+    return CycleResult(u=np.asarray(x, np.float64) * DECISION_SCALE, residual=final, residual_norm=rn,
+                       loss=hist[-1], history=hist, residual_history=np.linalg.norm(r[..., :6], axis=-1),
+                       steps=steps, best=int(np.argmin(rn)))
+
+
+def levenberg_marquardt(f, x0, iterations: int, rtol: float, atol: float, progress: str | None = None):
+    """``optimistix.LevenbergMarquardt`` on ``f: x (n,) -> r (m,)`` from every row of ``x0`` (B, n) at once, stepped
+    ``iterations`` times (forward-mode Jacobians; ``vmap`` over the rows, none for one row: :func:`_batch_of_one`);
+    a row whose termination test holds keeps its iterate. ``progress``: a progress bar's label (None: none).
+    Returns ``(x (B, n), r (iterations, B, m)`` (the residuals at the accepted iterates), ``steps (B,)`` taken)."""
     fn = lambda x, _: (f(x), None)  # noqa: E731
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     opts, tags = dict(jac="fwd"), frozenset()
-    x0 = jnp.asarray(u0 / DECISION_SCALE, jnp.float32)
     f_struct, aux_struct = jax.eval_shape(lambda: fn(x0[0], None))
-    init = eqx.filter_jit(eqx.filter_vmap(lambda x: solver.init(fn, x, None, opts, f_struct, aux_struct, tags)))
+    batched = eqx.filter_vmap if len(x0) > 1 else _batch_of_one
+    init = eqx.filter_jit(batched(lambda x: solver.init(fn, x, None, opts, f_struct, aux_struct, tags)))
 
     @eqx.filter_jit
-    @eqx.filter_vmap
+    @batched
     def step(x, state):
         done = state.terminate
         x_new, state_new, _ = solver.step(fn, x, None, opts, state, tags)
-        x_new = jnp.where(done, x, x_new)
-        return x_new, state_new, done
+        return jnp.where(done, x, x_new), state_new, done
 
-    state = init(x0)
-    x = x0
-    hist, rhist, steps = [], [], np.zeros(len(u0), np.int64)
+    state, x = init(x0), x0
+    rs, steps = [], np.zeros(len(x0), np.int64)
     it = range(iterations)
     if progress:
         from tqdm import tqdm
 
-        it = tqdm(it, desc="cycle optimisation (Levenberg-Marquardt)", unit="step")
+        it = tqdm(it, desc=progress, unit="step")
     for _ in it:
         x, state, done = step(x, state)
         steps += ~np.asarray(done)
-        r = np.asarray(state.f_info.residual, np.float64)  # at the accepted iterate x
-        hist.append(0.5 * np.sum(r**2, -1))
-        rhist.append(np.linalg.norm(r[:, :6], axis=-1))
-    final = np.asarray(state.f_info.residual, np.float64)[:, :6]
-    rn = np.linalg.norm(final, axis=-1)
-    rn = np.where(np.isfinite(rn), rn, np.inf)
-    return CycleResult(u=np.asarray(x, np.float64) * DECISION_SCALE, residual=final, residual_norm=rn,
-                       loss=np.asarray(hist[-1]), history=np.asarray(hist), residual_history=np.asarray(rhist),
-                       steps=steps, best=int(np.argmin(rn)))
+        rs.append(np.asarray(state.f_info.residual, np.float64))
+    return x, np.stack(rs), steps
 
 
 def gradient_check(params: BoundingParams, u, indices=(0, 1), eps=(2.0, 2.0)):
