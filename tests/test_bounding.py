@@ -239,7 +239,7 @@ def test_stored_cycle_is_periodic(cycle_check):
 
 def test_levenberg_marquardt_batch_rows_are_their_single_runs():
     """The cycle's Levenberg-Marquardt driver on Rosenbrock's residual ``(10 (x1 - x0^2), 1 - x0)``: a batch of two
-    guesses (``vmap``) gives each guess's run alone (no ``vmap``, ``_batch_of_one``) to float32 rounding, both
+    guesses (``vmap``) gives each guess's run alone (no ``vmap``: ``vmap_unless_one``) to float32 rounding, both
     reach the minimum (1, 1) within 1e-3, the second stopping early, and a guess that starts there keeps it."""
     def f(x):
         return jnp.stack([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])

@@ -52,6 +52,7 @@ from hyqjax.bounding import gait as bgait
 from hyqjax.bounding import kinematic
 from hyqjax.bounding.params import Apex, BoundingParams
 from hyqjax.core import kinematics
+from hyqjax.core.batching import vmap_unless_one
 from hyqjax.core import robot
 from hyqjax.core import spatial
 from hyqjax.sim import model as hmodel
@@ -274,18 +275,6 @@ def least_squares_residual(params: BoundingParams, z_des: float, prior_weight: f
     return jax.jit(f)
 
 
-def _batch_of_one(fn):
-    """``fn`` over a batch of one, as ``eqx.filter_vmap(fn)`` computes it, without ``vmap``: the leading axis taken
-    off every array input and put back on every array output. Batching the cycle's Jacobian program for one guess
-    only costs its trace (about 20 s of ``scan``'s batching rule on a CPU, benchmarks/RESULTS.md)."""
-
-    def one(*args):
-        out = fn(*jax.tree_util.tree_map(lambda x: x[0] if eqx.is_array(x) else x, args))
-        return jax.tree_util.tree_map(lambda x: x[None] if eqx.is_array(x) else x, out)
-
-    return one
-
-
 def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10, z_des: float = 0.6,
                    prior_weight: float = 1e-2, rtol: float = 1e-6, atol: float = 1e-6,
                    progress: bool = True) -> CycleResult:
@@ -315,14 +304,15 @@ def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10,
 
 def levenberg_marquardt(f, x0, iterations: int, rtol: float, atol: float, progress: str | None = None):
     """``optimistix.LevenbergMarquardt`` on ``f: x (n,) -> r (m,)`` from every row of ``x0`` (B, n) at once, stepped
-    ``iterations`` times (forward-mode Jacobians; ``vmap`` over the rows, none for one row: :func:`_batch_of_one`);
+    ``iterations`` times (forward-mode Jacobians; ``vmap`` over the rows, none for one row:
+    :func:`hyqjax.core.batching.vmap_unless_one`);
     a row whose termination test holds keeps its iterate. ``progress``: a progress bar's label (None: none).
     Returns ``(x (B, n), r (iterations, B, m)`` (the residuals at the accepted iterates), ``steps (B,)`` taken)."""
     fn = lambda x, _: (f(x), None)  # noqa: E731
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     opts, tags = dict(jac="fwd"), frozenset()
     f_struct, aux_struct = jax.eval_shape(lambda: fn(x0[0], None))
-    batched = eqx.filter_vmap if len(x0) > 1 else _batch_of_one
+    batched = functools.partial(vmap_unless_one, vmap=eqx.filter_vmap)
     init = eqx.filter_jit(batched(lambda x: solver.init(fn, x, None, opts, f_struct, aux_struct, tags)))
 
     @eqx.filter_jit

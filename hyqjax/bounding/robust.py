@@ -48,6 +48,7 @@ from hyqjax.bounding import cycle as bc
 from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import tracking
 from hyqjax.bounding.params import BoundingGains, BoundingParams, default_params
+from hyqjax.core.batching import vmap_unless_one
 from hyqjax.core.params import param_ranges
 from hyqjax.io import atomic
 
@@ -242,17 +243,18 @@ def make_value_and_jac(space: RobustSpace, duration: float, spec: tracking.CostS
                        control_dt: float = 0.002, clip_factor: float = 3.0) -> Callable:
     """A jitted ``g(theta, batch_args) -> dict(loss, grad, per_instance_loss, per_instance_grad, ok, terms, ...)``:
     one ``jax.jacfwd`` over ``theta`` of the per-instance costs (``vmap`` over the instances of
-    ``batch_args = instance_args(batch)``). ``loss`` and ``grad`` are means over the instances whose cost and
-    gradient are finite and that did not diverge (``ok``); the others are counted (``ok``, ``diverged``), not
-    averaged. In ``grad`` each instance's gradient is capped at ``clip_factor`` times the median norm
-    (``clipped`` counts the capped ones; ``grad_unclipped`` is the plain mean)."""
+    ``batch_args = instance_args(batch)``; none for one instance, :func:`hyqjax.core.batching.vmap_unless_one`).
+    ``loss`` and ``grad`` are means over the instances whose cost and gradient are finite and that did not diverge
+    (``ok``); the others are counted (``ok``, ``diverged``), not averaged. In ``grad`` each instance's gradient is
+    capped at ``clip_factor`` times the median norm (``clipped`` counts the capped ones; ``grad_unclipped`` is the
+    plain mean)."""
     if not clip_factor > 0:
         raise ValueError(f"clip_factor must be > 0, got {clip_factor}")
     f = make_instance_cost(space, duration, spec, control_dt)
 
     def g(theta, args):
         def per_instance(th):
-            loss, ms, div = jax.vmap(lambda *a: f(th, *a))(*args)
+            loss, ms, div = vmap_unless_one(lambda *a: f(th, *a))(*args)  # one instance: no batching to trace
             return loss, (loss, ms, div)
 
         jac, (loss, ms, div) = jax.jacfwd(per_instance, has_aux=True)(theta)
