@@ -40,3 +40,24 @@ def test_a_larger_batch_is_vmap():
     for i in range(3):  # each row is its own batch of one
         row = vmap_unless_one(lambda a, b: _f(a, b, None)[0])(x[i:i + 1], s[i:i + 1])
         np.testing.assert_allclose(np.asarray(row["y"][0]), np.asarray(ref["y"][i]), rtol=1e-6)
+
+
+def test_in_axes_with_unmapped_inputs_as_vmap():
+    """``in_axes`` with None (an input passed whole) in a pytree, as ``jax.vmap``'s, for a batch of one and of two."""
+    def g(p, x):
+        return p["w"] * x + p["b"], jnp.sum(p["w"])
+
+    p = {"w": jnp.asarray([[1.0, 2.0]], jnp.float32), "b": jnp.asarray(3.0, jnp.float32)}
+    axes = ({"w": 0, "b": None}, 0)
+    for x in (jnp.asarray([[0.5, -1.0]], jnp.float32), jnp.asarray([[0.5, -1.0], [2.0, 0.0]], jnp.float32)):
+        pw = {"w": jnp.broadcast_to(p["w"], x.shape), "b": p["b"]}
+        got = vmap_unless_one(g, in_axes=axes)(pw, x)
+        ref = jax.vmap(g, in_axes=axes)(pw, x)
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    try:
+        vmap_unless_one(g, in_axes=(1, 0))(p, x)
+    except ValueError as e:
+        assert "axis 0 or None" in str(e)
+    else:
+        raise AssertionError("in_axes 1 accepted")

@@ -2,8 +2,8 @@
 
 Under ``jax.vmap`` a derivative program through an MJX rollout is traced once more by the batching rules of its
 loops: ``scan``'s rule batches the loop body again until the batching of its carries settles, and so does every
-loop nested in it. For the bound's cycle optimisation and its robust study that trace is 5-20 s on a CPU
-(benchmarks/RESULTS.md). A batch of one gains nothing from it, so :func:`vmap_unless_one` calls the function on
+loop nested in it. For the bound's cycle optimisation, its robust study and the tuner's windows that trace is 5-20 s
+on a CPU (benchmarks/RESULTS.md). A batch of one gains nothing from it, so :func:`vmap_unless_one` calls the function on
 the one row instead and puts the batch axis back; the values are those of the ``vmap`` program up to rounding (the
 two programs are compiled separately).
 """
@@ -21,17 +21,29 @@ def _is_array(x) -> bool:
     return isinstance(x, (jax.Array, np.ndarray))
 
 
-def vmap_unless_one(fn: Callable, vmap: Callable = jax.vmap) -> Callable:
-    """``vmap(fn)`` (``jax.vmap`` or e.g. ``equinox.filter_vmap``, mapping over the leading axis of every array
-    input), except for a batch of one (the leading axis of the first array input, a static shape): then ``fn`` on
-    every array input's first row, with a leading axis of one put on every array output. Inputs and outputs that
-    are not arrays pass through unchanged."""
+def vmap_unless_one(fn: Callable, vmap: Callable = jax.vmap, in_axes=0) -> Callable:
+    """``vmap(fn, in_axes=in_axes)`` (``jax.vmap``, or e.g. ``equinox.filter_vmap`` with the default ``in_axes``),
+    except for a batch of one (the leading axis of the first mapped array input, a static shape): then ``fn`` on
+    every mapped array input's first row, with a leading axis of one put on every array output. ``in_axes`` as
+    ``jax.vmap``'s, 0 or None per input or subtree (None: not mapped, passed whole). Inputs and outputs that are
+    not arrays pass through unchanged."""
+
+    def mapped(args):
+        axes = (in_axes,) * len(args) if not isinstance(in_axes, (tuple, list)) else tuple(in_axes)
+        return jax.tree_util.tree_map(lambda ax, sub: None if ax is None else sub, axes, args,
+                                      is_leaf=lambda x: x is None)
 
     def batched(*args):
-        first = next((x for x in jax.tree_util.tree_leaves(args) if _is_array(x)), None)
+        if any(ax not in (0, None) for ax in jax.tree_util.tree_leaves(in_axes, is_leaf=lambda x: x is None)):
+            raise ValueError(f"vmap_unless_one maps axis 0 or None, got in_axes {in_axes}")
+        first = next((x for x in jax.tree_util.tree_leaves(mapped(args)) if _is_array(x)), None)
         if first is None or np.ndim(first) == 0 or first.shape[0] != 1:
-            return vmap(fn)(*args)
-        out = fn(*jax.tree_util.tree_map(lambda x: x[0] if _is_array(x) else x, args))
+            return vmap(fn)(*args) if in_axes == 0 else vmap(fn, in_axes=in_axes)(*args)
+        axes = (in_axes,) * len(args) if not isinstance(in_axes, (tuple, list)) else tuple(in_axes)
+        rows = jax.tree_util.tree_map(
+            lambda ax, sub: sub if ax is None else jax.tree_util.tree_map(lambda x: x[0] if _is_array(x) else x, sub),
+            axes, args, is_leaf=lambda x: x is None)
+        out = fn(*rows)
         return jax.tree_util.tree_map(lambda x: x[None] if _is_array(x) else x, out)
 
     return batched

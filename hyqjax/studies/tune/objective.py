@@ -61,6 +61,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.core import kinematics, robot, spatial
+from hyqjax.core.batching import vmap_unless_one
 from hyqjax.core.scan_carry import tie_carry
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import params as rparams
@@ -203,8 +204,9 @@ def window_losses(theta, win: wmod.Windows, base, space, obj, su, checkpoint: bo
     """Per-window ``(L, terms, finite)``: ``(W,)`` losses with non-finite ones replaced by 0 (``checkpoint``:
     :func:`window_terms`'s)."""
     axes = wmod.hmodel.model_in_axes(win.model)
-    terms = jax.vmap(lambda mm, dd, cc, tt: window_terms(theta, mm, dd, cc, tt, base, space, obj, su, checkpoint),
-                     in_axes=(axes, 0, 0, 0))(win.model, win.data, win.ctrl, win.tau)
+    terms = vmap_unless_one(lambda mm, dd, cc, tt: window_terms(theta, mm, dd, cc, tt, base, space, obj, su,
+                                                                checkpoint),
+                            in_axes=(axes, 0, 0, 0))(win.model, win.data, win.ctrl, win.tau)  # one window: no vmap
     loss = combine({k: v for k, v in terms.items() if k != "prefix_loss"}, obj)
     finite = jnp.isfinite(loss)
     return jnp.where(finite, loss, 0.0), terms, finite

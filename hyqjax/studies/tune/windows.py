@@ -31,6 +31,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.core import robot
+from hyqjax.core.batching import vmap_unless_one
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import contacts
 from hyqjax.sim import contacts_from_distance as cfdm
@@ -218,8 +219,8 @@ def _capture_batch(mb, params, d0, *, ids, param, spec: WindowSpec, n_ticks: int
     ``param`` schedules; one program per static configuration, whatever the parameters' values (a tuner that
     re-takes its windows at every iterate traces it once)."""
     controller = crawl.crawl_controller(dt) if param is None else param.controller(dt)
-    return jax.vmap(lambda mm, pp, dd: _capture(mm, ids, controller, pp, dd, spec, n_ticks, dt),
-                    in_axes=(hmodel.model_in_axes(mb), 0, 0))(mb, params, d0)
+    return vmap_unless_one(lambda mm, pp, dd: _capture(mm, ids, controller, pp, dd, spec, n_ticks, dt),
+                           in_axes=(hmodel.model_in_axes(mb), 0, 0))(mb, params, d0)  # one scenario: no vmap
 
 
 def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), su: Setup | None = None,
