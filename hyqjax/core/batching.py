@@ -2,10 +2,10 @@
 
 Under ``jax.vmap`` a derivative program through an MJX rollout is traced once more by the batching rules of its
 loops: ``scan``'s rule batches the loop body again until the batching of its carries settles, and so does every
-loop nested in it. For the bound's cycle optimisation, its robust study and the tuner's windows that trace is 5-20 s
-on a CPU (benchmarks/RESULTS.md). A batch of one gains nothing from it, so :func:`vmap_unless_one` calls the function on
-the one row instead and puts the batch axis back; the values are those of the ``vmap`` program up to rounding (the
-two programs are compiled separately).
+loop nested in it. For the bound's cycle optimisation, its robust study and the tuner's windows that trace is 5-20
+s on a CPU (benchmarks/RESULTS.md). A batch of one gains nothing from it, so :func:`vmap_unless_one` calls the
+function on the one row instead and puts the batch axis back; the values are those of the ``vmap`` program up to
+rounding (the two programs are compiled separately).
 """
 from __future__ import annotations
 
@@ -28,21 +28,22 @@ def vmap_unless_one(fn: Callable, vmap: Callable = jax.vmap, in_axes=0) -> Calla
     ``jax.vmap``'s, 0 or None per input or subtree (None: not mapped, passed whole). Inputs and outputs that are
     not arrays pass through unchanged."""
 
-    def mapped(args):
-        axes = (in_axes,) * len(args) if not isinstance(in_axes, (tuple, list)) else tuple(in_axes)
-        return jax.tree_util.tree_map(lambda ax, sub: None if ax is None else sub, axes, args,
-                                      is_leaf=lambda x: x is None)
+    def per_input(args) -> tuple:
+        return tuple(in_axes) if isinstance(in_axes, (tuple, list)) else (in_axes,) * len(args)
 
     def batched(*args):
         if any(ax not in (0, None) for ax in jax.tree_util.tree_leaves(in_axes, is_leaf=lambda x: x is None)):
             raise ValueError(f"vmap_unless_one maps axis 0 or None, got in_axes {in_axes}")
-        first = next((x for x in jax.tree_util.tree_leaves(mapped(args)) if _is_array(x)), None)
+
+        def over_inputs(f):  # f(axis, input subtree) for every input or subtree that in_axes names
+            return jax.tree_util.tree_map(f, per_input(args), args, is_leaf=lambda x: x is None)
+
+        mapped = over_inputs(lambda ax, sub: None if ax is None else sub)
+        first = next((x for x in jax.tree_util.tree_leaves(mapped) if _is_array(x)), None)
         if first is None or np.ndim(first) == 0 or first.shape[0] != 1:
             return vmap(fn)(*args) if in_axes == 0 else vmap(fn, in_axes=in_axes)(*args)
-        axes = (in_axes,) * len(args) if not isinstance(in_axes, (tuple, list)) else tuple(in_axes)
-        rows = jax.tree_util.tree_map(
-            lambda ax, sub: sub if ax is None else jax.tree_util.tree_map(lambda x: x[0] if _is_array(x) else x, sub),
-            axes, args, is_leaf=lambda x: x is None)
+        first_row = lambda x: x[0] if _is_array(x) else x  # noqa: E731
+        rows = over_inputs(lambda ax, sub: sub if ax is None else jax.tree_util.tree_map(first_row, sub))
         out = fn(*rows)
         return jax.tree_util.tree_map(lambda x: x[None] if _is_array(x) else x, out)
 
