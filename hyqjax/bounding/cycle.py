@@ -305,9 +305,9 @@ def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10,
 def levenberg_marquardt(f, x0, iterations: int, rtol: float, atol: float, progress: str | None = None):
     """``optimistix.LevenbergMarquardt`` on ``f: x (n,) -> r (m,)`` from every row of ``x0`` (B, n) at once, stepped
     ``iterations`` times (forward-mode Jacobians; ``vmap`` over the rows, none for one row:
-    :func:`hyqjax.core.batching.vmap_unless_one`);
-    a row whose termination test holds keeps its iterate. ``progress``: a progress bar's label (None: none).
-    Returns ``(x (B, n), r (iterations, B, m)`` (the residuals at the accepted iterates), ``steps (B,)`` taken)."""
+    :func:`hyqjax.core.batching.vmap_unless_one`); a row whose termination test holds keeps its iterate.
+    ``progress``: a progress bar's label (None: none). Returns ``(x (B, n), r (iterations, B, m), steps (B,))``: the
+    iterates, the residuals at the accepted iterates, and the steps each row took."""
     fn = lambda x, _: (f(x), None)  # noqa: E731
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     opts, tags = dict(jac="fwd"), frozenset()

@@ -28,13 +28,13 @@ def vmap_unless_one(fn: Callable, vmap: Callable = jax.vmap, in_axes=0) -> Calla
     ``jax.vmap``'s, 0 or None per input or subtree (None: not mapped, passed whole). Inputs and outputs that are
     not arrays pass through unchanged."""
 
+    if any(ax not in (0, None) for ax in jax.tree_util.tree_leaves(in_axes, is_leaf=lambda x: x is None)):
+        raise ValueError(f"vmap_unless_one maps axis 0 or None, got in_axes {in_axes}")
+
     def per_input(args) -> tuple:
         return tuple(in_axes) if isinstance(in_axes, (tuple, list)) else (in_axes,) * len(args)
 
     def batched(*args):
-        if any(ax not in (0, None) for ax in jax.tree_util.tree_leaves(in_axes, is_leaf=lambda x: x is None)):
-            raise ValueError(f"vmap_unless_one maps axis 0 or None, got in_axes {in_axes}")
-
         def over_inputs(f):  # f(axis, input subtree) for every input or subtree that in_axes names
             return jax.tree_util.tree_map(f, per_input(args), args, is_leaf=lambda x: x is None)
 
