@@ -47,8 +47,9 @@ XML = """<mujoco><option timestep="0.005" iterations="4"/>
 @pytest.mark.slow
 def test_fixed_length_solver_keeps_the_primal_and_restores_mjx():
     """A box resting on a plane and a falling ball (contacts, the solver iterates): ``mjx.step`` traced inside the
-    context gives the same states bit for bit as traced outside; reverse mode traces inside and is refused outside,
-    before and after (MJX's names are back, also after an exception, and nested contexts undo only at the end)."""
+    context gives the same states bit for bit over 30 steps as traced outside; reverse mode through a step traces
+    inside and is refused outside, before and after (MJX's names are back, also after an exception, and nested
+    contexts undo only at the end)."""
     import mujoco
     from mujoco import mjx
     from mujoco.mjx._src import solver
@@ -61,8 +62,11 @@ def test_fixed_length_solver_keeps_the_primal_and_restores_mjx():
         d, _ = jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), d, None, length=30)
         return jnp.concatenate([d.qpos, d.qvel])
 
+    def step(v):  # one step: its solver loop is the one every step of ``roll`` runs
+        return jnp.sum(mjx.step(mx, d0.replace(qvel=d0.qvel.at[0].set(v[0]).at[6].set(v[1]))).qvel)
+
     v = jnp.asarray([0.3, -0.2])
-    grad = lambda: jax.make_jaxpr(jax.grad(lambda v: jnp.sum(roll(v))))(v)  # noqa: E731 (traced, not compiled)
+    grad = lambda: jax.make_jaxpr(jax.grad(step))(v)  # noqa: E731 (traced, not compiled)
     names = (solver.jax, solver.solve)
     out = np.asarray(jax.jit(roll)(v))
     with reverse_mode.fixed_length_solver():
