@@ -1029,7 +1029,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     it, generations continuing without a gap or a repeat, its clock from the stored seconds."""
     from hyqjax.studies.tune import forward, resume, schedule, wallclock, wallclock_results, wallclock_run
 
-    cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.05, 0.15),
+    cfg = wallclock.WallClockConfig(methods=("random_search", "cma_es"), dims=("shared",), wall_minutes=(0.04, 0.1),
                                     popsize=2, train_instances=4, train_duration=0.5, heldout=6, heldout_chunk=2,
                                     heldout_duration=0.5, impl="c", charge_compile=False, select_instances=12,
                                     select_every=1)
@@ -1048,7 +1048,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
     for m in cfg.methods:  # one call per method, as one process per method
         if m == "cma_es":  # its first call ends its segment in the middle of the run; the next goes on from there
             first = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=logs.append,
-                                                  checkpoint_every_s=0.0, segment_minutes=4.0 / 60)
+                                                  checkpoint_every_s=0.0, segment_minutes=3.0 / 60)
             assert first["paused"] == "cma_es/shared" and "cma_es/shared" not in first["runs"] and not first["complete"]
             store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(cfg.to_dict()))
             stored = store.load()
