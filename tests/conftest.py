@@ -60,10 +60,8 @@ _RUNNING: dict[str, pytest.Item] = {}
 
 
 def pytest_configure(config):
-    """The files' order is kept (:func:`_keep_collection_order`). The unit lane (``pytest -m "not slow"``) compiles
-    no MJX model: there, building one (``mjx.put_model``) in a test without the ``slow`` mark, or in a fixture it
-    uses, fails at once naming the test and the fix."""
-    _keep_collection_order(config)
+    """The unit lane (``pytest -m "not slow"``) compiles no MJX model: there, building one (``mjx.put_model``)
+    in a test without the ``slow`` mark, or in a fixture it uses, fails at once naming the test and the fix."""
     if "not slow" not in (config.getoption("-m") or ""):
         return
     from mujoco import mjx
@@ -82,28 +80,6 @@ def pytest_configure(config):
 
 def pytest_runtest_setup(item):
     _RUNNING["item"] = item
-
-
-#: The heaviest test files, in falling order of their worker-seconds in a whole run on 2 cores (benchmarks/RESULTS.md,
-#: "The suite's files heaviest first"). The README's command (``-n 2 --dist loadfile``) hands each worker one file at
-#: a time in collection order (:func:`pytest_collection_modifyitems`: these first, the others after them in their
-#: own order), so the run ends on small files and the two workers finish together (longest processing time first).
-HEAVIEST_FIRST = ("test_tune.py", "test_api.py", "test_cpu_backend.py", "test_sim.py", "test_bounding.py",
-                  "test_cluster.py", "test_bounding_robust.py", "test_warp.py", "test_store.py", "test_sweep.py",
-                  "test_model.py", "test_episode_end.py", "test_contacts_from_distance.py", "test_reflex.py")
-
-
-def _keep_collection_order(config) -> None:
-    """pytest-xdist's ``loadfile`` orders files by their number of tests unless ``--no-loadscope-reorder``: the
-    collection order below is kept instead (the option's default, switched here, not on the command line)."""
-    if getattr(config.option, "loadscopereorder", None) is not None:
-        config.option.loadscopereorder = False
-
-
-def pytest_collection_modifyitems(config, items):
-    """The files of :data:`HEAVIEST_FIRST` first, in its order; each file's tests stay together and in order."""
-    rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def _memory_map_count() -> int | None:
