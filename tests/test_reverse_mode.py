@@ -57,13 +57,15 @@ def test_fixed_length_solver_keeps_the_primal_and_restores_mjx():
     mx = mjx.put_model(mujoco.MjModel.from_xml_string(XML))
     d0 = mjx.make_data(mx)
 
+    def start(v):  # the box's and the ball's initial x velocities
+        return d0.replace(qvel=d0.qvel.at[0].set(v[0]).at[6].set(v[1]))
+
     def roll(v):
-        d = d0.replace(qvel=d0.qvel.at[0].set(v[0]).at[6].set(v[1]))
-        d, _ = jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), d, None, length=30)
+        d, _ = jax.lax.scan(lambda d, _: (mjx.step(mx, d), None), start(v), None, length=30)
         return jnp.concatenate([d.qpos, d.qvel])
 
     def step(v):  # one step: its solver loop is the one every step of ``roll`` runs
-        return jnp.sum(mjx.step(mx, d0.replace(qvel=d0.qvel.at[0].set(v[0]).at[6].set(v[1]))).qvel)
+        return jnp.sum(mjx.step(mx, start(v)).qvel)
 
     v = jnp.asarray([0.3, -0.2])
     grad = lambda: jax.make_jaxpr(jax.grad(step))(v)  # noqa: E731 (traced, not compiled)
