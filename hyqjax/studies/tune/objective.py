@@ -38,15 +38,16 @@ scenarios), two ways with the same result:
 * :func:`make_value_and_grad_reverse`: reverse mode. With the window's tick map ``x_{k+1} = f(x_k, theta)`` and
   per-tick cost terms ``l_k``, the adjoint ``a_k = dL/dx_k`` runs backwards,
   ``a_k = dl_k/dx_k + a_{k+1} df/dx (x_k)`` and ``dL/dtheta = sum_k dl_k/dtheta + a_{k+1} df/dtheta (x_k)``: one
-  vector-Jacobian product per tick, whatever ``P``. Windows are independent, so each window's rows come from its own
-  ``jax.jacrev`` (``len(obj.lengths)`` cotangents, one per prefix), ``vmap``-ed over the windows. MJX's constraint
+  vector-Jacobian product per tick, whatever ``P``. Windows are independent and each reads its own copy of
+  ``theta``, so one backward pass through the ``vmap``-ed windows gives every window's row of one prefix; the
+  ``len(obj.lengths)`` passes (one per prefix) run one after another. MJX's constraint
   solver ``while_loop`` has no transpose; traced inside :func:`hyqjax.sim.reverse_mode.fixed_length_solver` it is a
   ``lax.scan`` of at most ``m.opt.iterations`` ``lax.cond`` steps with the same early stop (the same primal). The
   window's tick scan is checkpointed (``jax.checkpoint`` of the per-tick body): the forward pass stores only the
   carry ``x_k`` of each tick (memory ``O(ticks x state)``, not ``O(ticks x solver residuals)``), and the backward
-  pass recomputes each tick from its carry before its vector-Jacobian product. Cost: one forward pass, one
-  recomputation and one backward pass (:func:`reverse_physics_steps` counts ``3`` physics steps per window tick),
-  independent of ``P``.
+  pass recomputes each tick from its carry before its vector-Jacobian product. Cost: one forward pass, then one
+  recomputation and one backward pass per prefix length (:func:`reverse_physics_steps` counts
+  ``1 + 2 len(obj.lengths)`` physics steps per window tick, 3 without prefixes), independent of ``P``.
 
 The crawl's phase switches are ``jnp.where`` selects, so the gradient is that of the current contact /
 phase sequence: it ignores how ``theta`` moves the switching times (the bias of any pathwise gradient of
@@ -258,7 +259,7 @@ def make_value_and_grad_reverse(base, space: ParamSpace, obj: ClosedLoopObjectiv
     Windows are independent: window ``w`` reads its own copy ``theta_w`` of ``theta``, so one reverse pass through
     all windows (``jax.vjp`` of the ``vmap``-ed windows' ``prefix_loss``, ``(W, len(obj.lengths))``) with a cotangent
     of ones on one prefix gives every window's row ``dL_w / dtheta_w`` of that prefix at once (the last prefix is the
-    window's ``L``); one pass per prefix length. MJX's constraint solver is traced as a fixed-length loop
+    window's ``L``); one pass per prefix length, in sequence (``lax.map``). MJX's constraint solver is traced as a fixed-length loop
     (:func:`hyqjax.sim.reverse_mode.fixed_length_solver`: every trace of ``f`` happens inside it), and with
     ``checkpoint`` the window's per-tick body is rematerialised (:func:`window_terms`). The values are those of the
     forward pass: the same loss, and the same gradient up to rounding.
@@ -278,11 +279,10 @@ def make_value_and_grad_reverse(base, space: ParamSpace, obj: ClosedLoopObjectiv
         with reverse_mode.fixed_length_solver():  # f runs only while jit traces it
             prefix, pullback, terms = jax.vjp(per_window, thetas, has_aux=True)
             n = prefix.shape[-1]
-            if n == 1:  # one pass, no batching of the backward program
-                jac_prefix = pullback(jnp.ones_like(prefix))[0][:, None, :]
-            else:
-                cts = jnp.broadcast_to(jnp.eye(n, dtype=prefix.dtype)[:, None, :], (n,) + prefix.shape)
-                jac_prefix = jnp.moveaxis(jax.vmap(pullback)(cts)[0], 0, 1)
+            cts = jnp.broadcast_to(jnp.eye(n, dtype=prefix.dtype)[:, None, :], (n,) + prefix.shape)
+            # One backward pass per prefix, one after another: the backward program is traced once and not
+            # batched (a vmap over the passes batches every transposed jaxpr: ~8 s more tracing on a CPU).
+            jac_prefix = jnp.moveaxis(jax.lax.map(lambda ct: pullback(ct)[0], cts), 0, 1)
         raw = combine({k: v for k, v in terms.items() if k != "prefix_loss"}, obj)
         finite = jnp.isfinite(raw)
         loss = jnp.where(finite, raw, 0.0)
@@ -367,12 +367,9 @@ def physics_steps(n_windows: int, obj: ClosedLoopObjective, tangents: int = 0) -
     return int(n_windows) * obj.ticks * (1 + int(tangents))
 
 
-#: Physics steps per window tick of a reverse-mode step (:func:`make_value_and_grad_reverse`): the forward pass, its
-#: recomputation tick by tick in the backward pass (the checkpointed scan) and the backward pass itself.
-REVERSE_PASSES = 3
-
-
 def reverse_physics_steps(n_windows: int, obj: ClosedLoopObjective) -> int:
-    """Simulation budget of one reverse-mode step: ``windows x ticks x 3`` (:data:`REVERSE_PASSES`: forward,
-    recompute, backward), whatever the number of parameters."""
-    return int(n_windows) * obj.ticks * REVERSE_PASSES
+    """Simulation budget of one reverse-mode step (:func:`make_value_and_grad_reverse`), whatever the number of
+    parameters: ``windows x ticks x (1 + 2 n)``, ``n = len(obj.lengths)`` backward passes (one per prefix length):
+    the forward pass, and per backward pass the window's recomputation tick by tick (the checkpointed scan) and
+    the backward pass itself (``windows x ticks x 3`` without prefixes)."""
+    return int(n_windows) * obj.ticks * (1 + 2 * len(obj.lengths))
