@@ -202,6 +202,10 @@ def residual(u: jax.Array, params: BoundingParams, n_periods: int = 1, period: f
     return jnp.concatenate([(s1 - s0) / jnp.asarray(RESIDUAL_SCALE, s1.dtype), (dx / DISPLACEMENT_SCALE)[None]])
 
 
+#: Lengths of :func:`residual` (the periodicity residual and the drift) and of :func:`prior_residual`.
+N_RESIDUAL, N_PRIOR = 6, 3
+
+
 def prior_residual(u: jax.Array, z_des: float) -> jax.Array:
     """The soft prior of Eq. C2 as residuals (3,): ``((z_0 - z^d) / 0.02, a_fx / 100, a_hx / 100)``."""
     return jnp.stack([(u[4] - z_des) / 0.02, u[2] / 100.0, u[3] / 100.0])
@@ -292,26 +296,32 @@ def optimise_cycle(params: BoundingParams, u0: np.ndarray, iterations: int = 10,
         raise ValueError(f"prior_weight must be finite and >= 0, got {prior_weight}")
     f = least_squares_residual(params, z_des, prior_weight)
     x, r, steps = levenberg_marquardt(f, jnp.asarray(u0 / DECISION_SCALE, jnp.float32), iterations, rtol, atol,
-                                      "cycle optimisation (Levenberg-Marquardt)" if progress else None)
+                                      "cycle optimisation (Levenberg-Marquardt)" if progress else None,
+                                      n_residuals=N_RESIDUAL + N_PRIOR)
     hist = 0.5 * np.sum(r**2, -1)
-    final = r[-1][:, :6]
+    final = r[-1][:, :N_RESIDUAL]
     rn = np.linalg.norm(final, axis=-1)
     rn = np.where(np.isfinite(rn), rn, np.inf)
     return CycleResult(u=np.asarray(x, np.float64) * DECISION_SCALE, residual=final, residual_norm=rn,
-                       loss=hist[-1], history=hist, residual_history=np.linalg.norm(r[..., :6], axis=-1),
+                       loss=hist[-1], history=hist, residual_history=np.linalg.norm(r[..., :N_RESIDUAL], axis=-1),
                        steps=steps, best=int(np.argmin(rn)))
 
 
-def levenberg_marquardt(f, x0, iterations: int, rtol: float, atol: float, progress: str | None = None):
+def levenberg_marquardt(f, x0, iterations: int, rtol: float, atol: float, progress: str | None = None,
+                        n_residuals: int | None = None):
     """``optimistix.LevenbergMarquardt`` on ``f: x (n,) -> r (m,)`` from every row of ``x0`` (B, n) at once, stepped
     ``iterations`` times (forward-mode Jacobians; ``vmap`` over the rows, none for one row:
     :func:`hyqjax.core.batching.vmap_unless_one`); a row whose termination test holds keeps its iterate.
-    ``progress``: a progress bar's label (None: none). Returns ``(x (B, n), r (iterations, B, m), steps (B,))``: the
-    iterates, the residuals at the accepted iterates, and the steps each row took."""
+    ``progress``: a progress bar's label (None: none). ``n_residuals``: ``m`` where the caller knows it (``r`` then
+    has ``x0``'s dtype), which saves tracing ``f`` once for its output's shape. Returns ``(x (B, n), r (iterations,
+    B, m), steps (B,))``: the iterates, the residuals at the accepted iterates, and the steps each row took."""
     fn = lambda x, _: (f(x), None)  # noqa: E731
     solver = optx.LevenbergMarquardt(rtol=rtol, atol=atol)
     opts, tags = dict(jac="fwd"), frozenset()
-    f_struct, aux_struct = jax.eval_shape(lambda: fn(x0[0], None))
+    if n_residuals is None:
+        f_struct, aux_struct = jax.eval_shape(lambda: fn(x0[0], None))
+    else:
+        f_struct, aux_struct = jax.ShapeDtypeStruct((int(n_residuals),), x0.dtype), None
     batched = functools.partial(vmap_unless_one, vmap=eqx.filter_vmap)
     init = eqx.filter_jit(batched(lambda x: solver.init(fn, x, None, opts, f_struct, aux_struct, tags)))
 
