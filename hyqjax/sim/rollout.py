@@ -33,6 +33,7 @@ simulator blow-up. An instance that never meets its terminal condition runs exac
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -289,6 +290,12 @@ def initial_data(mx: mjx.Model, qpos: jax.Array, batch: int | None = None, m: mu
     d = mjx.make_data(mx)
     if batch is None:
         return d.replace(qpos=jnp.asarray(qpos, d.qpos.dtype))
-    qpos = jnp.broadcast_to(jnp.asarray(qpos, d.qpos.dtype), (batch, d.qpos.shape[0]))
+    return _batch_data(d, jnp.asarray(qpos, d.qpos.dtype), int(batch))
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _batch_data(d: mjx.Data, qpos: jax.Array, batch: int) -> mjx.Data:
+    """``d`` with every field repeated along a new leading axis of ``batch`` and ``qpos`` broadcast to
+    ``(batch, nq)``: one program per batch size (broadcasting field by field compiles one per field)."""
     db = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (batch,) + x.shape), d)
-    return db.replace(qpos=qpos)
+    return db.replace(qpos=jnp.broadcast_to(qpos, (batch, d.qpos.shape[0])))
