@@ -258,6 +258,12 @@ def _instance_fields(mx: mjx.Model, ids: ModelIds, t: InstanceTerrain) -> dict:
     return dict(geom_pos=gpos, geom_friction=fr, body_mass=mass, body_ipos=ipos, body_inertia=inertia)
 
 
+def map_batched_fields(mb: mjx.Model, fn) -> mjx.Model:
+    """``mb`` (made by :func:`batch_model`) with its per-instance fields replaced by ``fn({name: array})`` (one
+    call for all of them: ``fn`` may be one jitted program); the fields every instance shares are kept."""
+    return mb.tree_replace(fn({f: getattr(mb, f) for f in _BATCHED_FIELDS}))
+
+
 def model_in_axes(mx: mjx.Model) -> mjx.Model:
     """``vmap`` in_axes for a model made by :func:`batch_model`: 0 on batched fields, None elsewhere."""
     axes = jax.tree_util.tree_map(lambda _: None, mx)

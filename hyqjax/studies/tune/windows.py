@@ -147,14 +147,15 @@ class Windows:
         return int(self.valid.shape[0])
 
     def take(self, idx) -> Windows:
-        """The windows at ``idx`` (numpy indices) as a new batch."""
+        """The windows at ``idx`` (integer indices in ``[-W, W)``) as a new batch (jitted gathers of the batched
+        leaves: a program per shape, not one per leaf)."""
         idx = np.asarray(idx)
-        axes = hmodel.model_in_axes(self.model)
-        model = jax.tree_util.tree_map(lambda x, a: x if a is None else x[idx], self.model, axes,
-                                       is_leaf=lambda x: x is None)
-        rest = {f.name: jax.tree_util.tree_map(lambda x: x[idx], getattr(self, f.name))
-                for f in dataclasses.fields(self) if f.name != "model"}
-        return Windows(model=model, **rest)
+        if idx.dtype.kind not in "iu" or np.any(idx < -self.size) or np.any(idx >= self.size):
+            raise IndexError(f"idx must be integers in [-{self.size}, {self.size}), got {idx.tolist()}")
+        idx = jnp.asarray(idx % self.size)
+        rest = _gather_rows({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"},
+                            idx)
+        return Windows(model=hmodel.map_batched_fields(self.model, lambda f: _gather_rows(f, idx)), **rest)
 
 
 def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
@@ -162,15 +163,35 @@ def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
     ``r`` owns windows ``r * W / robots ...``), and the matching ``vmap`` axes (0 on every batched leaf)."""
     if robots < 1 or win.size % robots:
         raise ValueError(f"robots must divide the {win.size} windows, got {robots}")
-    axes = hmodel.model_in_axes(win.model)
-    split = lambda x: x.reshape((robots, x.shape[0] // robots) + x.shape[1:])  # noqa: E731
-    model = jax.tree_util.tree_map(lambda x, a: x if a is None else split(x), win.model, axes,
-                                   is_leaf=lambda x: x is None)
-    rest = {f.name: jax.tree_util.tree_map(split, getattr(win, f.name)) for f in dataclasses.fields(win)
-            if f.name != "model"}
-    zeros = {f.name: jax.tree_util.tree_map(lambda _: 0, getattr(win, f.name)) for f in dataclasses.fields(win)
-             if f.name != "model"}
-    return Windows(model=model, **rest), Windows(model=axes, **zeros)
+    rest = {f.name: getattr(win, f.name) for f in dataclasses.fields(win) if f.name != "model"}
+    zeros = jax.tree_util.tree_map(lambda _: 0, rest)
+    return (Windows(model=hmodel.map_batched_fields(win.model, lambda f: _split_rows(f, robots)),
+                    **_split_rows(rest, robots)),
+            Windows(model=hmodel.model_in_axes(win.model), **zeros))
+
+
+@jax.jit
+def _gather_rows(tree, idx):
+    """Rows ``idx`` of every leaf of ``tree``."""
+    return jax.tree_util.tree_map(lambda x: x[idx], tree)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _split_rows(tree, robots: int):
+    """Every leaf's leading axis ``W`` as ``(robots, W / robots)``."""
+    return jax.tree_util.tree_map(lambda x: x.reshape((robots, x.shape[0] // robots) + x.shape[1:]), tree)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _repeat_rows(tree, k: int):
+    """Every row of every leaf ``k`` times (``jnp.repeat`` along the leading axis)."""
+    return jax.tree_util.tree_map(lambda x: jnp.repeat(x, k, axis=0), tree)
+
+
+@jax.jit
+def _merge_rows(tree):
+    """Every leaf's two leading axes ``(B, K)`` as one, ``B K``."""
+    return jax.tree_util.tree_map(lambda x: x.reshape((x.shape[0] * x.shape[1],) + x.shape[2:]), tree)
 
 
 def _capture(mx, ids, controller, p, d0, spec: WindowSpec, n_ticks: int, dt: float):
@@ -242,14 +263,9 @@ def make_windows(scenario: stepdown.Scenario, spec: WindowSpec = WindowSpec(), s
         sched = param.scheduled(th, params)
         params = dataclasses.replace(sched, table=jnp.broadcast_to(sched.table, (b,) + sched.table.shape),
                                      cond=jnp.broadcast_to(sched.cond, (b,) + sched.cond.shape))
-    axes = hmodel.model_in_axes(mb)
     (dd, cc, tt), (valid, legs, ticks) = _capture_batch(mb, params, d0, ids=su.ids, param=param, spec=spec,
                                                         n_ticks=n_ticks, dt=dt)
     k = spec.per_scenario
-    flat = lambda x: x.reshape((b * k,) + x.shape[2:])
-    rep = lambda x, a: x if a is None else jnp.repeat(x, k, axis=0)
-    model = jax.tree_util.tree_map(rep, mb, axes, is_leaf=lambda x: x is None)
-    return Windows(model=model, data=jax.tree_util.tree_map(flat, dd), ctrl=jax.tree_util.tree_map(flat, cc),
-                   tau=flat(tt), valid=flat(valid), leg=flat(legs), tick=flat(ticks),
-                   scenario=jnp.repeat(jnp.arange(b), k),
-                   height=jnp.repeat(scenario.terrain.platform_height, k))
+    rows = _merge_rows(dict(data=dd, ctrl=cc, tau=tt, valid=valid, leg=legs, tick=ticks))
+    rows.update(_repeat_rows(dict(scenario=jnp.arange(b), height=scenario.terrain.platform_height), k))
+    return Windows(model=hmodel.map_batched_fields(mb, lambda f: _repeat_rows(f, k)), **rows)
