@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-__all__ = ["vmap_unless_one"]
+__all__ = ["vmap_unless_one", "take_rows"]
 
 
 def _is_array(x) -> bool:
@@ -48,3 +48,11 @@ def vmap_unless_one(fn: Callable, vmap: Callable = jax.vmap, in_axes=0) -> Calla
         return jax.tree_util.tree_map(lambda x: x[None] if _is_array(x) else x, out)
 
     return batched
+
+
+@jax.jit
+def take_rows(tree, idx):
+    """Rows ``idx`` (an integer or an integer array, within the leading axis: a traced index is not checked) of
+    every leaf of ``tree``, in one jitted gather (one program per structure and shapes; indexing leaf by leaf
+    outside ``jit`` compiles a small program per leaf)."""
+    return jax.tree_util.tree_map(lambda x: x[idx], tree)

@@ -32,6 +32,7 @@ import mujoco
 import numpy as np
 
 from hyqjax.core import robot
+from hyqjax.core.batching import take_rows
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
@@ -120,8 +121,11 @@ class Scenario:
         return dataclasses.replace(self, **kwargs)
 
     def instance(self, i: int) -> "Scenario":
-        """Instance ``i`` of a batch (leaves without the batch axis)."""
-        return jax.tree_util.tree_map(lambda x: x[i], self)
+        """Instance ``i`` (an int in ``[-B, B)``) of a batch (leaves without the batch axis)."""
+        b = self.batch_size
+        if not (isinstance(i, (int, np.integer)) and -b <= i < b):
+            raise IndexError(f"i must be an int in [-{b}, {b}), got {i!r}")
+        return take_rows(self, int(i) % b)
 
 
 @dataclasses.dataclass(frozen=True)

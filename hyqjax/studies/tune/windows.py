@@ -31,7 +31,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.core import robot
-from hyqjax.core.batching import vmap_unless_one
+from hyqjax.core.batching import take_rows, vmap_unless_one
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import contacts
 from hyqjax.sim import contacts_from_distance as cfdm
@@ -153,9 +153,9 @@ class Windows:
         if idx.dtype.kind not in "iu" or np.any(idx < -self.size) or np.any(idx >= self.size):
             raise IndexError(f"idx must be integers in [-{self.size}, {self.size}), got {idx.tolist()}")
         idx = jnp.asarray(idx % self.size)
-        rest = _gather_rows({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"},
+        rest = take_rows({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"},
                             idx)
-        return Windows(model=hmodel.map_batched_fields(self.model, lambda f: _gather_rows(f, idx)), **rest)
+        return Windows(model=hmodel.map_batched_fields(self.model, lambda f: take_rows(f, idx)), **rest)
 
 
 def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
@@ -168,12 +168,6 @@ def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
     return (Windows(model=hmodel.map_batched_fields(win.model, lambda f: _split_rows(f, robots)),
                     **_split_rows(rest, robots)),
             Windows(model=hmodel.model_in_axes(win.model), **zeros))
-
-
-@jax.jit
-def _gather_rows(tree, idx):
-    """Rows ``idx`` of every leaf of ``tree``."""
-    return jax.tree_util.tree_map(lambda x: x[idx], tree)
 
 
 @functools.partial(jax.jit, static_argnums=1)
