@@ -74,6 +74,22 @@ def test_scenarios_pair_reflex_on_and_off_on_identical_instances():
         assert np.array_equal(v[:, 0], v[:, 1]) and np.array_equal(v[0], v[1]), k
 
 
+def test_instance_is_the_batch_row_and_refuses_an_index_outside_the_batch():
+    """``Scenario.instance(i)`` is row ``i`` of every field (negative ``i`` from the end, as NumPy's), gathered in
+    one program; an index outside ``[-B, B)`` is one line naming ``i`` and the range."""
+    import jax
+
+    scenario, _ = stepdown.make_scenarios(HEIGHTS, [False, True], 2, seed=0)
+    b = scenario.batch_size
+    for i in (0, 5, -1):
+        for got, whole in zip(jax.tree_util.tree_leaves(scenario.instance(i)), jax.tree_util.tree_leaves(scenario)):
+            np.testing.assert_array_equal(np.asarray(got), np.asarray(whole)[i])
+            assert np.asarray(got).dtype == np.asarray(whole).dtype
+    for bad in (b, -b - 1, 1.0):
+        with pytest.raises(IndexError, match=rf"i must be an int in \[-{b}, {b}\)"):
+            scenario.instance(bad)
+
+
 def test_bad_height_is_rejected_before_compiling():
     with pytest.raises(ValueError, match="platform_height"):
         stepdown.make_scenarios([0.6], [True], 1, seed=0)
