@@ -259,10 +259,10 @@ def make_value_and_grad_reverse(base, space: ParamSpace, obj: ClosedLoopObjectiv
     Windows are independent: window ``w`` reads its own copy ``theta_w`` of ``theta``, so one reverse pass through
     all windows (``jax.vjp`` of the ``vmap``-ed windows' ``prefix_loss``, ``(W, len(obj.lengths))``) with a cotangent
     of ones on one prefix gives every window's row ``dL_w / dtheta_w`` of that prefix at once (the last prefix is the
-    window's ``L``); one pass per prefix length, in sequence (``lax.map``). MJX's constraint solver is traced as a fixed-length loop
-    (:func:`hyqjax.sim.reverse_mode.fixed_length_solver`: every trace of ``f`` happens inside it), and with
-    ``checkpoint`` the window's per-tick body is rematerialised (:func:`window_terms`). The values are those of the
-    forward pass: the same loss, and the same gradient up to rounding.
+    window's ``L``); one pass per prefix length, in sequence (``lax.map``). MJX's constraint solver is traced as a
+    fixed-length loop (:func:`hyqjax.sim.reverse_mode.fixed_length_solver`: every trace of ``f`` happens inside
+    it), and with ``checkpoint`` the window's per-tick body is rematerialised (:func:`window_terms`). The values are
+    those of the forward pass: the same loss, and the same gradient up to rounding.
     """
     from hyqjax.sim import reverse_mode
 

@@ -153,9 +153,9 @@ class Windows:
         if idx.dtype.kind not in "iu" or np.any(idx < -self.size) or np.any(idx >= self.size):
             raise IndexError(f"idx must be integers in [-{self.size}, {self.size}), got {idx.tolist()}")
         idx = jnp.asarray(idx % self.size)
-        rest = take_rows({f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"},
-                            idx)
-        return Windows(model=hmodel.map_batched_fields(self.model, lambda f: take_rows(f, idx)), **rest)
+        rest = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"}
+        return Windows(model=hmodel.map_batched_fields(self.model, lambda f: take_rows(f, idx)),
+                       **take_rows(rest, idx))
 
 
 def grouped(win: Windows, robots: int) -> tuple[Windows, Windows]:
