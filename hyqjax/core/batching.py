@@ -14,7 +14,7 @@ from typing import Callable
 import jax
 import numpy as np
 
-__all__ = ["vmap_unless_one", "take_rows"]
+__all__ = ["vmap_unless_one", "take_rows", "row_index"]
 
 
 def _is_array(x) -> bool:
@@ -56,3 +56,13 @@ def take_rows(tree, idx):
     every leaf of ``tree``, in one jitted gather (one program per structure and shapes; indexing leaf by leaf
     outside ``jit`` compiles a small program per leaf)."""
     return jax.tree_util.tree_map(lambda x: x[idx], tree)
+
+
+def row_index(idx, size: int, name: str = "idx") -> np.ndarray:
+    """``idx`` (an int or integer array, NumPy's negative indices counted from the end) as indices in ``[0, size)``
+    for :func:`take_rows`; an index outside ``[-size, size)`` or not an integer is an ``IndexError`` naming ``name``
+    and the range (a traced index would be clamped silently)."""
+    a = np.asarray(idx)
+    if a.dtype.kind not in "iu" or np.any(a < -size) or np.any(a >= size):
+        raise IndexError(f"{name} must be an int in [-{size}, {size}) (each of its entries), got {a.tolist()!r}")
+    return a % size

@@ -32,7 +32,7 @@ import mujoco
 import numpy as np
 
 from hyqjax.core import robot
-from hyqjax.core.batching import take_rows
+from hyqjax.core.batching import row_index, take_rows
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
@@ -122,10 +122,7 @@ class Scenario:
 
     def instance(self, i: int) -> "Scenario":
         """Instance ``i`` (an int in ``[-B, B)``) of a batch (leaves without the batch axis)."""
-        b = self.batch_size
-        if not (isinstance(i, (int, np.integer)) and -b <= i < b):
-            raise IndexError(f"i must be an int in [-{b}, {b}), got {i!r}")
-        return take_rows(self, int(i) % b)
+        return take_rows(self, int(row_index(i, self.batch_size, "i")))
 
 
 @dataclasses.dataclass(frozen=True)

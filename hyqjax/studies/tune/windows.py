@@ -31,7 +31,7 @@ import numpy as np
 from mujoco import mjx
 
 from hyqjax.core import robot
-from hyqjax.core.batching import take_rows, vmap_unless_one
+from hyqjax.core.batching import row_index, take_rows, vmap_unless_one
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import contacts
 from hyqjax.sim import contacts_from_distance as cfdm
@@ -149,10 +149,7 @@ class Windows:
     def take(self, idx) -> Windows:
         """The windows at ``idx`` (integer indices in ``[-W, W)``) as a new batch (jitted gathers of the batched
         leaves: a program per shape, not one per leaf)."""
-        idx = np.asarray(idx)
-        if idx.dtype.kind not in "iu" or np.any(idx < -self.size) or np.any(idx >= self.size):
-            raise IndexError(f"idx must be integers in [-{self.size}, {self.size}), got {idx.tolist()}")
-        idx = jnp.asarray(idx % self.size)
+        idx = jnp.asarray(row_index(idx, self.size))
         rest = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "model"}
         return Windows(model=hmodel.map_batched_fields(self.model, lambda f: take_rows(f, idx)),
                        **take_rows(rest, idx))
