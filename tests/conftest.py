@@ -58,37 +58,10 @@ jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE
 
 _RUNNING: dict[str, pytest.Item] = {}
 
-#: Seconds each test module takes in the full suite on two workers (the mean of three runs on the 2-core VM,
-#: 2026-11-28, benchmarks/RESULTS.md, "Scheduling the suite's modules longest first"). The suite runs its modules
-#: in this order, longest first, and pytest-xdist's ``--dist loadfile`` hands each free worker the next module:
-#: longest-processing-time-first scheduling, so the two workers end within a few seconds of each other instead of
-#: one of them idling while the other runs a long module picked last. A module missing here runs after these (a new
-#: module that takes more than a few seconds belongs in the table).
-MODULE_SECONDS = {
-    "test_tune": 284, "test_api": 129, "test_sim": 74, "test_cpu_backend": 72, "test_bounding": 68,
-    "test_cluster": 51, "test_warp": 43, "test_bounding_robust": 36, "test_store": 32,
-    "test_contacts_from_distance": 26, "test_episode_end": 23, "test_sweep": 22, "test_model": 22, "test_reflex": 21,
-    "test_stepdown": 13, "test_edge_probe": 13, "test_crawl": 9, "test_trunk": 9, "test_reverse_mode": 8,
-    "test_reflex_stability": 7, "test_cli_errors": 6, "test_reach_map": 5, "test_kinematics": 5, "test_render": 4,
-    "test_retrace": 3, "test_spatial": 2,
-}
-
-
-def pytest_collection_modifyitems(session, config, items):
-    """Order the test modules longest first (:data:`MODULE_SECONDS`); a module's own tests keep their order."""
-    def seconds(item):
-        return MODULE_SECONDS.get(os.path.splitext(os.path.basename(str(item.path)))[0], 0)
-
-    items.sort(key=lambda item: -seconds(item))  # stable: a module's tests stay together and in order
-
 
 def pytest_configure(config):
-    """pytest-xdist keeps the collection's module order (:func:`pytest_collection_modifyitems`) instead of ordering
-    modules by their number of tests. The unit lane (``pytest -m "not slow"``) compiles no MJX model: there,
-    building one (``mjx.put_model``) in a test without the ``slow`` mark, or in a fixture it uses, fails at once
-    naming the test and the fix."""
-    if hasattr(config.option, "loadscopereorder"):
-        config.option.loadscopereorder = False
+    """The unit lane (``pytest -m "not slow"``) compiles no MJX model: there, building one (``mjx.put_model``)
+    in a test without the ``slow`` mark, or in a fixture it uses, fails at once naming the test and the fix."""
     if "not slow" not in (config.getoption("-m") or ""):
         return
     from mujoco import mjx
@@ -120,7 +93,7 @@ def _end_worker():
     controller, which has every report, has asked it to stop. Finalizing the interpreter would free the thousands
     of compiled XLA programs a worker holds at the end of the suite (several GB) and tear down JAX's CPU client and
     MuJoCo Warp's modules, 5-8 s of the suite's wall time during which nothing else runs (benchmarks/RESULTS.md,
-    "Scheduling the suite's modules longest first")."""
+    "Ending the xdist workers without finalization")."""
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(0)
