@@ -92,7 +92,7 @@ def _end_worker():
     """End an xdist worker process at once (``os._exit``) once it exits: by then its session is over and the
     controller, which has every report, has asked it to stop. Finalizing the interpreter would free the thousands
     of compiled XLA programs a worker holds at the end of the suite (several GB) and tear down JAX's CPU client and
-    MuJoCo Warp's modules, 5-8 s of the suite's wall time during which nothing else runs (benchmarks/RESULTS.md,
+    MuJoCo Warp's modules: about 6 s at the end of the suite, with nothing else running (benchmarks/RESULTS.md,
     "Ending the xdist workers without finalization")."""
     sys.stdout.flush()
     sys.stderr.flush()
