@@ -171,6 +171,18 @@ def rng():
     return np.random.default_rng(0)
 
 
+#: XLA:CPU options of a test's long MJX-JAX runs (tests/test_cpu_backend.py, tests/test_stepdown.py): LLVM at level 2
+#: instead of the session's 0. A 24 s step-down run in chunks of 0.6 s is 40 calls of one chunk program, which runs
+#: about 4 times faster at level 2 while compiling in about twice the time (benchmarks/RESULTS.md).
+LONG_RUN_OPTIONS = {"xla_backend_optimization_level": 2}
+
+
+def compiled_for_long_runs(ro, monkeypatch):
+    """The rollout ``ro`` with its runner compiling at :data:`LONG_RUN_OPTIONS` for the calling test."""
+    monkeypatch.setattr(ro.runner(), "compiler_options", LONG_RUN_OPTIONS)
+    return ro
+
+
 def run_python(code: str, timeout: float, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
     """Run ``code`` in a fresh Python (repo root on the path) and return the finished process.
 

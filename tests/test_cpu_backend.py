@@ -1,11 +1,10 @@
 """The C MuJoCo backend (``impl="c"``, hyqjax.sim.cpu_backend): its per-instance models, its physics batch, the
-choice of backend, and its agreement with MJX-JAX on the step-down (trajectories over the first 0.6 s, outcomes of
-24 s runs).
+choice of backend, and its agreement with MJX-JAX over the first 0.6 s of the step-down (the outcomes of the 24 s
+runs agree in tests/test_stepdown.py, whose paper results run on C MuJoCo).
 
-The unit tests build no MJX model; the two agreement tests run MJX-JAX on the CPU (marked slow). The second runs the
-scenario of tests/test_stepdown.py's 24 s fixture (which itself runs on C MuJoCo, ``impl="auto"`` on a CPU) in
-chunks of the first one's 0.6 s, so both compile one MJX-JAX program, with XLA's own LLVM optimisation
-(``LONG_RUN_OPTIONS``).
+The unit tests build no MJX model; the agreement test runs MJX-JAX on the CPU (marked slow) with XLA's own LLVM
+optimisation (``conftest.LONG_RUN_OPTIONS``): its MJX-JAX program is the chunk program of tests/test_stepdown.py's
+24 s MJX run, compiled once in the session.
 """
 from __future__ import annotations
 
@@ -311,29 +310,19 @@ def test_a_derivative_through_c_is_an_error_naming_impl():
 
 # ---------------------------------------------------------------- agreement with MJX-JAX (MJX compiles: slow)
 
-#: XLA's own LLVM optimisation (level 2) for the MJX-JAX chunk program of the two tests below, instead of the test
-#: session's level 0 (conftest.py): the 24 s runs are 40 chunks of it, which run about 4 times faster at level 2
-#: while the program compiles in about twice the time (the two tests 60 s against 75 s, benchmarks/RESULTS.md).
-LONG_RUN_OPTIONS = {"xla_backend_optimization_level": 2}
-
-
-def _optimised(ro, monkeypatch):
-    """``ro`` with its runner compiling at :data:`LONG_RUN_OPTIONS` for this test."""
-    monkeypatch.setattr(ro.runner(), "compiler_options", LONG_RUN_OPTIONS)
-    return ro
-
-
 @pytest.mark.slow
 def test_c_follows_mjx_over_the_first_300_ticks(monkeypatch):
     """Two step-down instances (16 and 24 cm, reflex on) for 0.6 s on C MuJoCo (float64) and MJX-JAX (float32):
     the final states agree to a tenth of a millimetre and a milliradian (measured: about 1e-6), the crawl's
     progress to 0.1 mm, and the strike and contact flags are equal."""
+    from conftest import compiled_for_long_runs
     from hyqjax.studies import stepdown
 
     sc, _ = stepdown.make_scenarios([0.16, 0.24], [True], 2, seed=0)
     runs = {}
-    for impl in ("c", "jax"):  # the jax chunk program is the one the 24 s agreement test below runs in chunks
-        ro = _optimised(stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=0.6, impl=impl)), monkeypatch)
+    for impl in ("c", "jax"):  # the jax chunk program is the one tests/test_stepdown.py's 24 s MJX run is made of
+        cfg = stepdown.StepdownConfig(duration=0.6, impl=impl)
+        ro = compiled_for_long_runs(stepdown.make_stepdown_rollout(cfg), monkeypatch)
         out, res = ro.run(sc)
         runs[impl] = (jax.tree_util.tree_map(np.asarray, out), np.asarray(res.data.qpos), np.asarray(res.data.qvel))
     (oc, qc, vc), (oj, qj, vj) = runs["c"], runs["jax"]
@@ -343,29 +332,6 @@ def test_c_follows_mjx_over_the_first_300_ticks(monkeypatch):
     np.testing.assert_allclose(oc.progress, oj.progress, atol=1e-4)
     for k in ("shin_contact", "trunk_strike", "diverged", "lost_footholds", "n_steps"):
         np.testing.assert_array_equal(getattr(oc, k), getattr(oj, k), err_msg=k)
-
-
-@pytest.mark.slow
-def test_c_and_mjx_step_down_outcomes_agree(monkeypatch):
-    """The 24 s step-down of tests/test_stepdown.py (16 and 24 cm, reflex off and on) on both simulators: every
-    instance has the same outcome (completed, clean, each failure reason)."""
-    from hyqjax.crawl import controller as crawl
-    from hyqjax.studies import stepdown
-    from hyqjax.studies import stepdown_outcome as so
-    from hyqjax.studies.stepdown_outcome import FAILURE_REASONS
-
-    scenario, _ = stepdown.make_scenarios((0.16, 0.24), [False, True], 1, seed=0,
-                                          params=crawl.CrawlParams.make(forward_velocity=0.1))
-    cols = {}
-    for impl in ("c", "jax"):
-        # In chunks of 0.6 s (bitwise the one-scan run, tests/test_sim.py): each simulator's chunk program (batch 4,
-        # 300 ticks) is the one of the 0.6 s runs of the test above, loaded from the session's compilation cache.
-        ro = _optimised(stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl=impl)), monkeypatch)
-        out, _ = ro.run(scenario, chunk_seconds=0.6)
-        cols[impl] = so.to_columns(out)
-    for k in ("completed", "clean", *FAILURE_REASONS):
-        np.testing.assert_array_equal(cols["c"][k], cols["jax"][k], err_msg=k)
-    assert cols["c"]["completed"].any() and not cols["c"]["completed"].all()  # both kinds of outcome occur
 
 
 @pytest.mark.slow

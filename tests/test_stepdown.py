@@ -1,7 +1,9 @@
-"""The step-down experiment (Focchi et al. 2017, Section IV) at CPU size: the paper's qualitative result.
+"""The step-down experiment (Focchi et al. 2017, Section IV) at CPU size: the paper's qualitative result, and the
+same outcomes on MJX-JAX.
 
-One compiled batch: a 16 cm and a 24 cm platform, the reflex off and on, one instance each (the same
-randomised instance for every pair), 24 s of closed-loop crawling at 0.1 m/s.
+One batch: a 16 cm and a 24 cm platform, the reflex off and on, one instance each (the same randomised instance for
+every pair), 24 s of closed-loop crawling at 0.1 m/s on C MuJoCo (what ``impl="auto"`` runs on a CPU); the batch
+again on MJX-JAX, where every instance must end with the same outcome.
 """
 from __future__ import annotations
 
@@ -13,13 +15,13 @@ from hyqjax.crawl import controller as crawl
 from hyqjax.studies import stepdown
 
 HEIGHTS = (0.16, 0.24)
+PARAMS = crawl.CrawlParams.make(forward_velocity=0.1)
 
 
 @pytest.fixture(scope="module")
 def stepdown_run():
-    scenario, table = stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0,
-                                              params=crawl.CrawlParams.make(forward_velocity=0.1))
-    out, _ = stepdown.run_batch(scenario, stepdown.StepdownConfig(duration=24.0))
+    scenario, table = stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0, params=PARAMS)
+    out, _ = stepdown.run_batch(scenario, stepdown.StepdownConfig(duration=24.0, impl="c"))
     return table, out
 
 
@@ -64,6 +66,26 @@ def test_no_instance_diverges_and_metrics_are_finite(stepdown_run):
     for k in ("peak_pitch", "peak_roll", "mean_mobility", "min_swing_mobility", "progress"):
         assert np.all(np.isfinite(out[k])), k
     assert np.all(out["progress"] > 0.5)
+
+
+@pytest.mark.slow
+def test_c_and_mjx_step_down_outcomes_agree(stepdown_run, monkeypatch):
+    """The batch on MJX-JAX (float32) ends like on C MuJoCo (float64): every instance has the same outcome (completed,
+    clean, each failure reason). MJX-JAX runs it in chunks of 0.6 s (bitwise the one-scan run, tests/test_sim.py):
+    the chunk program (batch 4, 300 ticks) of tests/test_cpu_backend.py's trajectory agreement, compiled once in the
+    session."""
+    from conftest import compiled_for_long_runs
+    from hyqjax.studies import stepdown_outcome as so
+
+    table, c_cols = stepdown_run
+    scenario, _ = stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0, params=PARAMS)
+    ro = compiled_for_long_runs(stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl="jax")),
+                                monkeypatch)
+    out, _ = ro.run(scenario, chunk_seconds=0.6)
+    jax_cols = so.to_columns(out)
+    for k in ("completed", "clean", *so.FAILURE_REASONS):
+        np.testing.assert_array_equal(c_cols[k], jax_cols[k], err_msg=k)
+    assert c_cols["completed"].any() and not c_cols["completed"].all()  # both kinds of outcome occur
 
 
 @pytest.mark.slow
