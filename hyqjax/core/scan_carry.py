@@ -9,16 +9,17 @@ loop-carried hop at a time, so the body (MJX's step with a controller: about 10^
 times over; under ``jacfwd`` (``vmap`` of ``jvp``) both iterations nest.
 
 :func:`tie_carry` subtracts ``|0 * s|`` from every inexact leaf ``x`` of the carry, with ``s`` a scalar that depends
-on every leaf of ``inputs`` (their non-finite values read as 0): that is ``x - (+0.0)``, which is ``x`` bit for bit
-(signed zeros, infinities and NaNs of ``x`` included), and the carry enters the loop with a non-zero tangent and
-batched wherever ``inputs`` are, the fixed point the rules reach anyway for a carry that the loop mixes with the inputs, so they
-iterate less. Measured on the window objective's per-robot ``jacfwd`` (14 tangents, 2 robots x 260 ticks, float64,
-one idle CPU core): tracing 45 s -> 32 s, compiling 47 s -> 42 s, the same values to 1e-17. It is no rule for
-every scan: tied to the parameters in the generic rollout (:func:`hyqjax.sim.rollout.rollout_advance`) it made the
-bounding programs slower to compile (carry parts that stay unbatched or tangent-free there were forced to be
-both), so it is used where it was measured to pay: the window objective, and the generic rollout of a controller
-that asks for it (:attr:`hyqjax.core.types.Controller.tie_rollout_carry`: the crawl; ``jax.jacfwd`` of its
-step-down traced and lowered in 11.1-12.3 s instead of 19.5-24.4 s).
+on every leaf of ``inputs`` (their non-finite values read as 0; one reduction, so that XLA does not copy it into each
+fused update of the carry): that is ``x - (+0.0)``, which is ``x`` bit for bit (signed zeros, infinities and NaNs of
+``x`` included), and the carry enters the loop with a non-zero tangent and batched wherever ``inputs`` are, the fixed
+point the rules reach anyway for a carry that the loop mixes with the inputs, so they iterate less. Measured on the
+window objective's per-robot ``jacfwd`` (14 tangents, 2 robots x 260 ticks, float64, one idle CPU core): tracing 45 s
+-> 32 s, compiling 47 s -> 42 s, the same values to 1e-17. It is no rule for every scan: tied to the parameters in the
+generic rollout (:func:`hyqjax.sim.rollout.rollout_advance`) it made the bounding programs slower to compile (carry
+parts that stay unbatched or tangent-free there were forced to be both), so it is used where it was measured to pay:
+the window objective, and the generic rollout of a controller that asks for it
+(:attr:`hyqjax.core.types.Controller.tie_rollout_carry`: the crawl; ``jax.jacfwd`` of its step-down traced and lowered
+in 11.1-12.3 s instead of 19.5-24.4 s).
 """
 from __future__ import annotations
 
@@ -28,18 +29,24 @@ import jax.numpy as jnp
 
 def tie_carry(carry, inputs):
     """``carry`` with ``|0 * s|`` subtracted from each inexact leaf, ``s`` the sum of the first element of every
-    inexact leaf of ``inputs``, a non-finite one read as 0 (module docstring). Integer and boolean leaves are
-    returned as they are."""
-    leaves = [jnp.ravel(x)[0] for x in jax.tree_util.tree_leaves(inputs)
+    inexact leaf of ``inputs``, a non-finite one read as 0, and ``s`` itself read as 0 if the sum overflows (module
+    docstring). Integer and boolean leaves are returned as they are.
+
+    ``s`` is one reduction over a stacked vector, not a chain of scalar adds: XLA fuses a cheap elementwise producer
+    into every consumer, so a chain of additions over the ~50 parameters was copied into each of the ~90 fused
+    updates of the carry (about 19,000 of the 63,000 instructions of a 2-instance step-down program on MJX-JAX);
+    a reduction is computed once."""
+    firsts = [jnp.ravel(x)[0] for x in jax.tree_util.tree_leaves(inputs)
               if jnp.issubdtype(jnp.result_type(x), jnp.inexact) and jnp.size(x) > 0]
-    leaves = [jnp.where(jnp.isfinite(v), v, 0) for v in leaves]  # s finite whatever the inputs hold
-    if not leaves:
+    if not firsts:
         return carry
-    s = sum(leaves[1:], leaves[0])
+    v = jnp.stack([jnp.asarray(x, jnp.result_type(*firsts)) for x in firsts])
+    s = jnp.sum(jnp.where(jnp.isfinite(v), v, 0))
+    zero = jnp.abs(0 * jnp.where(jnp.isfinite(s), s, 0))  # +0.0, whatever the inputs hold
 
     def tie(x):
         if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
             return x
-        return x - jnp.abs(0 * s).astype(jnp.result_type(x))
+        return x - zero.astype(jnp.result_type(x))
 
     return jax.tree_util.tree_map(tie, carry)
