@@ -19,9 +19,15 @@ PARAMS = crawl.CrawlParams.make(forward_velocity=0.1)
 
 
 @pytest.fixture(scope="module")
-def stepdown_run():
-    scenario, table = stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0, params=PARAMS)
-    out, _ = stepdown.run_batch(scenario, stepdown.StepdownConfig(duration=24.0, impl="c"))
+def scenario():
+    """The batch and its table of inputs."""
+    return stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0, params=PARAMS)
+
+
+@pytest.fixture(scope="module")
+def stepdown_run(scenario):
+    batch, table = scenario
+    out, _ = stepdown.run_batch(batch, stepdown.StepdownConfig(duration=24.0, impl="c"))
     return table, out
 
 
@@ -69,7 +75,7 @@ def test_no_instance_diverges_and_metrics_are_finite(stepdown_run):
 
 
 @pytest.mark.slow
-def test_c_and_mjx_step_down_outcomes_agree(stepdown_run, monkeypatch):
+def test_c_and_mjx_step_down_outcomes_agree(scenario, stepdown_run, monkeypatch):
     """The batch on MJX-JAX (float32) ends like on C MuJoCo (float64): every instance has the same outcome (completed,
     clean, each failure reason). MJX-JAX runs it in chunks of 0.6 s (bitwise the one-scan run, tests/test_sim.py):
     the chunk program (batch 4, 300 ticks) of tests/test_cpu_backend.py's trajectory agreement, compiled once in the
@@ -77,11 +83,10 @@ def test_c_and_mjx_step_down_outcomes_agree(stepdown_run, monkeypatch):
     from conftest import compiled_for_long_runs
     from hyqjax.studies import stepdown_outcome as so
 
-    table, c_cols = stepdown_run
-    scenario, _ = stepdown.make_scenarios(HEIGHTS, [False, True], 1, seed=0, params=PARAMS)
+    _, c_cols = stepdown_run
     ro = compiled_for_long_runs(stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl="jax")),
                                 monkeypatch)
-    out, _ = ro.run(scenario, chunk_seconds=0.6)
+    out, _ = ro.run(scenario[0], chunk_seconds=0.6)
     jax_cols = so.to_columns(out)
     for k in ("completed", "clean", *so.FAILURE_REASONS):
         np.testing.assert_array_equal(c_cols[k], jax_cols[k], err_msg=k)

@@ -40,7 +40,7 @@ def tie_carry(carry, inputs):
               if jnp.issubdtype(jnp.result_type(x), jnp.inexact) and jnp.size(x) > 0]
     if not firsts:
         return carry
-    v = jnp.stack([jnp.asarray(x, jnp.result_type(*firsts)) for x in firsts])
+    v = jnp.stack(firsts)  # promoted to their common type
     s = jnp.sum(jnp.where(jnp.isfinite(v), v, 0))
     zero = jnp.abs(0 * jnp.where(jnp.isfinite(s), s, 0))  # +0.0, whatever the inputs hold
 
