@@ -34,8 +34,8 @@ def tie_carry(carry, inputs):
 
     ``s`` is one reduction over a stacked vector, not a chain of scalar adds: XLA fuses a cheap elementwise producer
     into every consumer, so a chain of additions over the ~50 parameters was copied into each of the ~90 fused
-    updates of the carry (about 19,000 of the 63,000 instructions of a 2-instance step-down program on MJX-JAX);
-    a reduction is computed once."""
+    updates of the carry (14,700 instructions at these lines in a 2-instance step-down program on MJX-JAX, whose
+    optimised HLO went from 63,301 to 44,868 lines with the reduction); a reduction is computed once."""
     firsts = [jnp.ravel(x)[0] for x in jax.tree_util.tree_leaves(inputs)
               if jnp.issubdtype(jnp.result_type(x), jnp.inexact) and jnp.size(x) > 0]
     if not firsts:
