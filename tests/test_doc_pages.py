@@ -153,11 +153,11 @@ def test_readme_library_example_runs_and_its_derivative_matches_finite_differenc
         outcome, one, f = ns["outcome"], ns["one"], ns["trunk_height"]
         assert np.shape(outcome.completed) == (4,) and np.shape(outcome.clean) == (4,)
         assert not np.any(np.asarray(outcome.clean) & ~np.asarray(outcome.completed))  # clean implies completed
-        assert np.any(np.asarray(outcome.completed)[:2])  # the remedy crawl completes 16 cm (100% of 1,024 runs)
+        assert np.any(np.asarray(outcome.completed)[:2])  # 16 cm with the reflex: 99.9% of 1,024 runs
         g = float(ns["dz_dk"])
         k0, step = 1500.0, 15.0  # central differences with a 1% step
         h = jax.jit(f)
         fd = (float(h(jax.numpy.asarray(k0 + step))) - float(h(jax.numpy.asarray(k0 - step)))) / (2 * step)
     sys.stdout.write(f"jacfwd {g}, finite differences {fd}\n")
     assert abs(g * k0) > 1e-5, "K_base moves the trunk height by more than 10 um per unit log-change"
-    np.testing.assert_allclose(g, fd, rtol=0.02)
+    np.testing.assert_allclose(g, fd, rtol=0.02)  # docs/api.md's case (b): measured within 0.4%
