@@ -53,8 +53,8 @@ def pressing_feet(p: CrawlParams, foot_force_b, h_r_b):
 def loaded_stance(p: CrawlParams, stance, loaded, pressing):
     """The stance legs that carry the trunk: ``stance`` without the feet that pressed on the ground since their
     touchdown (``loaded``) and press no more (``~pressing``): a foot that slipped off an edge. Loading it anyway
-    drives its leg at the torque the trunk's weight asks for (docs/stepdown.md, "Divergences"). A foot that has not
-    pressed yet (a swing that ended at a limit with its foot in the air) keeps its share, which pushes it down onto
+    drives its leg at the torque the trunk's weight asks for (docs/notes/stepdown.md, "Divergences"). A foot that has
+    not pressed yet (a swing that ended at a limit with its foot in the air) keeps its share, which pushes it down onto
     the ground. At least two legs carry the trunk (else every stance leg, as with ``stance_min_force`` 0: off)."""
     gated = stance * (~(loaded & ~pressing)).astype(stance.dtype)
     return jnp.where((p.stance_min_force > 0) & (jnp.sum(gated) >= 2), gated, stance)
@@ -90,7 +90,7 @@ def speed_limited_torques(tau, qd, limit):
     Without it an ideal torque source spins an unloaded lower leg (about 0.036 kg m^2 about the knee, armature
     included) at 150 N m / 0.036 kg m^2 = 4,000 rad/s^2: a stance foot that has slipped off the edge, or every leg
     of a robot that has fallen over while the trunk controller still distributes its weight over them, reaches
-    100 rad/s in about 12 ticks (docs/stepdown.md, "Divergences")."""
+    100 rad/s in about 12 ticks (docs/notes/stepdown.md, "Divergences")."""
     scale = jnp.clip((limit + JOINT_SPEED_BAND - jnp.abs(qd)) / JOINT_SPEED_BAND, 0.0, 1.0)
     return jnp.where((tau * qd > 0) & (scale < 1.0), tau * scale, tau)
 
