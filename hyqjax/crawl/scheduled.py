@@ -1,0 +1,153 @@
+"""Per-leg crawl parameters: a :class:`CrawlParams` whose tuned fields take one value per swing leg.
+
+The reflex acts on one swing leg at a time (Section III), so a parameter set may give every leg its own values:
+``K_base``, the damping schedule and ``K_x`` in force while that leg swings, the trunk height, step length and
+apex of that leg's body phase and swing (the tuner's ``per_leg`` parameterisation,
+:mod:`hyqjax.studies.tune.schedule`). :class:`PerLegCrawlParams` is that set as a crawl parameter object in its
+own right: ``base`` (a :class:`CrawlParams`: every field, batched or not, as usual) and ``legs``, per-leg values
+of some of its fields (a trailing axis of 4, legs in :data:`LEGS` order, the leg indices of
+``CrawlParams.foot_sequence``). At every control tick the crawl runs ``base`` with those fields set to the row
+of the leg that swings now or swings next (``CrawlState.sequence[seq_index]``; at the start, the sequence's first
+leg): :func:`at_tick`, called by :func:`hyqjax.crawl.controller.crawl_controller` for every parameter object, so
+the step-down task, sweeps, the reach map, renders and the library API run a per-leg set exactly as they run a
+``CrawlParams``. A per-leg set whose four rows equal ``base``'s values runs bit for bit as ``base``
+(``tests/test_presets.py``).
+
+``legs`` keys are ``CrawlParams`` field names or ``reflex.<ReflexParams field>``; values are validated against the
+fields' declared ranges (and the reflex's orderings, row by row) when the object is made with :meth:`make`.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hyqjax.core.params import ParameterError, param_ranges
+from hyqjax.crawl.params import CrawlParams
+
+#: The legs in the order of ``CrawlParams.foot_sequence``'s indices (and of ``legs``' trailing axis).
+LEGS = ("LF", "RF", "LH", "RH")
+REFLEX_PREFIX = "reflex."
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PerLegCrawlParams:
+    """``base`` with per-swing-leg values ``legs`` (``{field: array (..., 4)}``; module docstring)."""
+
+    base: CrawlParams
+    legs: dict
+
+    @staticmethod
+    def make(base: CrawlParams, legs: dict) -> "PerLegCrawlParams":
+        """Validated constructor: ``legs`` maps a field name (``body_height``, ``reflex.k_base``, ...) to 4 values
+        (or a dict ``{LEG: value}`` over :data:`LEGS`); each row must make a valid ``CrawlParams`` with ``base``
+        (a :class:`ParameterError` naming the field and the leg otherwise)."""
+        if not isinstance(base, CrawlParams):
+            raise ParameterError("PerLegCrawlParams", "base", type(base).__name__, "a CrawlParams")
+        crawl_fields = set(param_ranges(CrawlParams))
+        reflex_fields = set(param_ranges(type(base.reflex)))
+        out = {}
+        for key, v in legs.items():
+            name = key[len(REFLEX_PREFIX):] if key.startswith(REFLEX_PREFIX) else key
+            owner = reflex_fields if key.startswith(REFLEX_PREFIX) else crawl_fields
+            if name not in owner or name in ("foot_sequence",):
+                raise ParameterError("PerLegCrawlParams", key, "unknown", "a CrawlParams field or reflex.<ReflexParams "
+                                     "field>", problem="is not a field")
+            if isinstance(v, dict):
+                missing = [leg for leg in LEGS if leg not in v]
+                if missing or set(v) - set(LEGS):
+                    raise ParameterError("PerLegCrawlParams", key, sorted(v), f"one value per leg {list(LEGS)}",
+                                         problem="has the wrong legs")
+                v = [v[leg] for leg in LEGS]
+            ref = getattr(base.reflex if key.startswith(REFLEX_PREFIX) else base, name)
+            arr = np.asarray(v, np.float64)
+            if arr.shape != (4,) or np.shape(ref) != ():
+                raise ParameterError("PerLegCrawlParams", key, f"shape {arr.shape}", "4 values (one per leg) of a "
+                                     "scalar field", problem="has a wrong shape")
+            out[key] = jnp.asarray(arr.astype(np.asarray(ref).dtype))
+        p = PerLegCrawlParams(base, out)
+        for i in range(4):  # every row validated as the CrawlParams it runs
+            try:
+                p.row(i)
+            except ParameterError as e:
+                raise ParameterError("PerLegCrawlParams", f"{e.param}[{LEGS[i]}]", e.value, e.allowed) from None
+        return p
+
+    @staticmethod
+    def uniform(base: CrawlParams, fields=("reflex.k_base", "body_height")) -> "PerLegCrawlParams":
+        """``base`` as a per-leg set whose ``fields`` take ``base``'s own value on every leg (runs as ``base``)."""
+        legs = {}
+        for key in fields:
+            obj = base.reflex if key.startswith(REFLEX_PREFIX) else base
+            legs[key] = [float(np.asarray(getattr(obj, key.removeprefix(REFLEX_PREFIX))))] * 4
+        return PerLegCrawlParams.make(base, legs)
+
+    def at_leg(self, leg) -> CrawlParams:
+        """``base`` with every per-leg field at leg ``leg``'s value (traceable; ``leg`` an index into :data:`LEGS`).
+        Leaves keep ``base``'s dtypes; no validation (a traced leg)."""
+        crawl_kw, reflex_kw = {}, {}
+        for key, v in self.legs.items():
+            val = jnp.take(v, leg, axis=-1)
+            if key.startswith(REFLEX_PREFIX):
+                reflex_kw[key[len(REFLEX_PREFIX):]] = val
+            else:
+                crawl_kw[key] = val
+        reflex = _replace_unchecked(self.base.reflex, reflex_kw) if reflex_kw else self.base.reflex
+        return _replace_unchecked(self.base, dict(crawl_kw, reflex=reflex))
+
+    def row(self, i: int) -> CrawlParams:
+        """The validated ``CrawlParams`` that runs while leg ``i`` swings (concrete values)."""
+        p = self.at_leg(int(i))
+        return dataclasses.replace(p, reflex=dataclasses.replace(p.reflex))
+
+    def replace_base(self, **kwargs) -> "PerLegCrawlParams":
+        """A copy with fields of ``base`` replaced (``dataclasses.replace``; a per-leg field is refused)."""
+        clash = sorted(set(kwargs) & set(self.legs))
+        if clash:
+            raise ParameterError("PerLegCrawlParams", clash[0], kwargs[clash[0]], "left to its per-leg values",
+                                 problem="is set per leg")
+        return PerLegCrawlParams(dataclasses.replace(self.base, **kwargs), self.legs)
+
+    def describe(self) -> dict:
+        """``{field[LEG]: value}`` of the per-leg fields (concrete, unbatched)."""
+        return {f"{k}[{leg}]": float(np.asarray(v)[..., i].reshape(-1)[0]) for k, v in self.legs.items()
+                for i, leg in enumerate(LEGS)}
+
+
+def _replace_unchecked(obj, kw: dict):
+    """``obj`` with fields ``kw`` (traced or concrete) without running the parameter class's validation (the
+    values were validated when the per-leg set was made)."""
+    if not kw:
+        return obj
+    new = object.__new__(type(obj))
+    for f in dataclasses.fields(obj):
+        object.__setattr__(new, f.name, kw.get(f.name, getattr(obj, f.name)))
+    return new
+
+
+def at_tick(p, st=None) -> CrawlParams:
+    """The ``CrawlParams`` the crawl runs now: ``p`` itself for a ``CrawlParams``; for a
+    :class:`PerLegCrawlParams` the row of the swing leg of state ``st`` (the sequence's first leg before the
+    first tick, ``st=None``). Traceable; a Python ``isinstance`` on the parameter object's type only."""
+    if not isinstance(p, PerLegCrawlParams):
+        return p
+    if st is None:
+        leg = jnp.asarray(p.base.foot_sequence)[..., 0]
+    else:
+        leg = st.sequence[st.seq_index]
+    return p.at_leg(leg)
+
+
+def base_of(p) -> CrawlParams:
+    """The ``CrawlParams`` of every field that is not per leg (``p`` itself for a ``CrawlParams``)."""
+    return p.base if isinstance(p, PerLegCrawlParams) else p
+
+
+def replace_base(p, **kwargs):
+    """``dataclasses.replace`` on a ``CrawlParams``, :meth:`PerLegCrawlParams.replace_base` on a per-leg set."""
+    if isinstance(p, PerLegCrawlParams):
+        return p.replace_base(**kwargs)
+    return dataclasses.replace(p, **kwargs)
