@@ -151,3 +151,26 @@ def replace_base(p, **kwargs):
     if isinstance(p, PerLegCrawlParams):
         return p.replace_base(**kwargs)
     return dataclasses.replace(p, **kwargs)
+
+
+def common_structure(params: dict) -> dict:
+    """``{name: parameters}`` with one PyTree structure, to be stacked into one batch: unchanged when none is a
+    per-leg set; otherwise every one a :class:`PerLegCrawlParams` over the union of the per-leg fields (a field a
+    set does not vary per leg gets its own value on every leg, which runs bit for bit as before)."""
+    if not any(isinstance(p, PerLegCrawlParams) for p in params.values()):
+        return dict(params)
+    keys = []
+    for p in params.values():
+        if isinstance(p, PerLegCrawlParams):
+            keys += [k for k in p.legs if k not in keys]
+    out = {}
+    for name, p in params.items():
+        base = base_of(p)
+        legs = dict(p.legs) if isinstance(p, PerLegCrawlParams) else {}
+        for k in keys:
+            if k not in legs:
+                obj = base.reflex if k.startswith(REFLEX_PREFIX) else base
+                v = jnp.asarray(getattr(obj, k.removeprefix(REFLEX_PREFIX)))
+                legs[k] = jnp.broadcast_to(v[..., None], v.shape + (4,)).astype(np.asarray(v).dtype)
+        out[name] = PerLegCrawlParams(base, {k: legs[k] for k in keys})
+    return out
