@@ -73,7 +73,8 @@ class PerLegCrawlParams:
             try:
                 p.row(i)
             except ParameterError as e:
-                raise ParameterError("PerLegCrawlParams", f"{e.param}[{LEGS[i]}]", e.value, e.allowed) from None
+                key = next((k for k in out if k.removeprefix(REFLEX_PREFIX) == e.param), e.param)
+                raise ParameterError("PerLegCrawlParams", f"{key}[{LEGS[i]}]", e.value, e.allowed) from None
         return p
 
     @staticmethod
