@@ -189,7 +189,9 @@ def test_bad_preset_is_one_line_exit_2_nothing_written(tmp_path, monkeypatch, ca
 
 
 def test_stored_value_out_of_range_is_refused_naming_the_field(tmp_path, monkeypatch, capsys):
-    reg = dict(presets._registry())
+    from hyqjax.presets import registry
+
+    reg = dict(registry._registry())
     bad = {
         "paper": dict(crawl=dict(body_height=9.0), reflex={}),
         "tuned_per_leg": dict(crawl={}, reflex={}, per_leg={"reflex.d_st_min": dict(LF=1.0, RF=-3.0, LH=1.0,
@@ -198,7 +200,7 @@ def test_stored_value_out_of_range_is_refused_naming_the_field(tmp_path, monkeyp
     }
     for name, values in bad.items():
         reg[name] = dataclasses.replace(reg[name], values=values)
-    monkeypatch.setattr(presets, "_registry", lambda: reg)
+    monkeypatch.setattr(registry, "_registry", lambda: reg)
     for name, field in (("paper", "body_height"), ("tuned_per_leg", "d_st_min[RF]"), ("bound_robust", "k_speed")):
         with pytest.raises(presets.PresetError, match=field.replace("[", r"\[").replace("]", r"\]")):
             presets.load(name)

@@ -333,9 +333,9 @@ def default_params(speed=0.0, yaw_rate=0.0, lateral_speed=0.0, ramp_time=1.0, ki
     gains optimised over commands, friction and payload, ``hyqjax presets bound_robust``) on the stored limit
     cycle, and the command. Arguments as for :func:`paper_params`, whose gains are the paper's
     (``hyqjax.presets.load("bound_paper")``); ``cycle_amplitudes`` and gain keywords override the preset's."""
-    from hyqjax import presets
+    from hyqjax.presets import registry
 
-    values = presets.get(DEFAULT_PRESET).values
+    values = registry.get(DEFAULT_PRESET).values
     return params_of_values(dict(values.get("amplitudes", {}), **values.get("gains", {})), speed=speed,
                             yaw_rate=yaw_rate, lateral_speed=lateral_speed, ramp_time=ramp_time,
                             kinematic_adjustment=kinematic_adjustment, centrifugal=centrifugal,

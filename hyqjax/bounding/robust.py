@@ -358,7 +358,7 @@ def save_params(path: str | os.PathLike, values: dict, provenance: dict | None =
 def preset_path(name: str) -> str:
     """The registry file of the shipped parameter set ``name`` (a key of :data:`PRESETS` or a bounding preset of
     :mod:`hyqjax.presets`)."""
-    from hyqjax import presets
+    from hyqjax.presets import registry as presets
 
     reg = PRESETS.get(name, name)
     if reg not in presets.names("bound"):
@@ -371,7 +371,7 @@ def load_params(path: str | os.PathLike) -> dict:
     :mod:`hyqjax.presets`, or of the shipped set named ``path`` (a key of :data:`PRESETS` or a bounding preset's
     name, which take precedence over a file of that name); ``ValueError`` naming the file and the bad entry (an
     unknown name, a value outside the declared range, not such a file)."""
-    from hyqjax import presets
+    from hyqjax.presets import registry as presets
 
     if isinstance(path, str) and (path in PRESETS or path in presets.names("bound")):
         path = preset_path(path)

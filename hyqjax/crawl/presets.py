@@ -14,7 +14,7 @@ lowerings on the same runs and confirmed on 256 runs of seed 9696; docs/stepdown
 """
 from __future__ import annotations
 
-from hyqjax import presets as _registry
+from hyqjax.presets import registry as _registry
 
 #: ``--remedy`` (preset ``remedy`` of :mod:`hyqjax.presets`, whose file holds the values): the shin-strike remedy
 #: with the trunk at 80% of the feet plane.

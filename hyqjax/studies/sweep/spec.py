@@ -43,7 +43,7 @@ def _preset(name, axes: dict) -> str:
     an axis is refused."""
     if name in ("", None):
         return ""
-    from hyqjax import presets
+    from hyqjax.presets import registry as presets
 
     if not isinstance(name, str):
         raise SpecError(f"preset must be the name of a crawl preset ({', '.join(presets.names('crawl'))}), got {name!r}")
@@ -289,7 +289,7 @@ class SweepSpec:
         spec does not name (empty without a preset: the axes' own defaults, Table I)."""
         if not self.preset:
             return {}
-        from hyqjax import presets
+        from hyqjax.presets import registry as presets
 
         vals = presets.get(self.preset).values.get("reflex", {})
         return {f"reflex_{k}": float(v) for k, v in vals.items() if f"reflex_{k}" in AXES}
