@@ -89,24 +89,12 @@ def tuned_shared(path: str, run: str):
 
 
 def tuned_per_leg(path: str, key: str):
-    from hyqjax.crawl.params import CrawlParams
     from hyqjax.crawl.scheduled import LEGS
-    from hyqjax.studies.tune import schedule
+    from hyqjax.studies.tune import tuned
 
     res = read(path)
-    run = res["runs"][key]
-    pz = schedule.make(run["dim"], res["config"]["groups"])
-    if pz.conditioned:
-        raise ValueError(f"{path}: {key} is conditioned; the registry holds per-leg sets")
-    base = CrawlParams.make(shin_remedy=bool(res["config"]["remedy"]))
-    rows = pz.rows(run["theta"])
-    per_leg = {}
-    for i, leg in enumerate(LEGS):
-        cp = pz.space.concrete(rows[i], base)
-        for c in pz.space.coords:
-            obj = cp.reflex if c.owner == "reflex" else cp
-            key_ = f"reflex.{c.name}" if c.owner == "reflex" else c.name
-            per_leg.setdefault(key_, {})[leg] = float(np.asarray(getattr(obj, c.name)))
+    pl = tuned.crawl_params(os.path.join(ROOT, path), key)
+    per_leg = {k: {leg: float(np.asarray(v)[i]) for i, leg in enumerate(LEGS)} for k, v in pl.legs.items()}
     return dict(shin_remedy=bool(res["config"]["remedy"])), per_leg, res
 
 

@@ -283,3 +283,21 @@ def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     assert res["config"]["preset"] == "tuned_per_leg" and len(res["instances"]) == 1
     assert not res["instances"][0]["diverged"] and res["instances"][0]["progress"] > 0.1
     assert out.rstrip().splitlines()[-1].startswith("reaches further: --preset reach (h90 27 cm")
+
+
+def test_per_leg_tuning_runs_are_read_as_per_leg_sets_and_conditioned_ones_refused(tmp_path):
+    """``--params RESULTS`` of a per-leg run gives the per-leg set (the preset tuned_per_leg is that of the 30-min
+    CMA-ES run); a conditioned run is refused in one line naming it."""
+    from hyqjax.cli import stepdown as sd
+    from hyqjax.studies.tune import tuned
+
+    src = os.path.join(ROOT, "docs/results/tune_cells_h200_30min/cma_es_per_leg_30min/results.json")
+    p = tuned.crawl_params(src, None, forward_velocity=0.1)
+    assert isinstance(p, PerLegCrawlParams) and _leaves_equal(p, presets.load("tuned_per_leg"))
+    args = cli.build_parser().parse_args(["stepdown", "--params", src, "--out", str(tmp_path / "sd")])
+    sd.validate(args)
+    assert isinstance(args.tuned_params, PerLegCrawlParams) and args.preset is None
+    cond = os.path.join(ROOT, "docs/results/tune_wallclock_h200_10min_68/results.json")
+    with pytest.raises(ValueError, match="conditioned") as e:
+        tuned.crawl_params(cond, None)
+    assert "\n" not in str(e.value)

@@ -65,8 +65,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", default="", metavar="RESULTS[:RUN]",
                    help="run the crawl and reflex parameters a tuning run returned: its results.json (`hyqjax tune "
                         "--out DIR` writes DIR/results.json), and with several runs the one to take, e.g. "
-                        "results.json:snes/shared; the run's remedy setting is kept (no --remedy), --crawl may set "
-                        "only fields it did not tune")
+                        "results.json:snes/shared (a per_leg run runs as a per-leg set); the run's remedy setting is "
+                        "kept (no --preset), --crawl may set only fields it did not tune")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
