@@ -98,6 +98,18 @@ def tuned_per_leg(path: str, key: str):
     return dict(shin_remedy=bool(res["config"]["remedy"])), per_leg, res
 
 
+def tuned_conditioned(path: str, key: str):
+    from hyqjax.studies.tune import tuned
+
+    res = read(path)
+    run = res["runs"][key]
+    cs = tuned.crawl_params(os.path.join(ROOT, path), key)
+    cond = dict(parameterisation=run["dim"], groups=list(res["config"]["groups"]),
+                theta=[float(x) for x in run["theta"]], fields=list(cs.fields),
+                values={k: round(float(v), 6) for k, v in cs.describe().items()})
+    return dict(shin_remedy=bool(res["config"]["remedy"])), cond, res
+
+
 def heldout_fig(res, key, what, source, run_cmd):
     h = res["heldout"][key]
     hs = res["heldout_set"]
@@ -213,6 +225,14 @@ def build() -> dict[str, dict]:
         "H200)", dict(crawl=crawl_b, reflex={}, per_leg=per_leg), prov_of(res, PER_LEG_SRC),
         [clean_fig_0129(0.841, "tuned_per_leg"),
          heldout_fig(res, "cma_es/per_leg@30min", "clean success, held-out step-downs", PER_LEG_SRC, cmd)])
+
+    cond_src = f"{R}/tune_wallclock_h200_10min_68/results.json"
+    crawl_c, cond, res = tuned_conditioned(cond_src, "hybrid/per_leg_cond")
+    cmd = prov_of(res, cond_src)["command"]
+    add("tuned_per_leg_cond", "crawl", "68-coordinate per-leg set conditioned on payload, search depth and steps down "
+        "(hybrid search, 10 min on one H200)", dict(crawl=crawl_c, reflex={}, conditioned=cond),
+        prov_of(res, cond_src),
+        [heldout_fig(res, "hybrid/per_leg_cond@10min", "clean success, held-out step-downs", cond_src, cmd)])
 
     # ---- bound ----
     add("bound_paper", "bound", "the paper's bounding gains on the stored limit cycle (the reference cycle's)",

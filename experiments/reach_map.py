@@ -494,11 +494,14 @@ def check(args) -> dict:
                         if f.name not in ("gains", "reflex")}
         described[v]["reflex"] = {f.name: np.asarray(getattr(p.reflex, f.name)).tolist()
                                   for f in dataclasses.fields(p.reflex)}
-        if isinstance(params[v], scheduled.PerLegCrawlParams):
-            described[v]["per_leg"] = params[v].describe()
+        if params[v] is not p:  # a scheduled set: its per-leg (and conditioned) values
+            described[v]["scheduled"] = params[v].describe()
     # Variants are stacked into one batch: with a per-leg set among them, every variant becomes one (the same
     # per-leg fields; a CrawlParams's rows all equal, which runs bit for bit as itself).
-    params = scheduled.common_structure(params)
+    try:
+        params = scheduled.common_structure(params)
+    except ValueError as e:
+        raise UsageError(f"--variants: {e}") from None
     return dict(impl=args.impl, instances=args.instances, heights=[float(h) for h in args.heights],
                 spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
                 seed=args.seed, duration=args.duration, terminate=not args.no_terminate,

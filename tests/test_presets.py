@@ -24,8 +24,9 @@ from hyqjax.crawl.params import CrawlParams
 from hyqjax.crawl.scheduled import LEGS, PerLegCrawlParams, at_tick, common_structure
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-NAMES = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "bound_paper", "bound_robust",
-         "bound_robust_grad")
+NAMES = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "tuned_per_leg_cond", "bound_paper",
+         "bound_robust", "bound_robust_grad")
+N_CRAWL = 6
 
 
 def _leaves_equal(a, b) -> bool:
@@ -44,14 +45,15 @@ def _tree(root) -> dict:
 
 def test_every_preset_loads_into_its_parameter_object():
     from hyqjax.bounding.params import BoundingParams
+    from hyqjax.studies.tune.schedule import ConditionedCrawlParams
 
     assert tuple(presets.names()) == NAMES
-    assert presets.names("crawl") == list(NAMES[:5]) and presets.names("bound") == list(NAMES[5:])
+    assert presets.names("crawl") == list(NAMES[:N_CRAWL]) and presets.names("bound") == list(NAMES[N_CRAWL:])
     for n in NAMES:
         rec = presets.get(n)
         assert rec.name == n and rec.kind in presets.KINDS and rec.description and rec.provenance
         p = presets.load(n)
-        want = {"crawl": (CrawlParams, PerLegCrawlParams), "bound": (BoundingParams,)}[rec.kind]
+        want = {"crawl": (CrawlParams, PerLegCrawlParams, ConditionedCrawlParams), "bound": (BoundingParams,)}[rec.kind]
         assert isinstance(p, want), n
     assert isinstance(presets.load("tuned_per_leg"), PerLegCrawlParams)
     # crawl keywords reach every row of a per-leg set; a per-leg field is refused as a keyword
@@ -226,7 +228,7 @@ def test_presets_command_lists_every_preset_with_figures(capsys):
     assert "per leg reflex.k_base: LF" in one and "command: hyqjax tune" in one
     assert cli.main(["presets", "--kind", "bound", "--json"]) == 0
     got = json.loads(capsys.readouterr().out)
-    assert [g["name"] for g in got] == list(NAMES[5:])
+    assert [g["name"] for g in got] == list(NAMES[N_CRAWL:])
 
 
 @pytest.mark.slow
@@ -261,7 +263,7 @@ def test_every_crawl_preset_runs_a_cpu_batch():
     from hyqjax.studies import stepdown
     from hyqjax.studies import stepdown_outcome as so
 
-    names = presets.names("crawl")
+    names = [n for n in presets.names("crawl") if not presets.get(n).values.get("conditioned")]
     params = common_structure({n: presets.load(n) for n in names})
     rows = reach_map.build_rows(names, ["narrow"], [0.16], 1, 5)
     sc = reach_map.scenario_of(rows, np.arange(len(rows["height"])), params)
@@ -285,9 +287,13 @@ def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     assert out.rstrip().splitlines()[-1].startswith("reaches further: --preset reach (h90 27 cm")
 
 
-def test_per_leg_tuning_runs_are_read_as_per_leg_sets_and_conditioned_ones_refused(tmp_path):
+def test_per_leg_and_conditioned_tuning_runs_are_read_as_scheduled_sets(tmp_path):
     """``--params RESULTS`` of a per-leg run gives the per-leg set (the preset tuned_per_leg is that of the 30-min
-    CMA-ES run); a conditioned run is refused in one line naming it."""
+    CMA-ES run), of a conditioned run the conditioned set (tuned_per_leg_cond: the hybrid run's), whose choice at a
+    tick is the tuner's own (Parameterisation.params_at of the same rows and conditioning)."""
+    import jax.numpy as jnp
+
+    from hyqjax.studies.tune import schedule
     from hyqjax.cli import stepdown as sd
     from hyqjax.studies.tune import tuned
 
@@ -298,6 +304,34 @@ def test_per_leg_tuning_runs_are_read_as_per_leg_sets_and_conditioned_ones_refus
     sd.validate(args)
     assert isinstance(args.tuned_params, PerLegCrawlParams) and args.preset is None
     cond = os.path.join(ROOT, "docs/results/tune_wallclock_h200_10min_68/results.json")
-    with pytest.raises(ValueError, match="conditioned") as e:
+    with pytest.raises(ValueError, match="name one as PATH:RUN") as e:
         tuned.crawl_params(cond, None)
     assert "\n" not in str(e.value)
+    c = tuned.crawl_params(cond, "hybrid")
+    assert isinstance(c, schedule.ConditionedCrawlParams) and _leaves_equal(c, presets.load("tuned_per_leg_cond"))
+    res = json.load(open(cond))
+    pz = schedule.make("per_leg_cond", res["config"]["groups"])
+    sp = pz.scheduled(jnp.asarray(res["runs"]["hybrid/per_leg_cond"]["theta"], jnp.float32), c.base)
+    seq = np.asarray(c.base.foot_sequence)
+    st = types.SimpleNamespace(sequence=jnp.asarray(seq), seq_index=1, search_depth=jnp.float32(0.1),
+                               deep=jnp.asarray([True, False, False, False]))
+    obs = types.SimpleNamespace(foot_force=jnp.full((4, 3), 250.0, jnp.float32))
+    got = c.at_tick(st, obs)
+    want = pz.params_at(sp, seq[1], schedule.features(st, obs))
+    assert _leaves_equal(got, want)
+    other_leg = types.SimpleNamespace(**{**vars(st), "seq_index": 3})
+    assert not np.isclose(float(got.reflex.k_base), float(c.at_tick(other_leg, obs).reflex.k_base))
+    with pytest.raises(ValueError, match="body_height"):
+        presets.load("tuned_per_leg_cond", body_height=0.5)
+
+
+@pytest.mark.slow
+def test_conditioned_preset_runs_a_cpu_batch():
+    """tuned_per_leg_cond in a C MuJoCo batch of two (16 cm, 6 s): no divergence, both walk forward and step."""
+    from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown_outcome as so
+
+    sc, _ = stepdown.make_scenarios([0.16], [True], 2, 5, params=presets.load("tuned_per_leg_cond"))
+    out, _ = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=6.0, impl="c")).run(sc)
+    cols = so.to_columns(out)
+    assert not cols["diverged"].any() and np.all(cols["progress"] > 0.05) and np.all(cols["n_steps"] >= 2), cols

@@ -183,12 +183,13 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
 
 def crawl_controller(dt: float) -> Controller:
     """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds. Its parameters are a
-    ``CrawlParams`` or a per-leg set (:class:`hyqjax.crawl.scheduled.PerLegCrawlParams`), whose row of the swing
-    leg runs at every tick (:func:`hyqjax.crawl.scheduled.at_tick`; a ``CrawlParams`` runs as itself)."""
+    ``CrawlParams`` or a scheduled set (a per-leg set, :class:`hyqjax.crawl.scheduled.PerLegCrawlParams`, or a
+    conditioned one), whose choice for the tick runs (:func:`hyqjax.crawl.scheduled.at_tick`; a ``CrawlParams``
+    runs as itself)."""
     def init(p, obs):
-        return crawl_init(scheduled.at_tick(p), obs)
+        return crawl_init(scheduled.at_tick(p, None, obs), obs)
 
     def step(p, st, obs):
-        return crawl_step(scheduled.at_tick(p, st), st, obs, dt)
+        return crawl_step(scheduled.at_tick(p, st, obs), st, obs, dt)
 
     return Controller(init, step, tie_rollout_carry=True)

@@ -86,6 +86,10 @@ class PerLegCrawlParams:
             legs[key] = [float(np.asarray(getattr(obj, key.removeprefix(REFLEX_PREFIX))))] * 4
         return PerLegCrawlParams.make(base, legs)
 
+    def at_tick(self, st=None, obs=None) -> CrawlParams:  # noqa: ARG002  (the per-leg choice needs no observation)
+        """The row of the leg that swings now (:func:`swing_leg`; traceable)."""
+        return self.at_leg(swing_leg(self, st))
+
     def at_leg(self, leg) -> CrawlParams:
         """``base`` with every per-leg field at leg ``leg``'s value (traceable; ``leg`` an index into :data:`LEGS`).
         Leaves keep ``base``'s dtypes; no validation (a traced leg)."""
@@ -129,37 +133,47 @@ def _replace_unchecked(obj, kw: dict):
     return new
 
 
-def at_tick(p, st=None) -> CrawlParams:
-    """The ``CrawlParams`` the crawl runs now: ``p`` itself for a ``CrawlParams``; for a
-    :class:`PerLegCrawlParams` the row of the swing leg of state ``st`` (the sequence's first leg before the
-    first tick, ``st=None``). Traceable; a Python ``isinstance`` on the parameter object's type only."""
-    if not isinstance(p, PerLegCrawlParams):
-        return p
+def swing_leg(p, st=None):
+    """The leg whose row runs now: the swing leg of state ``st`` (``CrawlState.sequence[seq_index]``), the first
+    leg of ``p``'s sequence before the first tick (``st=None``). Traceable."""
     if st is None:
-        leg = jnp.asarray(p.base.foot_sequence)[..., 0]
-    else:
-        leg = st.sequence[st.seq_index]
-    return p.at_leg(leg)
+        return jnp.asarray(base_of(p).foot_sequence)[..., 0]
+    return st.sequence[st.seq_index]
+
+
+def at_tick(p, st=None, obs=None) -> CrawlParams:
+    """The ``CrawlParams`` the crawl runs now: ``p`` itself for a ``CrawlParams``; for a scheduled set (a
+    :class:`PerLegCrawlParams`, or any parameter object with ``base``, ``replace_base`` and ``at_tick(st, obs)``,
+    e.g. the tuner's conditioned sets, :class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`) its own
+    choice for state ``st`` and observation ``obs`` (``st=None``: before the first tick). Traceable; a Python
+    ``isinstance`` on the parameter object's type only."""
+    if isinstance(p, CrawlParams):
+        return p
+    return p.at_tick(st, obs)
 
 
 def base_of(p) -> CrawlParams:
-    """The ``CrawlParams`` of every field that is not per leg (``p`` itself for a ``CrawlParams``)."""
-    return p.base if isinstance(p, PerLegCrawlParams) else p
+    """The ``CrawlParams`` of every field that is not scheduled (``p`` itself for a ``CrawlParams``)."""
+    return p if isinstance(p, CrawlParams) else p.base
 
 
 def replace_base(p, **kwargs):
-    """``dataclasses.replace`` on a ``CrawlParams``, :meth:`PerLegCrawlParams.replace_base` on a per-leg set."""
-    if isinstance(p, PerLegCrawlParams):
-        return p.replace_base(**kwargs)
-    return dataclasses.replace(p, **kwargs)
+    """``dataclasses.replace`` on a ``CrawlParams``, the set's own ``replace_base`` on a scheduled set."""
+    if isinstance(p, CrawlParams):
+        return dataclasses.replace(p, **kwargs)
+    return p.replace_base(**kwargs)
 
 
 def common_structure(params: dict) -> dict:
     """``{name: parameters}`` with one PyTree structure, to be stacked into one batch: unchanged when none is a
     per-leg set; otherwise every one a :class:`PerLegCrawlParams` over the union of the per-leg fields (a field a
     set does not vary per leg gets its own value on every leg, which runs bit for bit as before)."""
-    if not any(isinstance(p, PerLegCrawlParams) for p in params.values()):
+    if all(isinstance(p, CrawlParams) for p in params.values()) or len(params) == 1:
         return dict(params)
+    other = [n for n, p in params.items() if not isinstance(p, (CrawlParams, PerLegCrawlParams))]
+    if other:
+        raise ValueError(f"{other[0]}: a {type(params[other[0]]).__name__} runs in a batch of its own kind only; run "
+                         f"it without the other variants")
     keys = []
     for p in params.values():
         if isinstance(p, PerLegCrawlParams):

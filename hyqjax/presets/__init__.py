@@ -10,13 +10,15 @@ it was measured on, the command that measured it, device, date, source).
 * ``load(name, **kw)``: the parameter object. A crawl preset gives a ``CrawlParams`` (``kw``: more
   ``CrawlParams.make`` settings, e.g. ``forward_velocity``), or a per-leg set
   (:class:`hyqjax.crawl.scheduled.PerLegCrawlParams`) when its values are per swing leg; both run wherever a
-  crawl runs (``hyqjax stepdown``, ``hyqjax sweep``, the reach map, renders, the library). A bounding preset
+  crawl runs (``hyqjax stepdown``, ``hyqjax sweep``, the reach map, renders, the library), or a conditioned set
+  (:class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`) for ``values.conditioned``. A bounding preset
   gives a ``BoundingParams`` (``kw``: the command and switches of
   :func:`hyqjax.bounding.params.paper_params`, e.g. ``speed=0.5, yaw_rate=0.3``).
 
 Values of a crawl preset (``values``): ``crawl`` (``CrawlParams.make`` settings), ``reflex`` (``ReflexParams``
 fields, over Table I) and optionally ``per_leg`` (``{field: {LF: v, RF: v, LH: v, RH: v}}``, ``reflex.<field>``
-for a reflex field). Values of a bounding preset: ``amplitudes`` (``a_fz, a_hz, a_fx, a_hx``, N per leg) and
+for a reflex field) or ``conditioned`` (a tuner's conditioned set: ``parameterisation``, ``groups``, ``theta``,
+the ``fields`` it chooses per tick and their ``values`` for reading). Values of a bounding preset: ``amplitudes`` (``a_fz, a_hz, a_fx, a_hx``, N per leg) and
 ``gains`` (``BoundingGains`` fields) over the paper's stored limit cycle; empty for the paper's own gains.
 
 Refusals are one line (a :class:`PresetError`, a ``ValueError``): an unknown name (naming the known ones), a
@@ -68,6 +70,15 @@ def _crawl(p: Preset, **kw):
     settings.update(kw)
     reflex = ReflexParams.make(**{k: float(x) for k, x in v.get("reflex", {}).items()})
     base = CrawlParams.make(**settings, reflex_params=reflex)
+    cond = v.get("conditioned")
+    if cond:
+        from hyqjax.studies.tune import schedule
+
+        clash = sorted(set(kw) & set(cond.get("fields", ())))
+        if clash:
+            raise PresetError(f"preset {p.name}: {clash[0]} is chosen per tick by the preset; leave it out")
+        return schedule.ConditionedCrawlParams.of_theta(schedule.make(cond["parameterisation"], cond["groups"]),
+                                                        cond["theta"], base)
     per_leg = v.get("per_leg") or {}
     if not per_leg:
         return base

@@ -36,7 +36,12 @@ class Preset:
 
     @property
     def per_leg(self) -> bool:
-        return bool(self.values.get("per_leg"))
+        return bool(self.values.get("per_leg") or self.values.get("conditioned"))
+
+    @property
+    def scheduled_fields(self) -> tuple[str, ...]:
+        """The fields the preset chooses per swing leg (or per tick), ``reflex.<name>`` for a reflex field."""
+        return tuple(self.values.get("per_leg") or ()) + tuple((self.values.get("conditioned") or {}).get("fields", ()))
 
     def headline(self) -> str:
         """The first figure as ``what: value unit [interval]`` (empty without figures)."""
@@ -81,8 +86,8 @@ def names(kind: str | None = None) -> list[str]:
 
 
 #: Listing order: the paper's sets, then what beats them.
-ORDER = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "bound_paper", "bound_robust",
-         "bound_robust_grad")
+ORDER = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "tuned_per_leg_cond", "bound_paper",
+         "bound_robust", "bound_robust_grad")
 
 
 def get(name: str, option: str = "preset") -> Preset:
@@ -122,6 +127,10 @@ def describe(p: Preset) -> str:
             lines.append("  reflex: " + _kv(v["reflex"]))
         for field, legs in (v.get("per_leg") or {}).items():
             lines.append(f"  per leg {field}: " + ", ".join(f"{leg} {x:.6g}" for leg, x in legs.items()))
+        if v.get("conditioned"):
+            c = v["conditioned"]
+            lines.append(f"  conditioned ({c['parameterisation']}, {len(c['theta'])} coordinates): "
+                         + _kv(c.get("values", {})))
     else:
         lines.append("  amplitudes: " + (_kv(v.get("amplitudes", {})) or "the stored limit cycle's"))
         lines.append("  gains: " + (_kv(v.get("gains", {})) or "the paper's (bounding.params.DEFAULT_GAINS)"))

@@ -51,7 +51,7 @@ def _preset(name, axes: dict) -> str:
         p = presets.check_kind(name, "crawl", "preset")
     except ValueError as e:
         raise SpecError(str(e)) from None
-    clash = sorted(k.replace(".", "_") for k in (p.values.get("per_leg") or {}) if k.replace(".", "_") in axes)
+    clash = sorted(k.replace(".", "_") for k in p.scheduled_fields if k.replace(".", "_") in axes)
     if clash:
         raise SpecError(f"axis {clash[0]!r}: preset {name} sets it per leg; leave the axis out")
     return name

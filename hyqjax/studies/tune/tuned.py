@@ -8,9 +8,10 @@ Both layouts ``hyqjax tune`` writes are read:
 
 A ``shared`` run (:class:`.space.ParamSpace` over the run's ``groups``) gives one ``CrawlParams``; a ``per_leg``
 run (:class:`.schedule.Parameterisation`: one row per swing leg) gives a per-leg set,
-:class:`hyqjax.crawl.scheduled.PerLegCrawlParams`, which the crawl runs wherever a ``CrawlParams`` runs. The
-conditioned ones (``per_leg_cond``, ...) also move their coordinates with features the controller measures and
-run inside the tuner only, so they are refused here.
+:class:`hyqjax.crawl.scheduled.PerLegCrawlParams`; a conditioned run (``per_leg_cond``, ``per_leg_cond_all``: the
+rows also move with features the controller measures) gives a
+:class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`. The crawl runs each wherever it runs a
+``CrawlParams``.
 
 ``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it) with the caller's
 other settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned
@@ -26,7 +27,7 @@ import numpy as np
 SHARED = "shared"
 #: The parameterisation whose ``theta`` is one ``CrawlParams`` row per swing leg (a per-leg set).
 PER_LEG = "per_leg"
-RUNNABLE = (SHARED, PER_LEG)
+RUNNABLE = (SHARED, PER_LEG, "per_leg_cond", "per_leg_cond_all")
 
 
 def runs_of(res: dict) -> dict:
@@ -56,20 +57,21 @@ def read(path: str) -> dict:
 
 
 def pick_run(res: dict, run: str | None, path: str = "results.json") -> str:
-    """The run to take: ``run`` (``cma_es`` means ``cma_es/shared``), or the only one ``res`` has."""
+    """The run to take: ``run`` (``cma_es`` means the one ``cma_es`` run, else ``cma_es/shared``), or the only one
+    ``res`` has."""
     found = runs_of(res)
     if run:
-        key = run if run in found or "/" in run else f"{run}/{SHARED}"
+        same = [k for k in found if k.split("/")[0] == run]
+        key = run if run in found or "/" in run else (same[0] if len(same) == 1 else f"{run}/{SHARED}")
         if key not in found:
             other = sorted(k for k in (res.get("runs") or {}) if k not in found)
-            raise ValueError(f"run {run!r} is not a {SHARED} or {PER_LEG} run of {path} (runs: "
-                             f"{', '.join(sorted(found)) or 'none'}"
-                             + (f"; conditioned, tuner only: {', '.join(other)}" if other else "") + ")")
+            raise ValueError(f"run {run!r} is not a run of {path} (runs: {', '.join(sorted(found)) or 'none'}"
+                             + (f"; of no known parameterisation: {', '.join(other)}" if other else "") + ")")
         return key
     if not found:
         other = sorted(res.get("runs") or {})
-        raise ValueError(f"{path} has no run that runs outside the tuner (a {SHARED} or {PER_LEG} run)"
-                         + (f"; its runs are conditioned on measured features: {', '.join(other)}" if other else ""))
+        raise ValueError(f"{path} has no run of a known parameterisation ({', '.join(RUNNABLE)})"
+                         + (f"; its runs: {', '.join(other)}" if other else ""))
     if len(found) != 1:
         raise ValueError(f"{path} has {len(found)} runs ({', '.join(sorted(found)) or 'none'}): "
                          f"name one as PATH:RUN")
@@ -94,8 +96,12 @@ def crawl_params(path: str, run: str | None = None, **settings):
         space = tspace.ParamSpace.make(cfg["groups"])
     except (ValueError, TypeError) as e:
         raise ValueError(f"{path}: its groups are not tunable groups ({e})") from None
-    per_leg = key.rpartition("/")[2] == PER_LEG
-    size = 4 * space.size if per_leg else space.size
+    dim = key.rpartition("/")[2]
+    per_leg = dim == PER_LEG
+    from hyqjax.studies.tune import schedule
+
+    pz = schedule.make(dim if dim in schedule.NAMES else SHARED, cfg["groups"])
+    size = pz.size
     if theta.shape != (size,) or not np.all(np.isfinite(theta)):
         raise ValueError(f"{path}: run {key} has {theta.size} values, not {size} finite ones for its groups")
     tuned = sorted({c.name for c in space.coords} & set(settings))
@@ -105,6 +111,8 @@ def crawl_params(path: str, run: str | None = None, **settings):
         raise ValueError(f"shin_remedy: set by run {key} of {path} (remedy {bool(cfg.get('remedy', False))})")
     try:
         base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)), **settings)
+        if dim not in (SHARED, PER_LEG):
+            return schedule.ConditionedCrawlParams.of_theta(pz, theta, base)
         if not per_leg:
             return space.concrete(theta, base)
         return per_leg_params(space, theta.reshape(4, space.size), base)
