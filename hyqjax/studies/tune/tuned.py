@@ -96,11 +96,12 @@ def crawl_params(path: str, run: str | None = None, **settings):
         space = tspace.ParamSpace.make(cfg["groups"])
     except (ValueError, TypeError) as e:
         raise ValueError(f"{path}: its groups are not tunable groups ({e})") from None
-    dim = key.rpartition("/")[2]
-    per_leg = dim == PER_LEG
     from hyqjax.studies.tune import schedule
 
-    pz = schedule.make(dim if dim in schedule.NAMES else SHARED, cfg["groups"])
+    dim = key.rpartition("/")[2]
+    dim = dim if dim in schedule.NAMES else SHARED  # the gradient study's layout: shared runs
+    per_leg = dim == PER_LEG
+    pz = schedule.make(dim, cfg["groups"])
     size = pz.size
     if theta.shape != (size,) or not np.all(np.isfinite(theta)):
         raise ValueError(f"{path}: run {key} has {theta.size} values, not {size} finite ones for its groups")
