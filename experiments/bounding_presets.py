@@ -27,7 +27,6 @@ import os
 import sys
 import time
 
-import numpy as np
 
 NOMINAL = (0.5, 0.3)
 

@@ -12,7 +12,6 @@ file is not in the repository, marked as such with the command that re-measures 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import sys
@@ -158,7 +157,8 @@ def bound_heldout_fig(method: str, what_prefix=""):
     h = res["heldout"]
     m = h["methods"][method]
     d = h["draw"]
-    held = (f"{h['instances']:,} runs x {h['duration']:g} s, seed {h['seed']}: speed {d['speed'][0]:g}-{d['speed'][1]:g}"
+    held = (f"{h['instances']:,} runs x {h['duration']:g} s, seed {h['seed']}: speed {d['speed'][0]:g}-"
+            f"{d['speed'][1]:g}"
             f" m/s, yaw rate +-{d['yaw_rate'][1]:g} rad/s, friction {d['friction'][0]:g}-{d['friction'][1]:g}, "
             f"payload {d['payload'][0]:g}-{d['payload'][1]:g} kg")
     common = dict(heldout=held, command="python -m experiments.bounding_robust " + res["provenance"]["command"].split(
@@ -179,7 +179,9 @@ def bound_envelope_figs(falls: str, yaw: str, nominal: dict | None):
     if nominal:
         for what, v, unit in (("yaw rms at (0.5 m/s, 0.3 rad/s)", nominal["yaw"], "deg"),
                               ("speed rms at (0.5 m/s, 0.3 rad/s)", nominal["speed"], "m/s")):
-            out.append(dict(what=what, value=v, unit=unit, interval=None, heldout="the nominal command (0.5 m/s, 0.3 rad/s)", device="NVIDIA H200, MuJoCo Warp", date="2026-11-29",
+            out.append(dict(what=what, value=v, unit=unit, interval=None,
+                            heldout="the nominal command (0.5 m/s, 0.3 rad/s)", device="NVIDIA H200, MuJoCo Warp",
+                            date="2026-11-29",
                             source=NEW_HELDOUT_SOURCE, command=UNRECORDED, remeasure=BOUND_PRESETS_CMD))
     return out
 

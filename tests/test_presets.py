@@ -106,7 +106,8 @@ def test_old_spellings_are_the_same_parameters():
     snes = tuned.crawl_params(os.path.join(ROOT, "docs/results/tune_reach_h200_10min/snes/results.json"), "snes",
                               **hand.PROBE_DEEP)
     assert _leaves_equal(presets.load("reach"), snes)
-    tuned_shared = tuned.crawl_params(os.path.join(ROOT, "docs/results/tune_reach_h200_10min/snes/results.json"), "snes")
+    tuned_shared = tuned.crawl_params(os.path.join(ROOT, "docs/results/tune_reach_h200_10min/snes/results.json"),
+                                      "snes")
     assert _leaves_equal(presets.load("tuned_shared"), tuned_shared)
     assert _leaves_equal(presets.load("remedy"), CrawlParams.make(**hand.REMEDY)) and hand.REMEDY == dict(
         shin_remedy=True, terrain_adaptation=0.8)

@@ -71,11 +71,12 @@ COORDS: tuple = (
 AMPLITUDE_NAMES = ("a_fz", "a_hz", "a_fx", "a_hx")
 FORMAT = "hyqjax.bounding.robust/1"
 #: The old names of the shipped parameter sets: aliases of the bounding presets of :mod:`hyqjax.presets`
-#: (``hyqjax/presets/<name>.json``; :func:`load_params` takes either name in place of a path). ``robust``: the gradient's parameters of ``experiments.bounding_robust`` on one H100
+#: (``hyqjax/presets/<name>.json``; :func:`load_params` takes either name in place of a path). ``robust``: the
+#: gradient's parameters of ``experiments.bounding_robust`` on one H100
 #: (2026-11-25; ``docs/results/bounding_robust_h100/params_gradient.json``): 10 falls in 4,096 held-out
-#: instances against 692 with the default gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
+#: instances against 692 with the paper's gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
 #: 8 s rollouts (2026-11-26; ``docs/results/bounding_robust_h100_8s/params_cma_es.json``): 0 falls in the same
-#: 4,096 held-out instances (default gains: 708), worst yaw error 3.24 deg.
+#: 4,096 held-out instances (the paper's gains: 708), worst yaw error 3.24 deg.
 PRESETS = {"robust": "bound_robust_grad", "robust_8s": "bound_robust"}
 
 

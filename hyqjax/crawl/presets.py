@@ -1,5 +1,6 @@
 """Hand-set crawl configurations of the study scripts (the user-facing names are the registry's,
-:mod:`hyqjax.presets`: ``paper``, ``remedy``, ``reach``, ...): one home for the named ``CrawlParams.make`` settings that the CLI's ``--remedy``,
+:mod:`hyqjax.presets`: ``paper``, ``remedy``, ``reach``, ...): one home for the named ``CrawlParams.make`` settings
+that the CLI's ``--remedy``,
 the reach map (``experiments/reach_map.py``) and the tuning study's hand-set comparison
 (``experiments/tune_handset.py``) run.
 

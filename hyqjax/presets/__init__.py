@@ -18,7 +18,8 @@ it was measured on, the command that measured it, device, date, source).
 Values of a crawl preset (``values``): ``crawl`` (``CrawlParams.make`` settings), ``reflex`` (``ReflexParams``
 fields, over Table I) and optionally ``per_leg`` (``{field: {LF: v, RF: v, LH: v, RH: v}}``, ``reflex.<field>``
 for a reflex field) or ``conditioned`` (a tuner's conditioned set: ``parameterisation``, ``groups``, ``theta``,
-the ``fields`` it chooses per tick and their ``values`` for reading). Values of a bounding preset: ``amplitudes`` (``a_fz, a_hz, a_fx, a_hx``, N per leg) and
+the ``fields`` it chooses per tick and their ``values`` for reading). Values of a bounding preset: ``amplitudes``
+(``a_fz, a_hz, a_fx, a_hx``, N per leg) and
 ``gains`` (``BoundingGains`` fields) over the paper's stored limit cycle; empty for the paper's own gains.
 
 Refusals are one line (a :class:`PresetError`, a ``ValueError``): an unknown name (naming the known ones), a

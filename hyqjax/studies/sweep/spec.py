@@ -46,7 +46,8 @@ def _preset(name, axes: dict) -> str:
     from hyqjax.presets import registry as presets
 
     if not isinstance(name, str):
-        raise SpecError(f"preset must be the name of a crawl preset ({', '.join(presets.names('crawl'))}), got {name!r}")
+        raise SpecError(f"preset must be the name of a crawl preset ({', '.join(presets.names('crawl'))}), "
+                        f"got {name!r}")
     try:
         p = presets.check_kind(name, "crawl", "preset")
     except ValueError as e:
