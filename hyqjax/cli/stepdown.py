@@ -52,9 +52,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
     p.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
+    from hyqjax.presets import registry
+
     p.add_argument("--preset", default=None, metavar="NAME",
-                   help="a crawl preset (`hyqjax presets --kind crawl`): paper (the default: Table I, the paper's "
-                        "crawl), remedy, reach (reaches furthest), tuned_shared, tuned_per_leg")
+                   help="a crawl preset (`hyqjax presets --kind crawl`): " + ", ".join(registry.names("crawl")) +
+                        "; default: paper (Table I, the paper's crawl); reach reaches furthest")
     p.add_argument("--remedy", action="store_true",
                    help="alias of --preset remedy: the shin-strike remedy with the trunk following 80%% of the feet "
                         "plane's tilt (docs/stepdown.md)")
