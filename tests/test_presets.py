@@ -336,3 +336,11 @@ def test_conditioned_preset_runs_a_cpu_batch():
     out, _ = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=6.0, impl="c")).run(sc)
     cols = so.to_columns(out)
     assert not cols["diverged"].any() and np.all(cols["progress"] > 0.05) and np.all(cols["n_steps"] >= 2), cols
+
+
+def test_docs_presets_table_lists_every_preset_with_its_kind():
+    """docs/presets.md's table: one row per registry preset, in the registry's order, with its kind."""
+    rows = [line.split("|")[1:3] for line in open(os.path.join(ROOT, "docs", "presets.md")).read().splitlines()
+            if line.startswith("| `")]
+    got = [(name.strip().strip("`"), kind.strip()) for name, kind in rows]
+    assert got == [(n, presets.get(n).kind) for n in presets.names()]
