@@ -144,7 +144,9 @@ def test_bound_command_defaults_to_bound_robust_and_aliases_the_old_names(tmp_pa
         args = parser.parse_args(argv + ["--out", str(tmp_path / "b")])
         bound.check_options(args)
         assert args.preset == want_preset and args.params is None, argv
-    assert bound.DEFAULT_PRESET == "bound_robust"
+    from hyqjax.bounding.params import DEFAULT_PRESET
+
+    assert DEFAULT_PRESET == "bound_robust"
 
 
 def test_per_leg_rows_and_tick_selection():

@@ -137,16 +137,16 @@ def check_options(args) -> None:
 
 _validate = check_options
 
-#: The bounding preset ``hyqjax bound`` runs without --preset or --params (``bounding.params.DEFAULT_PRESET``).
-DEFAULT_PRESET = "bound_robust"
 #: The old shipped-set names of --params: aliases of presets.
 PARAMS_ALIASES = {"robust_8s": "bound_robust", "robust": "bound_robust_grad"}
 
 
 def _preset_name(args) -> str | None:
-    """The bounding preset to run (``--preset``, an alias given to ``--params``, else :data:`DEFAULT_PRESET`),
-    checked by name and kind; None when ``--params`` names a file."""
+    """The bounding preset to run (``--preset``, an alias given to ``--params``, else the default gains'
+    preset, ``hyqjax.bounding.params.DEFAULT_PRESET``), checked by name and kind; None when ``--params`` names a
+    file."""
     from hyqjax import presets
+    from hyqjax.bounding.params import DEFAULT_PRESET
 
     if args.params in PARAMS_ALIASES:  # the old shipped names take precedence over a file of that name, as before
         alias = PARAMS_ALIASES[args.params]
