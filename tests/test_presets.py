@@ -346,3 +346,24 @@ def test_docs_presets_table_lists_every_preset_with_its_kind():
             if line.startswith("| `")]
     got = [(name.strip().strip("`"), kind.strip()) for name, kind in rows]
     assert got == [(n, presets.get(n).kind) for n in presets.names()]
+
+
+def test_sweep_spec_preset_sets_the_fields_no_axis_names():
+    """A sweep spec's ``preset``: its values wherever no axis sets the field, an axis wins where it does; the hash
+    of a spec without a preset is unchanged by the new field."""
+    from hyqjax.studies.sweep.scenario import build_scenario
+    from hyqjax.studies.sweep.spec import SweepSpec
+
+    plain = SweepSpec.from_dict(dict(grid=dict(height=[0.16])))
+    assert "preset" not in plain.to_dict()
+    spec = SweepSpec.from_dict(dict(grid=dict(height=[0.16]), fixed=dict(reflex_d_st_max=900.0), preset="reach"))
+    assert spec.spec_hash != plain.spec_hash and SweepSpec.from_dict(spec.to_dict()) == spec
+    reach = presets.load("reach")
+    rows = spec.instance_inputs(0, 1)
+    assert rows["reflex_k_base"][0] == pytest.approx(float(reach.reflex.k_base), rel=1e-6)
+    sc, _ = build_scenario(rows, spec)
+    assert float(sc.params.edge_probe[0]) == pytest.approx(0.1) and float(sc.params.reflex.d_st_max[0]) == 900.0
+    assert float(sc.params.reflex.k_base[0]) == pytest.approx(float(reach.reflex.k_base), rel=1e-6)
+    per_leg = SweepSpec.from_dict(dict(grid=dict(height=[0.16]), preset="tuned_per_leg"))
+    pl = build_scenario(per_leg.instance_inputs(0, 1), per_leg)[0].params
+    assert isinstance(pl, PerLegCrawlParams) and pl.legs["reflex.k_base"].shape == (1, 4)
