@@ -33,9 +33,8 @@ HELDOUT_0129 = ("2,400 held-out step-downs of 2026-11-29 (heights between the tr
 NEW_HELDOUT_SOURCE = "held-out evaluation on one H200, MuJoCo Warp, 2026-11-29 (its result file is not stored)"
 REACH_WIDE_1024 = ("wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), 1,024 runs per height, held-out "
                    "seed")
-BOUND_ENV = ("the trained command box at low friction and a 10 kg payload: commands (0.5, 0.3) and the corners "
-             "speed 0 / 1.0 m/s x yaw rate -0.8 / +0.8 rad/s, friction 0.5-0.6, payload 10 kg, 1,024 x 8 s per "
-             "command")
+BOUND_ENV = ("five commands of the bounding command envelope at low friction and a 10 kg payload: friction "
+             "0.5-0.6, payload 10 kg, 1,024 x 8 s per command")
 #: The command field of a figure of the 2026-11-29 evaluation, whose command was not recorded.
 UNRECORDED = "unrecorded: held-out evaluation of 2026-11-29 on one H200, MuJoCo Warp (no result file in the repository)"
 BOUND_PRESETS_CMD = "python -m experiments.bounding_presets --impl warp --instances 1024 --out out/bounding_presets"
@@ -170,7 +169,7 @@ def bound_heldout_fig(method: str, what_prefix=""):
 
 
 def bound_envelope_figs(falls: str, yaw: str, nominal: dict | None):
-    out = [dict(what="runs that fall, trained box at friction 0.5-0.6, 10 kg (per command)", value=falls,
+    out = [dict(what="runs that fall, envelope commands at friction 0.5-0.6, 10 kg (per command)", value=falls,
                 unit="", interval=None, heldout=BOUND_ENV, device="NVIDIA H200, MuJoCo Warp", date="2026-11-29",
                 source=NEW_HELDOUT_SOURCE, command=UNRECORDED, remeasure=BOUND_PRESETS_CMD),
            dict(what="worst yaw error there", value=yaw, unit="deg", interval=None, heldout=BOUND_ENV,
