@@ -287,8 +287,14 @@ def run(args) -> int:
     timing = dict(wall_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
                   env_steps_per_s=n * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                   batches=status.timings)
+    preset = None
+    if args.preset:
+        from hyqjax import presets as registry
+
+        rec = registry.get(args.preset)
+        preset = dict(name=rec.name, description=rec.description, values=rec.values, provenance=rec.provenance)
     io.write_json(os.path.join(args.out, "results.json"), dict(
-        provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
+        provenance=io.provenance(seed=args.seed), config=config, preset=preset, impl=impl, summary=rows,
         instances=instances, figures=figs, wall_time_s=wall, timing=timing))
     wrote = ["results.json (summary and one row per instance)"]
     if saving is not None:
