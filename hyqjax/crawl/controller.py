@@ -33,6 +33,7 @@ from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.crawl import edge
 from hyqjax.crawl import remedy
+from hyqjax.crawl import scheduled
 from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
 from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
@@ -181,5 +182,14 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
 
 
 def crawl_controller(dt: float) -> Controller:
-    """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds."""
-    return Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt), tie_rollout_carry=True)
+    """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds. Its parameters are a
+    ``CrawlParams`` or a scheduled set (a per-leg set, :class:`hyqjax.crawl.scheduled.PerLegCrawlParams`, or a
+    conditioned one), whose choice for the tick runs (:func:`hyqjax.crawl.scheduled.at_tick`; a ``CrawlParams``
+    runs as itself)."""
+    def init(p, obs):
+        return crawl_init(scheduled.at_tick(p, None, obs), obs)
+
+    def step(p, st, obs):
+        return crawl_step(scheduled.at_tick(p, st, obs), st, obs, dt)
+
+    return Controller(init, step, tie_rollout_carry=True)
