@@ -14,7 +14,7 @@ stores and compared as CI compares them (:func:`hyqjax.studies.sweep.compare.com
 * arm ``rounding``: the same controller on another simulator (``--rounding-impl``, default ``jax``: MJX-JAX), a
   change of float rounding only: the gate should not flag it.
 
-Writes ``OUT/results.json`` (per seed and arm: the verdict, the tests, the discordant pairs) and prints a table:
+Writes ``OUT/results_ARMS.json`` (per seed and arm: the verdict, the tests, the discordant pairs) and prints a table:
 per arm, how many seeds were flagged (regressed, improved), and per cell of the planted arm the effect measured on
 all seeds' instances together (the pooled paired difference with Newcombe's interval): the effect "at scale".
 
@@ -22,9 +22,16 @@ CPU, cut down (one height, reflex on, 20 seeds; about 20 minutes on 2 shared cor
 
     python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --reflex on --arms planted,unchanged
 
-One H200 (16 CPU cores for C MuJoCo in --jobs processes, the GPU for MJX-JAX), the full CI spec:
+One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec, in three
+commands of a few minutes each (the second resumes the first's base stores, the third is the planted arm with 64
+instances per cell):
 
-    python benchmarks/ci_gate_power.py --out out/ci_power_full --jobs 14 --arms planted,unchanged,rounding
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted,unchanged
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
+    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.21,0.24 --reflex on --arms planted
+
+C arms run one seed after another (``--jobs 1``: one process already steps its batch on all cores);
+``--jobs N`` runs N seeds at once, each worker on the CPU (``JAX_PLATFORMS=cpu``).
 """
 from __future__ import annotations
 
@@ -110,6 +117,8 @@ def run_store(d: dict, path: str, impl: str, chunk_size: int | None = None) -> f
 def seed_job(payload) -> dict:
     """The --impl arms of one seed (a worker process): base, planted, unchanged; their comparisons."""
     a, seed = payload
+    if a.jobs > 1:  # a worker process: C MuJoCo and its controller on the CPU, the GPU left to the main process
+        os.environ.setdefault("JAX_PLATFORMS", "cpu")
     from hyqjax.studies.sweep.compare import compare_stores
 
     root = os.path.join(a.out, "stores", f"seed{seed:03d}")
@@ -247,9 +256,10 @@ def main(argv=None) -> int:
                   f"{e['diff']:+.3f} [{e['ci'][0]:+.3f}, {e['ci'][1]:+.3f}], discordant {e['b']} worse / {e['c']} "
                   f"better, McNemar p {e['p_mcnemar']:.2g}")
     summary["seeds"] = results
-    with open(os.path.join(a.out, "results.json"), "w") as f:
+    path = os.path.join(a.out, f"results_{'_'.join(a.arm_list)}.json")
+    with open(path, "w") as f:
         json.dump(summary, f, indent=1, default=str)
-    print(f"wrote {os.path.join(a.out, 'results.json')}")
+    print(f"wrote {path}")
     return 0
 
 

@@ -26,7 +26,8 @@ def add_gate_arguments(p, expect: bool = True) -> None:
     g.add_argument("--alpha", type=float, default=0.05,
                    help="family-wise error rate of the baseline comparison (Holm-corrected McNemar / Fisher tests)")
     g.add_argument("--allow-change", action="append", default=[], metavar="AXIS",
-                   help="a [fixed] axis (or 'seed') that may differ between the baseline and this sweep (repeatable)")
+                   help="[fixed] axes (or 'seed') that may differ between the baseline and this sweep, e.g. a gain under test "
+                        "(repeatable or comma-separated)")
     g.add_argument("--junit", metavar="PATH", help="write a JUnit XML report (one test case per expectation or cell)")
     g.add_argument("--markdown", metavar="PATH", help="write a Markdown summary (also appended to "
                                                       "$GITHUB_STEP_SUMMARY when set)")
@@ -51,7 +52,7 @@ def validate_gate(args, spec_expect=()) -> None:
     check_range("--alpha", args.alpha, 0.0, 0.5, lo_open=True)
     from hyqjax.studies.sweep.compare import check_allow_change
 
-    check_allow_change(args.allow_change)
+    args.allow_change = list(check_allow_change(args.allow_change))
     if hasattr(args, "expect"):
         from hyqjax.studies.sweep import expect
 

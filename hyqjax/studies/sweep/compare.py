@@ -151,7 +151,8 @@ class Comparison:
         return self.verdict == "regressed"
 
     def lines(self) -> list[str]:
-        head = (f"compare {self.base} -> {self.new}: {self.verdict.upper()} ({len(self.cells)} cells, "
+        n_cells = len([c for c in self.cells if c != "all cells"])
+        head = (f"compare {self.base} -> {self.new}: {self.verdict.upper()} ({n_cells} cells, "
                 f"{'paired' if self.paired else 'unpaired'}, {self.n_pairs} instances"
                 + (", identical outcomes" if self.identical else "") + f"; Holm over {len(self.tests)} tests, "
                 f"alpha {self.alpha:g})")
@@ -201,7 +202,9 @@ def spec_differences(a: dict, b: dict) -> list[str]:
 
 
 def check_allow_change(names) -> tuple[str, ...]:
-    """Validate ``allow_change`` names: ``seed`` or an axis (changed in [fixed]); ValueError naming the bad one."""
+    """Validate ``allow_change`` names (each may be comma-separated): ``seed`` or an axis (changed in [fixed]);
+    ValueError naming the bad one. Returns the names, one per entry."""
+    names = [x.strip() for n in names for x in str(n).split(",") if x.strip()]
     for n in names:
         if n != "seed" and n not in AXES:
             raise ValueError(f"--allow-change {n!r}: must be 'seed' or an axis set in [fixed] (e.g. reflex_d_st_max; "
