@@ -104,6 +104,8 @@ def _parse_kv(items, what):
         if "=" not in item or not item.split("=", 1)[0].strip():
             raise ValueError(f"--{what} expects AXIS=VALUES, got {item!r}")
         k, v = item.split("=", 1)
+        if k.strip() in out:
+            raise ValueError(f"--{what} names axis {k.strip()!r} twice; give it once")
         out[k.strip()] = [_parse_value(x) for x in v.split(",") if x.strip()]
         if not out[k.strip()]:
             raise ValueError(f"--{what} {k.strip()}= needs at least one value")
@@ -123,8 +125,16 @@ def build_spec_dict(args) -> dict:
         d = {}
     else:
         d = json.loads(json.dumps(DEFAULT_SPEC))
-    for sec, items in (("grid", args.grid), ("random", args.random), ("fixed", args.fixed)):
-        for k, v in _parse_kv(items, sec).items():
+    flags = {sec: _parse_kv(items, sec) for sec, items in (("grid", args.grid), ("random", args.random),
+                                                            ("fixed", args.fixed))}
+    given: dict[str, str] = {}
+    for sec, axes in flags.items():  # an axis named by two of the flags: which one was meant is not ours to guess
+        for k in axes:
+            if k in given:
+                raise ValueError(f"--{given[k]} and --{sec} both name axis {k!r}; give it once")
+            given[k] = sec
+    for sec, axes in flags.items():
+        for k, v in axes.items():
             for other in ("grid", "random", "fixed"):
                 if isinstance(d.get(other), dict):
                     d[other].pop(k, None)
