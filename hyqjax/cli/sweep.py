@@ -42,7 +42,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 NAME = "sweep"
 HELP = "robustness sweep of the step-down (grid / random over terrain, payload, gains, pushes, reflex parameters)"
@@ -259,27 +258,33 @@ def run(args) -> int:
         devs = jax.local_devices()
         where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
     print(f"{size}, {where}", flush=True)
-    from hyqjax.cli.common import compile_status
+    from hyqjax.cli.common import compile_status, lap_batch_run
+    from hyqjax.io import phases
 
     before = _done_chunks(args.out, spec)
-    t0 = time.time()
+    clock = phases.current()
+    clock.lap("startup")
     with compile_status("sweep", disable=args.no_progress) as status:
         store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
                                 wait=args.wait, executor=executor)
-    wall = time.time() - t0
-    summary = sweep.write_outputs(store)
+    lap_batch_run(clock, status)  # chunks simulated and stored
+    summary = sweep.write_outputs(store, clock)
     summary["provenance"] = io.provenance(seed=spec.seed)
-    summary["wall_time_s_this_run"] = wall
     if status.timings:  # chunks simulated in this process (the local executor)
-        summary["timing_this_run"] = dict(compile_s=status.compile_s, simulate_s=status.simulate_s,
-                                          batches=status.timings)
+        summary["timing_this_run"] = dict(compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s,
+                                          simulate_s=status.pure_simulate_s, batches=status.timings)
     summary["executor"] = args.executor
-    io.write_json(os.path.join(args.out, "summary.json"), summary)
     print(sweep.format_summary(summary))
+    clock.lap("summary")
+    summary["phases_this_run"] = clock.to_dict()
+    summary["wall_time_s_this_run"] = summary["phases_this_run"]["wall_s"]
+    io.write_json(os.path.join(args.out, "summary.json"), summary)  # the last write
     if status.timings:  # instances of the chunks finished now (the chunks' padding rows not counted)
         n_run = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done() - before)
         print(f"this run: {status.throughput_text(n_run, int(round(spec.duration / spec.control_dt)))}")
     left = store.n_chunks - len(store.done())
     print(f"wrote {args.out}/summary.json, instances.csv" + (", figures" if summary.get("figures") else "")
           + (f"; {left} chunk(s) left: run the same command again to resume" if left else ""))
+    clock.lap("summary")
+    print(clock.line(), flush=True)
     return 0
