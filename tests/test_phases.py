@@ -110,3 +110,28 @@ def test_bound_prints_the_process_wall_last_and_records_a_few_instances(tmp_path
     rows = recording.result_rows(res)
     failed = [i for i, row in enumerate(rows) if recording.instance_failed(row)]
     assert set(rec.instance_index.tolist()) == {0, 1, 2} | set(failed[:3])
+
+
+@pytest.mark.slow
+def test_first_hour_benchmark_at_its_tiny_size(tmp_path):
+    """benchmarks/bench_first_hour.py --size tiny: one short bound on empty caches, then warm; its table and JSON."""
+    import importlib.util
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    spec = importlib.util.spec_from_file_location("bench_first_hour",
+                                                  os.path.join(root, "benchmarks", "bench_first_hour.py"))
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    assert bench.main(["--size", "tiny", "--out", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "first_hour.json").read_text())
+    fresh, warm = data["rows"]
+    assert (fresh["round"], warm["round"]) == ("fresh", "warm")
+    for r in (fresh, warm):
+        assert r["rc"] == 0 and r["printed_wall_s"] is not None
+        assert r["printed_wall_s"] <= r["process_wall_s"] + 0.05 and r["process_wall_s"] - r["printed_wall_s"] < 1.0
+        assert sum(r["phases"].values()) <= r["printed_wall_s"] + 0.05
+    # The fresh run compiled what the warm one loaded from the cache the fresh one filled.
+    assert os.listdir(tmp_path / "caches" / "jax")
+    assert warm["phases"]["compile"] < fresh["phases"]["compile"]
+    md = (tmp_path / "first_hour.md").read_text()
+    assert md.count("| `hyqjax bound --instances 2") == 2
