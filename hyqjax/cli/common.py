@@ -220,9 +220,10 @@ class CompileStatus:
 
         head = self.prefix + ": " if self.prefix else ""
         where = f" into {self._kernel_cache}" if self._kernel_cache else ""
-        tqdm.write(f"{head}built MuJoCo Warp kernels{where} in {self.kernel_s:.1f} s ({self.kernels_compiled} of "
-                   f"{self.kernels_loaded} modules built, the rest read from the cache; counted as kernel build, not "
-                   f"simulation; later runs read them from the cache)", file=sys.stderr)
+        cached = self.kernels_loaded - self.kernels_compiled
+        tqdm.write(f"{head}built MuJoCo Warp kernels{where} in {self.kernel_s:.1f} s ({self.kernels_compiled} "
+                   f"modules built, {cached} read from the cache; counted as kernel build, not simulation; later runs "
+                   f"read them from the cache)", file=sys.stderr)
 
     def _show_compiling(self) -> None:
         self.compiling = True
