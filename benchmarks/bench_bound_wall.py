@@ -31,7 +31,8 @@ def run_once(tree: str, args, out: str) -> dict:
     wall = time.perf_counter() - t0
     printed = [float(x) for x in re.findall(r"wall ([0-9.]+) s in all", r.stdout)]
     traces = os.path.join(out, "traces.npz")
-    return dict(tree=tree, rc=r.returncode, process_wall_s=round(wall, 2), printed_wall_s=printed[-1] if printed else None,
+    return dict(tree=tree, rc=r.returncode, process_wall_s=round(wall, 2),
+                printed_wall_s=printed[-1] if printed else None,
                 ratio=round(wall / printed[-1], 3) if printed else None,
                 traces_bytes=os.path.getsize(traces) if os.path.exists(traces) else 0,
                 stderr_tail=r.stderr[-400:] if r.returncode else "")

@@ -8,9 +8,9 @@ its own output directory (a sweep is never resumed); its process wall is measure
 started to its exit, and compared with the wall it printed last (``wall X s in all``) and the phases it stored
 (``results.json``'s ``phases``, a sweep's ``summary.json``'s ``phases_this_run``).
 
-Sizes: ``--size gpu`` (the default; meant for one H200 with warp: ``--budget-s 400`` starts nothing new after 400 s and
-``--grace-s 60`` stops a command 60 s after that, so it ends within 8 minutes), ``--size cpu`` (C MuJoCo, small batches: a few minutes on 2 cores), ``--size tiny`` (one
-short bound, for the test).
+Sizes: ``--size gpu`` (the default; meant for one H200 with warp: ``--budget-s 400`` starts nothing new after
+400 s and ``--grace-s 60`` stops a command 60 s after that, so it ends within 8 minutes), ``--size cpu`` (C MuJoCo,
+small batches: a few minutes on 2 cores), ``--size tiny`` (one short bound, for the test).
 
     python benchmarks/bench_first_hour.py --out out/first_hour            # one GPU
     python benchmarks/bench_first_hour.py --size cpu --out out/first_hour_cpu
@@ -69,7 +69,8 @@ def run_one(command: str, out: str, caches: str, timeout: float) -> dict:
             with open(p) as f:
                 phases = (json.load(f).get(key) or {}).get("phases", {})
             break
-    kernel_line = next((ln for ln in stderr.replace("\r", "\n").splitlines() if "built MuJoCo Warp kernels" in ln), "")
+    kernel_line = next((ln for ln in stderr.replace("\r", "\n").splitlines() if "built MuJoCo Warp kernels" in ln),
+                       "")
     return dict(command=command, rc=rc, process_wall_s=round(wall, 2), printed_wall_s=printed[-1] if printed else None,
                 phases={k: round(v, 2) for k, v in phases.items()}, kernel_build_line=kernel_line.strip(),
                 stderr_tail=stderr[-600:] if rc != 0 else "")
@@ -123,7 +124,8 @@ def main(argv=None) -> int:
     import platform
 
     meta = dict(size=a.size, host=platform.node(), python=sys.version.split()[0],
-                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), total_s=round(time.perf_counter() - t_start, 1))
+                date=time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                total_s=round(time.perf_counter() - t_start, 1))
     try:
         import jax
 
