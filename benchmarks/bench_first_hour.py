@@ -82,7 +82,8 @@ def table(rows: list[dict]) -> str:
     lines = [head, "|---|---|" + "---:|" * (3 + len(PHASES))]
     for r in rows:
         if r.get("skipped"):
-            lines.append(f"| `hyqjax {r['command']}` | {r['round']} | skipped ({r['skipped']}) |" + " |" * (2 + len(PHASES)))
+            lines.append(f"| `hyqjax {r['command']}` | {r['round']} | skipped ({r['skipped']}) |"
+                         + " |" * (2 + len(PHASES)))
             continue
         pr = r["printed_wall_s"]
         gap = f"{r['process_wall_s'] - pr:.1f}" if pr is not None else "-"
