@@ -45,10 +45,12 @@ def main(argv=None) -> int:
     p.add_argument("--duration", type=float, default=4.0)
     p.add_argument("--pairs", type=int, default=2)
     p.add_argument("--out", default="out/bench_bound_wall")
+    p.add_argument("--no-warm-up", action="store_true", help="skip the unreported first run of each tree (the "
+                                                              "compilation cache is warm already)")
     a = p.parse_args(argv)
     os.makedirs(a.out, exist_ok=True)
     trees = [os.path.abspath(t) for t in a.trees]
-    for k, tree in enumerate(trees):  # warm the compilation cache (not reported)
+    for k, tree in enumerate([] if a.no_warm_up else trees):  # warm the compilation cache (not reported)
         run_once(tree, a, os.path.join(os.path.abspath(a.out), f"warm{k}"))
     rows = []
     for i in range(a.pairs):
@@ -57,8 +59,9 @@ def main(argv=None) -> int:
             row.update(pair=i, which=("old", "new")[k])
             rows.append(row)
             print(json.dumps(row), flush=True)
+    load = os.getloadavg() if hasattr(os, "getloadavg") else None
     with open(os.path.join(a.out, "bench_bound_wall.json"), "w") as f:
-        json.dump(dict(instances=a.instances, duration=a.duration, rows=rows), f, indent=1)
+        json.dump(dict(instances=a.instances, duration=a.duration, rows=rows, loadavg_at_end=load), f, indent=1)
     print("\n| pair | code | process wall (s) | printed wall (s) | process / printed | traces.npz (bytes) |")
     print("|---:|---|---:|---:|---:|---:|")
     for r in rows:
