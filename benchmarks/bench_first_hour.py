@@ -2,10 +2,11 @@
 phases each command printed and stored.
 
 Round 1 ("fresh") starts with an empty JAX compilation cache (``HYQJAX_CACHE_DIR``) and an empty MuJoCo Warp kernel
-cache (``WARP_CACHE_PATH``), both under OUT, as on a new machine; its commands share them in order, as a user's
-would. Round 2 ("warm") runs the same commands again on the caches round 1 filled. Every run is a fresh process with
-its own output directory (a sweep is never resumed); its process wall is measured from before the process is
-started to its exit, and compared with the wall it printed last (``wall X s in all``) and the phases it stored
+cache (``WARP_CACHE_PATH``), both under ``--caches`` (default: a temporary directory, removed at the end with the
+runs' output directories), as on a new machine; its commands share them in order, as a user's would. Round 2
+("warm") runs the same commands again on the caches round 1 filled. Every run is a fresh process with its own
+output directory (a sweep is never resumed); its process wall is measured from before the process is started to its
+exit, and compared with the wall it printed last (``wall X s in all``) and the phases it stored
 (``results.json``'s ``phases``, a sweep's ``summary.json``'s ``phases_this_run``).
 
 Sizes: ``--size gpu`` (the default; meant for one H200 with warp: ``--budget-s 400`` starts nothing new after
@@ -73,6 +74,7 @@ def run_one(command: str, out: str, caches: str, timeout: float) -> dict:
                        "")
     return dict(command=command, rc=rc, process_wall_s=round(wall, 2), printed_wall_s=printed[-1] if printed else None,
                 phases={k: round(v, 2) for k, v in phases.items()}, kernel_build_line=kernel_line.strip(),
+                last_lines=stdout.strip().splitlines()[-3:],
                 stderr_tail=stderr[-600:] if rc != 0 else "")
 
 
@@ -97,7 +99,10 @@ def table(rows: list[dict]) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--size", choices=sorted(SIZES), default="gpu", help="the commands' sizes (default gpu)")
-    p.add_argument("--out", required=True, help="results directory (its caches/ and runs/ are emptied first)")
+    p.add_argument("--out", required=True, help="results directory (first_hour.json, first_hour.md)")
+    p.add_argument("--caches", default=None,
+                   help="where the fresh caches go (emptied first; default: a new temporary directory, removed at "
+                        "the end: compiled programs and kernels are large, and not results)")
     p.add_argument("--budget-s", type=float, default=400.0,
                    help="start no new command after this many seconds (default 400)")
     p.add_argument("--grace-s", type=float, default=60.0,
@@ -105,10 +110,16 @@ def main(argv=None) -> int:
     p.add_argument("--timeout-s", type=float, default=400.0, help="one command's limit (default 400 s)")
     a = p.parse_args(argv)
     out = os.path.abspath(a.out)
-    caches, runs = os.path.join(out, "caches"), os.path.join(out, "runs")
-    for d in (caches, runs):
-        shutil.rmtree(d, ignore_errors=True)
-        os.makedirs(d)
+    os.makedirs(out, exist_ok=True)
+    if a.caches is None:
+        import tempfile
+
+        caches = tempfile.mkdtemp(prefix="hyqjax-first-hour-")
+    else:
+        caches = os.path.abspath(a.caches)
+    shutil.rmtree(caches, ignore_errors=True)
+    runs = os.path.join(caches, "runs")  # the commands' output directories (a step-down's results.json is large)
+    os.makedirs(runs)
     commands = SIZES[a.size]
     t_start = time.perf_counter()
     rows = []
@@ -133,6 +144,10 @@ def main(argv=None) -> int:
         meta.update(jax=jax.__version__, devices=[str(d) for d in jax.devices()])
     except Exception as e:  # noqa: BLE001  (recorded, not fatal: the runs are the measurement)
         meta["jax_error"] = repr(e)
+    meta["cache_bytes"] = {k: sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.join(caches, k))
+                                  for f in fs) for k in ("jax", "warp", "runs")}
+    if a.caches is None:
+        shutil.rmtree(caches, ignore_errors=True)
     md = table(rows)
     with open(os.path.join(out, "first_hour.json"), "w") as f:
         json.dump(dict(meta=meta, rows=rows), f, indent=1)

@@ -122,7 +122,7 @@ def test_first_hour_benchmark_at_its_tiny_size(tmp_path):
                                                   os.path.join(root, "benchmarks", "bench_first_hour.py"))
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
-    assert bench.main(["--size", "tiny", "--out", str(tmp_path)]) == 0
+    assert bench.main(["--size", "tiny", "--out", str(tmp_path), "--caches", str(tmp_path / "caches")]) == 0
     data = json.loads((tmp_path / "first_hour.json").read_text())
     fresh, warm = data["rows"]
     assert (fresh["round"], warm["round"]) == ("fresh", "warm")
