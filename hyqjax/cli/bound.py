@@ -141,6 +141,7 @@ def configurations(args) -> list[tuple[str, bool, bool]]:
 
 def run(args) -> int:
     import jax
+    import jax.numpy as jnp
     import numpy as np
 
     from hyqjax.bounding import batch as bbatch
@@ -161,23 +162,25 @@ def run(args) -> int:
 
         values = rb.load_params(args.params)
         make = lambda **kw: rb.params_from_values(values, **kw)  # noqa: E731
-    plist = []
-    for _, kin, cf in configs:
-        plist += [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
-                       ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf)
-                  for _ in range(n)]
+    # One parameter set per configuration, repeated for its n instances (the same leaves, types and values as n
+    # calls each and a stack, without their cost: about 28 ms per instance on 2 cores).
+    per_config = [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
+                       ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf) for _, kin, cf in configs]
+    params = jax.tree_util.tree_map(
+        lambda *xs: jnp.concatenate([jnp.broadcast_to(jnp.asarray(x), (n,) + jnp.shape(x)) for x in xs]), *per_config)
+    n_total = len(configs) * n
     rand = bbatch.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
-    batch = bbatch.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
+    batch = bbatch.make_batch(params, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
                               push_duration=args.push_duration, n_unique=n)
     from hyqjax.cli.common import lap_batch_run, sim_progress
     from hyqjax.io import phases, recording
 
     clock = phases.current()
     rollout = TASK.rollout(TASK.config(duration=args.duration, record_every=10, impl=args.impl))
-    print(f"hyqjax bound: {len(plist)} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
+    print(f"hyqjax bound: {n_total} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
           f"{int(round(args.duration / 0.002))} ticks, simulator {rollout.setup.impl}", flush=True)
     clock.lap("startup")
-    with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
+    with sim_progress(f"bound: {n_total} instances", args.duration) as progress:
         _, res = rollout.run(batch, progress=progress)
         trace = jax.tree_util.tree_map(np.asarray, res.trace)
     status = progress.status
@@ -205,7 +208,7 @@ def run(args) -> int:
     sim_s = status.pure_simulate_s
     out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=rollout.setup.impl,
                compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s, simulate_s=sim_s,
-               env_steps_per_s=len(plist) * n_ticks / sim_s if sim_s > 0 else None,
+               env_steps_per_s=n_total * n_ticks / sim_s if sim_s > 0 else None,
                batches=status.timings, groups=groups, recorded_instances=recorded.tolist())
     if values is not None:
         out["params"] = dict(source=args.params, values=values)
@@ -214,7 +217,7 @@ def run(args) -> int:
     print(bs.format_table(groups, settle=args.ramp_time + 1.0, duration=args.duration))
     if args.ablation:
         print(bs.format_contributions(out["contributions"]))
-    print(status.throughput_text(len(plist), n_ticks), flush=True)
+    print(status.throughput_text(n_total, n_ticks), flush=True)
     clock.lap("summary")
     if not args.no_figures:
         from hyqjax.bounding import plots as bp
