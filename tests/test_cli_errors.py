@@ -123,6 +123,8 @@ CASES = [
     (["stepdown", "--speed", "0.1", "--duration", "0.05"], "--duration"),
     # bound
     (["bound", "--speed", "5"], "--speed"),
+    (["bound", "--record-instances", "8"], "--record-instances: '8' is outside the instances [0, 7]"),
+    (["bound", "--ablation", "--instances", "2", "--record-instances", "few,9"], "--record-instances"),
     (["bound", "--speed", "nan"], "--speed"),
     (["bound", "--yaw-rate", "-2"], "--yaw-rate"),
     (["bound", "--lateral-speed", "1"], "--lateral-speed"),
