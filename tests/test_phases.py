@@ -135,3 +135,19 @@ def test_first_hour_benchmark_at_its_tiny_size(tmp_path):
     assert warm["phases"]["compile"] < fresh["phases"]["compile"]
     md = (tmp_path / "first_hour.md").read_text()
     assert md.count("| `hyqjax bound --instances 2") == 2
+
+
+def test_report_shows_the_wall_time_by_phase(tmp_path, capsys):
+    from hyqjax.cli import app
+
+    d = tmp_path / "exp"
+    d.mkdir()
+    clock = phases.Clock(time.perf_counter() - 10.0)
+    clock.lap("simulation", compile=3.0, kernels=2.0)
+    res = dict(provenance=dict(command="hyqjax bound --out exp", seed=0), wall_time_s=10.0, phases=clock.to_dict(),
+               groups={})
+    (d / "results.json").write_text(json.dumps(res))
+    assert app.main(["report", str(d)]) == 0
+    page = (d / "report.html").read_text()
+    assert "wall time by phase" in page
+    assert "kernel build (Warp) 2.0 s, XLA compile 3.0 s, simulation 5.0 s" in page
