@@ -45,7 +45,7 @@ def test_the_process_clock_starts_before_this_module_was_imported():
     assert age > 0.2 and phases.Clock.from_process_start().since == "process"
 
 
-def test_compile_status_keeps_the_warp_kernel_build_out_of_compile_and_simulation():
+def test_compile_status_keeps_the_warp_kernel_build_out_of_compile_and_simulation(monkeypatch):
     from hyqjax.cli.common import CompileStatus
 
     s = CompileStatus(disable=True)
@@ -62,9 +62,10 @@ def test_compile_status_keeps_the_warp_kernel_build_out_of_compile_and_simulatio
     assert "simulating 6.5 s" in text and "compile 3.0 s, Warp kernel build 5.5 s" in text
     assert f"{8 * 100 / 6.5:,.0f} env-steps/s" in text
     from hyqjax.cli.common import lap_batch_run
+    from hyqjax.sim import warp_kernels
 
     clock = phases.Clock(time.perf_counter() - 20.0)  # a 20 s lap: 5.5 kernels + 3 compile + 11.5 simulation
-
+    monkeypatch.setitem(warp_kernels._STATE, "seconds", warp_kernels.seconds() + 5.5)  # the loads of the lap
     lap_batch_run(clock, s)
     assert clock.seconds["kernels"] == pytest.approx(5.5) and clock.seconds["compile"] == pytest.approx(3.0)
     assert clock.seconds["simulation"] == pytest.approx(11.5, abs=0.01)
@@ -151,3 +152,15 @@ def test_report_shows_the_wall_time_by_phase(tmp_path, capsys):
     page = (d / "report.html").read_text()
     assert "wall time by phase" in page
     assert "kernel build (Warp) 2.0 s, XLA compile 3.0 s, simulation 5.0 s" in page
+
+
+def test_warp_module_loads_of_any_lap_count_as_kernel_build(monkeypatch):
+    """Kernels Warp loads outside a batch run (e.g. while the model is put on the device) are kernel build too."""
+    from hyqjax.sim import warp_kernels
+
+    clock = phases.Clock(time.perf_counter() - 4.0)
+    monkeypatch.setitem(warp_kernels._STATE, "seconds", warp_kernels.seconds() + 1.5)
+    clock.lap("startup")
+    assert clock.seconds["kernels"] == pytest.approx(1.5) and clock.seconds["startup"] == pytest.approx(2.5, abs=0.01)
+    clock.lap("summary")  # no loads since: nothing more to kernels
+    assert clock.seconds["kernels"] == pytest.approx(1.5)

@@ -26,6 +26,7 @@ wall is never below the sum. Nothing heavy is imported here.
 from __future__ import annotations
 
 import os
+import sys
 import threading
 import time
 
@@ -57,6 +58,7 @@ class Clock:
         self.since = since
         self.seconds: dict[str, float] = {}
         self._last = self.t0
+        self._kernels_last = _kernel_seconds()
         self._lock = threading.Lock()
 
     @classmethod
@@ -74,10 +76,15 @@ class Clock:
 
     def lap(self, phase: str, **carved: float) -> float:
         """Give the time since the last lap to ``phase``, less ``carved`` (phase=seconds, each given to its phase,
-        never more in all than the lap); returns the lap's seconds."""
+        never more in all than the lap); returns the lap's seconds. MuJoCo Warp's module loads during the lap
+        (:func:`hyqjax.sim.warp_kernels.seconds`) go to ``kernels`` unless ``carved`` names it."""
         now = time.perf_counter()
+        k = _kernel_seconds()
         with self._lock:
             dt, self._last = now - self._last, now
+            dk, self._kernels_last = k - self._kernels_last, k
+        if "kernels" not in carved and dk > 0:
+            carved = {"kernels": dk, **carved}
         left = dt
         for name, s in carved.items():
             s = min(max(float(s or 0.0), 0.0), left)
@@ -109,6 +116,13 @@ class Clock:
             parts.append(f"other {rest:.1f} s")
         since = "since the process started" if self.since == "process" else "since the command was called"
         return f"wall {wall:.1f} s in all ({since}): " + ", ".join(parts)
+
+
+def _kernel_seconds() -> float:
+    """Seconds of MuJoCo Warp module loads in this process so far (0 before :mod:`hyqjax.sim.warp_kernels` is
+    imported: nothing is imported here)."""
+    mod = sys.modules.get("hyqjax.sim.warp_kernels")
+    return mod.seconds() if mod is not None else 0.0
 
 
 _CURRENT: Clock | None = None

@@ -75,9 +75,17 @@ def install() -> bool:
 
 
 def _notify(event: str, **info) -> None:
-    from hyqjax.sim.compile_phase import notify
+    from hyqjax.sim import compile_phase
 
-    notify(event, **info)
+    if event == "kernels_start" and not compile_phase._LISTENERS and not _STATE.get("announced"):
+        # Nobody shows it (a build outside a command's batch run): one line, once per process.
+        import sys
+
+        _STATE["announced"] = True
+        where = f"; cached in {info['cache']}" if info.get("cache") else ""
+        print(f"hyqjax: building MuJoCo Warp kernels (first run on this machine{where}); this takes minutes on a "
+              f"CPU, about a minute on a GPU", file=sys.stderr, flush=True)
+    compile_phase.notify(event, **info)
 
 
 def _timed_load(load):
