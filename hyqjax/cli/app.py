@@ -95,6 +95,10 @@ def _user_errors() -> tuple:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from hyqjax.io import phases
+
+    # The command's clock (hyqjax.io.phases): from the process's start on the command line, from now in-process.
+    phases.start(process=argv is None)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "run_command", None):

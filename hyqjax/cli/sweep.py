@@ -50,7 +50,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 NAME = "sweep"
 HELP = "robustness sweep of the step-down (grid / random over terrain, payload, gains, pushes, reflex parameters)"
@@ -127,6 +126,8 @@ def _parse_kv(items, what):
         if "=" not in item or not item.split("=", 1)[0].strip():
             raise ValueError(f"--{what} expects AXIS=VALUES, got {item!r}")
         k, v = item.split("=", 1)
+        if k.strip() in out:
+            raise ValueError(f"--{what} names axis {k.strip()!r} twice; give it once")
         out[k.strip()] = [_parse_value(x) for x in v.split(",") if x.strip()]
         if not out[k.strip()]:
             raise ValueError(f"--{what} {k.strip()}= needs at least one value")
@@ -150,8 +151,16 @@ def build_spec_dict(args) -> dict:
         d = {}
     else:
         d = json.loads(json.dumps(DEFAULT_SPEC))
-    for sec, items in (("grid", args.grid), ("random", args.random), ("fixed", args.fixed)):
-        for k, v in _parse_kv(items, sec).items():
+    flags = {sec: _parse_kv(items, sec) for sec, items in (("grid", args.grid), ("random", args.random),
+                                                            ("fixed", args.fixed))}
+    given: dict[str, str] = {}
+    for sec, axes in flags.items():  # an axis named by two of the flags: which one was meant is not ours to guess
+        for k in axes:
+            if k in given:
+                raise ValueError(f"--{given[k]} and --{sec} both name axis {k!r}; give it once")
+            given[k] = sec
+    for sec, axes in flags.items():
+        for k, v in axes.items():
             for other in ("grid", "random", "fixed"):
                 if isinstance(d.get(other), dict):
                     d[other].pop(k, None)
@@ -337,27 +346,34 @@ def run(args) -> int:
         devs = jax.local_devices()
         where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
     print(f"{size}, {where}", flush=True)
-    from hyqjax.cli.common import compile_status
+    from hyqjax.cli.common import compile_status, lap_batch_run
+    from hyqjax.io import phases
 
     before = _done_chunks(args.out, spec)
-    t0 = time.time()
+    clock = phases.current()
+    clock.lap("startup")
     with compile_status("sweep", disable=args.no_progress) as status:
         store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
                                 wait=args.wait, executor=executor)
-    wall = time.time() - t0
-    summary = sweep.write_outputs(store)
+    lap_batch_run(clock, status)  # chunks simulated and stored
+    summary = sweep.write_outputs(store, clock)
     summary["provenance"] = io.provenance(seed=spec.seed)
-    summary["wall_time_s_this_run"] = wall
     if status.timings:  # chunks simulated in this process (the local executor)
-        summary["timing_this_run"] = dict(compile_s=status.compile_s, simulate_s=status.simulate_s,
-                                          batches=status.timings)
+        summary["timing_this_run"] = dict(compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s,
+                                          simulate_s=status.pure_simulate_s, batches=status.timings)
     summary["executor"] = args.executor
-    io.write_json(os.path.join(args.out, "summary.json"), summary)
     print(sweep.format_summary(summary))
+    clock.lap("summary")
+    summary["phases_this_run"] = clock.to_dict()
+    summary["wall_time_s_this_run"] = summary["phases_this_run"]["wall_s"]
+    io.write_json(os.path.join(args.out, "summary.json"), summary)  # the last write
     if status.timings:  # instances of the chunks finished now (the chunks' padding rows not counted)
         n_run = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done() - before)
         print(f"this run: {status.throughput_text(n_run, int(round(spec.duration / spec.control_dt)))}")
     left = store.n_chunks - len(store.done())
     print(f"wrote {args.out}/summary.json, instances.csv" + (", figures" if summary.get("figures") else "")
           + (f"; {left} chunk(s) left: run the same command again to resume" if left else ""))
-    return _gate(args, store)
+    clock.lap("summary")
+    rc = _gate(args, store)
+    print(clock.line(), flush=True)
+    return rc
