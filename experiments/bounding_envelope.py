@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from hyqjax.cli.common import add_devices_argument, apply_devices
+
 
 def grid(name, lo, hi, step, lim):
     from hyqjax.bounding.batch import SettingError
@@ -100,6 +102,7 @@ def main(argv=None) -> int:
     ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
     ap.add_argument("--out", default="docs/results")
     ap.add_argument("--name", default="bounding_envelope", help="output file stem (letters, digits, . _ -)")
+    add_devices_argument(ap)
     args = ap.parse_args(argv)
     try:
         from hyqjax.bounding import robust
@@ -114,6 +117,7 @@ def main(argv=None) -> int:
             raise ValueError(f"--max-batch must be in [1, 1048576], got {args.max_batch}")
         base = robust.params_from_values(robust.load_params(args.params)) if args.params else None
         impl = backend.resolve_impl(args.impl)
+        apply_devices(args)
     except ValueError as e:
         name = getattr(e, "name", None)
         print(f"error: --{name.replace('_', '-')}: {e}" if name else f"error: {e}", file=sys.stderr)

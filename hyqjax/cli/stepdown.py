@@ -201,8 +201,11 @@ def run(args) -> int:
     n_ticks = cfg.sim_config().n_ticks
     rollout = TASK.rollout(cfg)
     impl = rollout.setup.impl
+    from hyqjax.sim import devices as hdevices
+
+    where = "" if impl == "c" else f" on {hdevices.describe(hdevices.resolve())}"
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
+          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}{where}", flush=True)
     t0 = time.time()
     with compile_listener(_import_figures_while_xla_compiles(bool(record_every))), \
             sim_progress(f"stepdown: {n} instances", args.duration) as progress:
