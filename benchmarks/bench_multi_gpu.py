@@ -23,6 +23,10 @@ over the 1-device run of the same layout, compile and wall seconds; and the agre
 per-cell counts of both. MJX-JAX's split layout is bitwise that of one device on host devices; MuJoCo Warp's
 contact buffer and atomics make repeated runs agree within the simulator's agreement (counted, not assumed).
 
+Then (``--tune-members``, 0 to skip) one tuning generation, ``--tune-members`` x ``--tune-scenarios`` rows of
+``--tune-duration`` s (the tuner's forward objective, ``SuccessEvaluator``), on 1 device and on each further
+count: simulating and wall seconds of the same generation and their speed-up.
+
 Stops starting new runs once ``--budget-s`` (default 420 s) would be passed (the estimate: the last run's wall
 time, scaled); ``DIR/bench_multi_gpu.json`` is rewritten after every run, so a killed run keeps what was measured.
 """
@@ -113,6 +117,10 @@ def main(argv=None) -> int:
     ap.add_argument("--modes", nargs="+", default=["split", "process"], choices=["split", "process"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--budget-s", type=float, default=420.0, help="start no run that would end after this")
+    ap.add_argument("--tune-members", type=int, default=64,
+                    help="tuning generation: members (0: skip the tuning section)")
+    ap.add_argument("--tune-scenarios", type=int, default=4096, help="tuning generation: scenarios per member")
+    ap.add_argument("--tune-duration", type=float, default=6.0, help="tuning generation: seconds per run")
     ap.add_argument("--worker-index", type=int, default=-1, help=argparse.SUPPRESS)
     ap.add_argument("--worker-out", default="", help=argparse.SUPPRESS)
     ap.add_argument("--max-count", type=int, default=1, help=argparse.SUPPRESS)
@@ -176,10 +184,61 @@ def main(argv=None) -> int:
               f"{entry['agreement_with_one_device']['completed']['share']:.4f}", flush=True)
         with open(path, "w") as f:
             json.dump(res, f, indent=1)
+    if args.tune_members > 0:
+        res["tune"] = tune_section(args, local, counts, t_start, res, path)
     with open(path, "w") as f:
         json.dump(res, f, indent=1)
     print(f"wrote {path}")
     return 0
+
+
+def tune_section(args, local, counts, t_start: float, res: dict, path: str) -> list:
+    """One tuning generation (``--tune-members`` x ``--tune-scenarios`` rows, common random numbers) on 1 and on
+    each further count of devices: its simulating and wall seconds (``SuccessEvaluator``, the tuner's forward
+    objective) and the speed-up of the same generation; the fitness of every member must not depend on the
+    devices beyond the simulator's agreement (the largest fitness difference is reported)."""
+    from hyqjax.crawl import controller as crawl
+    from hyqjax.sim.compile_phase import compile_listener
+    from hyqjax.studies.tune import forward, schedule
+
+    p = schedule.make("shared")
+    base = crawl.CrawlParams.make()
+    rng = np.random.default_rng(args.seed)
+    th0 = p.theta_of(base)
+    thetas = th0 + 0.2 * rng.standard_normal((args.tune_members, th0.shape[0])).astype(np.float32)
+    m = -(-args.tune_scenarios // len(forward.TRAIN_HEIGHTS)) * len(forward.TRAIN_HEIGHTS)
+    sc = forward.train_scenarios(m, args.seed, 0)
+    out, ref, last = [], None, None
+    for g in counts:
+        est = 0.0 if last is None else last * 1.1
+        if time.time() - t_start + est > args.budget_s:
+            res["skipped"].append(dict(mode="tune", devices=g, why=f"--budget-s {args.budget_s:g}"))
+            continue
+        done: list = []
+        t0 = time.time()
+        ev = forward.SuccessEvaluator(p, base, args.tune_duration, args.impl, devices=local[:g])
+        with compile_listener(lambda e, info: done.append(dict(info)) if e == "done" else None):
+            r = ev(thetas, sc)
+        wall = time.time() - t0
+        last = wall
+        t = done[-1] if done else {}
+        e = dict(devices=g, rows=int(args.tune_members * m), simulate_s=float(t.get("simulate_s", float("nan"))),
+                 compile_s=float(t.get("compile_s", float("nan"))), wall_s=wall)
+        if ref is None:
+            ref = (e, np.asarray(r["fitness"]))
+        else:
+            e["speedup_simulate_vs_one_device"] = ref[0]["simulate_s"] / e["simulate_s"]
+            e["speedup_wall_vs_one_device"] = ref[0]["wall_s"] / e["wall_s"]
+            e["max_fitness_difference"] = float(np.max(np.abs(np.asarray(r["fitness"]) - ref[1])))
+        out.append(e)
+        print(f"tune     {g} device(s): generation of {e['rows']} rows x {args.tune_duration:g} s: simulate "
+              f"{e['simulate_s']:.1f} s, wall {wall:.1f} s"
+              + (f" ({e['speedup_simulate_vs_one_device']:.2f}x one device)" if g != ref[0]["devices"] else ""),
+              flush=True)
+        res["tune"] = out
+        with open(path, "w") as f:
+            json.dump(res, f, indent=1)
+    return out
 
 
 def run_processes(args, g: int, local, max_count: int) -> dict:
