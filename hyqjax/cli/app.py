@@ -33,7 +33,7 @@ from typing import NoReturn
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 import hyqjax  # noqa: E402
-from hyqjax.cli.common import USAGE_EXIT, UsageError, enable_compilation_cache  # noqa: E402
+from hyqjax.cli.common import USAGE_EXIT, UsageError, apply_devices, enable_compilation_cache  # noqa: E402
 from hyqjax.io.cache import StderrFilter  # noqa: E402
 
 
@@ -113,6 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.validate_command(args)
             except ValueError as e:  # raised while checking options: the user's to fix
                 raise UsageError(str(e)) from e
+        apply_devices(args)  # --devices, where the command has it: checked before anything compiles
         if not args.no_cache:
             enable_compilation_cache()
             # The command line itself (not main([...]) inside another program), not with Ray's processes.

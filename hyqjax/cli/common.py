@@ -372,6 +372,33 @@ def add_impl_argument(p, supported: tuple[str, ...] | None = None) -> None:
     supported = backend.ALL_IMPLS if supported is None else supported
     p.add_argument("--impl", choices=["auto", *supported], default="auto",
                    help="simulator: " + backend.describe(supported))
+    add_devices_argument(p)
+
+
+def add_devices_argument(p) -> None:
+    """``--devices all|N|ID,ID,...``: the local devices a batch runs over (:mod:`hyqjax.sim.devices`); checked and
+    made the process's selection by :func:`apply_devices` (``hyqjax``'s ``main`` calls it for every command)."""
+    from hyqjax.sim.devices import DEVICES_HELP
+
+    p.add_argument("--devices", default="all", metavar="all|N|IDS",
+                   help=f"devices the batch runs over: {DEVICES_HELP} (default: all; MJX-JAX shards one program "
+                        "over them, MuJoCo Warp runs one program per device; C MuJoCo ignores it)")
+
+
+def apply_devices(args) -> None:
+    """Check ``args.devices`` (its form first, without JAX; then against the host's devices) and make it the
+    process's device selection (:func:`hyqjax.sim.devices.select`). A bad value is a :class:`UsageError` naming
+    ``--devices`` and what is allowed. Does nothing for a command without the option."""
+    if getattr(args, "devices", None) is None:
+        return
+    from hyqjax.sim import devices
+
+    try:
+        sel = devices.parse(args.devices)
+        if sel is not None or devices.selected() is not None:
+            devices.select(sel)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | None = None) -> None:

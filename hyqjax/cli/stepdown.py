@@ -257,8 +257,11 @@ def run(args) -> int:
     n_ticks = cfg.sim_config().n_ticks
     rollout = TASK.rollout(cfg)
     impl = rollout.setup.impl
+    from hyqjax.sim import devices as hdevices
+
+    where = "" if impl == "c" else f" on {hdevices.describe(hdevices.resolve())}"
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
+          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}{where}", flush=True)
     clock = phases.current()
     clock.lap("startup")
     t0 = time.time()

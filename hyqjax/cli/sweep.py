@@ -343,8 +343,9 @@ def run(args) -> int:
         import jax
 
         executor = sweep.LocalExecutor(impl=args.impl)
-        devs = jax.local_devices()
-        where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
+        devs = executor.devices
+        where = (f"{len(devs)} x {devs[0].platform} device(s) (ids {','.join(str(d.id) for d in devs)}), "
+                 f"simulator {executor.impl}")
     print(f"{size}, {where}", flush=True)
     from hyqjax.cli.common import compile_status, lap_batch_run
     from hyqjax.io import phases
