@@ -244,7 +244,7 @@ def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: Co
     the simulator's layout (:func:`hyqjax.sim.runner.run_on`); ``max_batch`` counts the instances of a chunk over
     all of them.
     """
-    from hyqjax.sim import devices as hdevices
+    from hyqjax.sim import backend as hbackend
     from hyqjax.sim import runner as srunner
 
     cfg = brollout.BoundingRolloutConfig(duration=duration, control_dt=control_dt, impl=impl)
@@ -252,7 +252,7 @@ def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: Co
     if not (isinstance(max_batch, int) and max_batch >= 1):
         raise ValueError(f"max_batch must be an int >= 1, got {max_batch!r}")
     st = brollout.setup(control_dt, impl)
-    devs = [None] if st.impl == "c" else hdevices.resolve(devices)
+    devs = hbackend.devices_for(st.impl, devices)
     n = int(np.shape(batch.apex0)[0])
     size = -(-n // -(-n // max_batch))  # balanced chunks of at most max_batch
     out: list[dict] = []

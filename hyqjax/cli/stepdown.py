@@ -257,9 +257,10 @@ def run(args) -> int:
     n_ticks = cfg.sim_config().n_ticks
     rollout = TASK.rollout(cfg)
     impl = rollout.setup.impl
-    from hyqjax.sim import devices as hdevices
+    from hyqjax.sim import backend as hbackend, devices as hdevices
 
-    where = "" if impl == "c" else f" on {hdevices.describe(hdevices.resolve())}"
+    devs = hbackend.devices_for(impl)
+    where = "" if devs == [None] else f" on {hdevices.describe(devs)}"
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
           f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}{where}", flush=True)
     clock = phases.current()

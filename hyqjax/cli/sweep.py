@@ -340,7 +340,6 @@ def run(args) -> int:
                                        max_retries=args.max_retries, impl=args.impl)
         where = executor.describe()
     else:
-        import jax
 
         executor = sweep.LocalExecutor(impl=args.impl)
         devs = executor.devices

@@ -372,6 +372,8 @@ class CBackend:
 
     name = "c"
     supports_gradients = False
+    #: The physics runs on the host's cores, sharded over threads, not over JAX devices.
+    uses_jax_devices = False
     one_instance_error = "C MuJoCo steps whole batches outside JAX"
 
     def __repr__(self) -> str:

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
-from hyqjax.sim import devices as hdevices
+from hyqjax.sim import backend as hbackend
 from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
@@ -126,7 +126,7 @@ class SuccessEvaluator:
         sc = _tile(scenario, n)
         st = self.setup
         t0 = time.perf_counter()
-        devs = [None] if st.impl == "c" else hdevices.resolve(self.devices)
+        devs = hbackend.devices_for(st.impl, self.devices)
         res = srunner.run_tree_on(devs, self.runners, st.impl, (sc, sp),
                                   lambda rows: (*stepdown.batch_inputs(st, rows[0]), rows[1], rows[0].push))
         out = self._outcome(res._replace(trace=None))
