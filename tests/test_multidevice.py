@@ -55,11 +55,11 @@ res = dict(n_leaves=len(a), rollout_differ=sum(not np.array_equal(x, y, equal_na
            outcomes_differ=sum(not np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
                                for x, y in zip(jax.tree_util.tree_leaves(out1), jax.tree_util.tree_leaves(out4))),
            completed=np.asarray(stepdown_outcome.to_columns(out4)["completed"]).tolist())
-spec = sweep.SweepSpec.from_dict(dict(seed=3, samples=2, duration=0.3, grid=dict(height=[0.16, 0.24]),
+spec = sweep.SweepSpec.from_dict(dict(seed=3, samples=4, duration=0.3, grid=dict(height=[0.16, 0.24]),
                                       random=dict(friction=[0.6, 1.0])))
-rows = spec.instance_inputs(0, 4)
-s1 = sweep.run_rows(rows, spec, 4, devices=jax.local_devices()[:1])
-s4 = sweep.run_rows(rows, spec, 4, devices=jax.local_devices())
+rows = spec.instance_inputs(0, 8)  # a chunk of 8: one program of 8 rows, or 4 devices x 2 rows
+s1 = sweep.run_rows(rows, spec, 8, devices=jax.local_devices()[:1])
+s4 = sweep.run_rows(rows, spec, 8, devices=jax.local_devices())
 res.update(sweep_cols=len(s1), sweep_differ=[k for k in s1 if not np.array_equal(s1[k], s4[k],
                                                                                 equal_nan=s1[k].dtype.kind == "f")])
 print("RESULT " + json.dumps(res))

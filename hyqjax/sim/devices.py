@@ -7,7 +7,8 @@ to every device in turn so that the devices run at once, the results joined in i
 
 * MJX-JAX on host (CPU) devices: the one-device run's passes (its batch buckets) dealt out to the devices, so every
   device runs the one-device program's shape on the same rows: bitwise the one-device results, by construction
-  (``tests/test_multidevice.py``: the step-down, a sweep chunk, a tuning generation, the bounding envelope). The
+  (``tests/test_multidevice.py``: the step-down, a tuning generation, the bounding envelope; a sweep chunk, whose
+  runner has no buckets, is cut into slices as on a GPU, and its rows were bitwise equal there too). The
   shape matters: the bounding envelope's rows computed in slices of 2 rows instead of the one-device pass of 8
   differed in 11 of its 20 columns after 0.8 s; and one program sharded over a mesh
   (:func:`hyqjax.sim.runner.batch_mesh`, ``Rollout.run(mesh=...)``, still available) gave the step-down rows up to

@@ -355,11 +355,12 @@ def run_on(devices: list, n: int, inputs_of: Callable, runner_of: Callable, impl
     (:func:`run_split`), the devices running at once:
 
     * MJX-JAX on host (CPU) devices: the passes of the one-device run (:meth:`BatchRunner.plan`: ``CPU_PASS``
-      rows, or one bucket up to it; one pass of the batch for a runner without buckets) dealt out to the devices, ``len(devices)`` passes at a time, from inputs made once for
+      rows, or one bucket up to it) dealt out to the devices, ``len(devices)`` passes at a time, from inputs made once for
       the whole batch: every pass runs the one-device program's shape on the same rows, so the results are
       bitwise those of one device (XLA's code for another batch shape may round differently). A batch of one pass
       runs on the first device.
-    * otherwise (a GPU, MuJoCo Warp): N equal contiguous slices, the last padded by repeating instance ``n - 1``
+    * otherwise (a GPU, MuJoCo Warp, a runner without buckets such as a sweep's, whose chunk is its compiled
+      shape): N equal contiguous slices, the last padded by repeating instance ``n - 1``
       (MuJoCo Warp: each slice's data made for the slice, its contact buffer sized for it).
 
     ``inputs_of(idx)``: ``(mx_batched, d0, params, push)`` of the instances ``idx`` (a host integer array);
@@ -382,8 +383,8 @@ def run_on(devices: list, n: int, inputs_of: Callable, runner_of: Callable, impl
         def rows_of(idx):
             return _rows(mb, m_axes, idx), _rows(d0, 0, idx), _rows(params, pax, idx), _rows(push, 0, idx)
 
-    if impl != "warp" and devices[0].platform == "cpu":
-        plan = runner_of(None).plan(n, mb)  # the one-device run's passes (its buckets, or one pass without them)
+    if impl != "warp" and devices[0].platform == "cpu" and runner_of(None).buckets:
+        plan = runner_of(None).plan(n, mb)  # the one-device run's passes (its batch buckets)
         groups = [[np.minimum(np.arange(p * plan.size, (p + 1) * plan.size), n - 1)
                    for p in range(r, min(r + k, plan.passes))] for r in range(0, plan.passes, k)]
     else:
