@@ -44,7 +44,7 @@ assert len(jax.local_devices()) == 4, jax.local_devices()
 from hyqjax.crawl import controller as crawl
 from hyqjax.studies import stepdown, stepdown_outcome, sweep
 
-scen, table = stepdown.make_scenarios([0.10, 0.16], [True], 3, 0, params=crawl.CrawlParams.make())
+scen, table = stepdown.make_scenarios([0.10, 0.16], [True], 9, 0, params=crawl.CrawlParams.make())
 ro = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=0.4, impl="jax"))
 out1, r1 = ro.run(scen, devices=1)
 out4, r4 = ro.run(scen, devices=4)
@@ -55,11 +55,11 @@ res = dict(n_leaves=len(a), rollout_differ=sum(not np.array_equal(x, y, equal_na
            outcomes_differ=sum(not np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
                                for x, y in zip(jax.tree_util.tree_leaves(out1), jax.tree_util.tree_leaves(out4))),
            completed=np.asarray(stepdown_outcome.to_columns(out4)["completed"]).tolist())
-spec = sweep.SweepSpec.from_dict(dict(seed=3, samples=2, duration=0.3, grid=dict(height=[0.16, 0.24]),
+spec = sweep.SweepSpec.from_dict(dict(seed=3, samples=4, duration=0.3, grid=dict(height=[0.16, 0.24]),
                                       random=dict(friction=[0.6, 1.0])))
-rows = spec.instance_inputs(0, 4)
-s1 = sweep.run_rows(rows, spec, 4, devices=jax.local_devices()[:1])
-s4 = sweep.run_rows(rows, spec, 4, devices=jax.local_devices())
+rows = spec.instance_inputs(0, 8)  # a chunk of 8: one program of 8 rows, or 4 devices x 2 rows
+s1 = sweep.run_rows(rows, spec, 8, devices=jax.local_devices()[:1])
+s4 = sweep.run_rows(rows, spec, 8, devices=jax.local_devices())
 res.update(sweep_cols=len(s1), sweep_differ=[k for k in s1 if not np.array_equal(s1[k], s4[k],
                                                                                 equal_nan=s1[k].dtype.kind == "f")])
 print("RESULT " + json.dumps(res))
@@ -72,9 +72,9 @@ def test_one_and_four_host_devices_give_bitwise_the_same_rollouts_and_sweep_rows
                    env={"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()})
     assert p.returncode == 0, p.stderr[-3000:]
     res = json.loads(next(line for line in p.stdout.splitlines() if line.startswith("RESULT "))[7:])
-    assert res["qpos_shape"][0] == 6  # the 6 instances, the padding rows of the 4 slices dropped
+    assert res["qpos_shape"][0] == 18  # the 18 instances (3 passes of 8, on 3 devices), the padding rows dropped
     assert res["n_leaves"] > 50 and res["rollout_differ"] == 0, res
-    assert res["outcomes_differ"] == 0 and len(res["completed"]) == 6, res
+    assert res["outcomes_differ"] == 0 and len(res["completed"]) == 18, res
     assert res["sweep_cols"] > 10 and res["sweep_differ"] == [], res
 
 
@@ -105,8 +105,8 @@ print("RESULT " + json.dumps(dict(
 
 @pytest.mark.slow
 def test_tuner_generation_over_four_host_devices_gives_the_same_objective():
-    """One generation (3 members x 4 common scenarios) evaluated on 1 and on 4 host devices (the 12 rows split over
-    the devices, one program each): the same fitness and the same per-row outcome columns."""
+    """One generation (3 members x 4 common scenarios) evaluated on 1 and on 4 host devices (the 12 rows as 2 passes of
+    8, one on each of 2 devices): the same fitness and the same per-row outcome columns."""
     p = run_python(TUNE_CODE, timeout=1200,
                    env={"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()})
     assert p.returncode == 0, p.stderr[-3000:]
@@ -114,3 +114,62 @@ def test_tuner_generation_over_four_host_devices_gives_the_same_objective():
     assert res["fitness1"] == res["fitness4"] and len(res["fitness1"]) == 3, res
     assert res["n_columns"] > 10 and res["columns_differ"] == [], res
     assert res["differs_between_members"] and res["steps"] == [3 * 4 * 200] * 2, res
+
+
+BOUND_CODE = r"""
+import json, numpy as np, jax
+assert len(jax.local_devices()) == 4
+from hyqjax.bounding import envelope as be
+
+spec = be.EnvelopeSpec(speeds=(0.0, 0.5), yaw_rates=(0.3,), instances=5, friction=(0.7, 1.0), payload=(0.0, 5.0),
+                       duration=0.8)
+batch = spec.batch(None)
+from hyqjax.bounding import tracking
+c1 = tracking.run_batch(batch, spec.duration, "jax", devices=1)
+c4 = tracking.run_batch(batch, spec.duration, "jax", devices=4)
+print("RESULT " + json.dumps(dict(n=int(len(c1["success"])), cols=len(c1),
+    differ=[k for k in c1 if not np.array_equal(c1[k], c4[k], equal_nan=np.asarray(c1[k]).dtype.kind == "f")])))
+"""
+
+
+@pytest.mark.slow
+def test_bounding_envelope_batch_on_one_and_four_host_devices_is_the_same():
+    """The bounding envelope's batch (tracking.run_batch, MJX-JAX; 2 commands x 5 instances, 0.8 s: 2 passes of 8
+    rows, on 2 devices) on 1 and on 4 host devices: every column equal."""
+    p = run_python(BOUND_CODE, timeout=1200,
+                   env={"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4").strip()})
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads(next(line for line in p.stdout.splitlines() if line.startswith("RESULT "))[7:])
+    assert res["n"] == 10 and res["cols"] > 10 and res["differ"] == [], res
+
+
+WARP_CODE = r"""
+import json, numpy as np, jax
+assert len(jax.local_devices()) == 2
+from hyqjax.crawl import controller as crawl
+from hyqjax.studies import stepdown, stepdown_outcome
+
+scen, _ = stepdown.make_scenarios([0.10, 0.16], [True], 2, 0, params=crawl.CrawlParams.make())
+ro = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=0.4, impl="warp"))
+o1, r1 = ro.run(scen, devices=1)
+o2, r2 = ro.run(scen, devices=2)
+c1, c2 = stepdown_outcome.to_columns(o1), stepdown_outcome.to_columns(o2)
+print("RESULT " + json.dumps(dict(impl=ro.setup.impl, shape=list(np.asarray(r2.data.qpos).shape),
+    dq=float(np.abs(np.asarray(r1.data.qpos) - np.asarray(r2.data.qpos)).max()),
+    same_completed=bool(np.array_equal(c1["completed"], c2["completed"])),
+    overflow=bool(np.asarray(c2["contact_overflow"]).any()))))
+"""
+
+
+@pytest.mark.slow
+def test_warp_batch_split_over_two_host_devices():
+    """MuJoCo Warp (on the CPU) over 2 host devices: each device's slice with its own data and contact buffer; the
+    4 step-down instances come back in order, within 1 mm of the one-device run over 0.4 s (measured: equal), with
+    the same outcomes and no buffer overflow."""
+    pytest.importorskip("warp")
+    p = run_python(WARP_CODE, timeout=1200,
+                   env={"XLA_FLAGS": (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()})
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads(next(line for line in p.stdout.splitlines() if line.startswith("RESULT "))[7:])
+    assert res["impl"] == "warp" and res["shape"][0] == 4, res
+    assert res["dq"] < 1e-3 and res["same_completed"] and not res["overflow"], res

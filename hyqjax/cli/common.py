@@ -381,8 +381,8 @@ def add_devices_argument(p) -> None:
     from hyqjax.sim.devices import DEVICES_HELP
 
     p.add_argument("--devices", default="all", metavar="all|N|IDS",
-                   help=f"devices the batch runs over: {DEVICES_HELP} (default: all; MJX-JAX shards one program "
-                        "over them, MuJoCo Warp runs one program per device; C MuJoCo ignores it)")
+                   help=f"devices the batch runs over: {DEVICES_HELP} (default: all; one program per device, the "
+                        "batch split between them; C MuJoCo ignores it)")
 
 
 def apply_devices(args) -> None:

@@ -1,19 +1,23 @@
 """Which devices a batch runs on: every local device by default, or those a user picks (``--devices``).
 
-A batch of instances runs over several devices of one host as ``split`` (:func:`hyqjax.sim.runner.run_on`): the
-batch in N equal contiguous slices (the last padded by repeating the last instance), one single-device program per
-device (the same static setup; on a GPU the persistent compilation cache, whose key leaves out the device, serves
-devices 1..N-1 the program device 0 compiled), dispatched chunk by chunk in turn so that the devices run at once.
+A batch of instances runs over several devices of one host as ``split`` (:func:`hyqjax.sim.runner.run_on`): one
+single-device program per device (the same static setup; on a GPU the persistent compilation cache, whose key
+leaves out the device, serves devices 1..N-1 the program device 0 compiled), the chunks of simulated time dispatched
+to every device in turn so that the devices run at once, the results joined in instance order.
 
-* MJX-JAX: each instance is computed by the same per-instance program whatever the layout. On host (CPU) devices
-  the results of 1 and 4 devices are bitwise equal (``tests/test_multidevice.py``); a program sharded over a
-  mesh (:func:`hyqjax.sim.runner.batch_mesh`, ``Rollout.run(mesh=...)``, still available) was not: XLA compiles
-  the partitioned program differently and the same step-down rows differed by up to 3e-6 m in ``qpos`` after
-  0.4 s, enough to change outcome columns.
-* MuJoCo Warp keeps one contact buffer per batch (``naconmax`` over all worlds, not a per-instance field), which
-  a sharded program would split along the wrong axis; each slice gets its own data and buffer, sized for the
-  slice. Outcomes agree with a one-device run within the simulator's agreement (contact ordering in a buffer of
-  another size), counted by ``benchmarks/bench_multi_gpu.py``.
+* MJX-JAX on host (CPU) devices: the one-device run's passes (its batch buckets) dealt out to the devices, so every
+  device runs the one-device program's shape on the same rows: bitwise the one-device results, by construction
+  (``tests/test_multidevice.py``: the step-down, a tuning generation, the bounding envelope; a sweep chunk, whose
+  runner has no buckets, is cut into slices as on a GPU, and its rows were bitwise equal there too). The
+  shape matters: the bounding envelope's rows computed in slices of 2 rows instead of the one-device pass of 8
+  differed in 11 of its 20 columns after 0.8 s; and one program sharded over a mesh
+  (:func:`hyqjax.sim.runner.batch_mesh`, ``Rollout.run(mesh=...)``, still available) gave the step-down rows up to
+  3e-6 m apart in ``qpos`` after 0.4 s, enough to change outcome columns.
+* On a GPU (MJX-JAX or MuJoCo Warp): N equal contiguous slices (the last padded by repeating the last instance), so
+  the GPUs share the work; a slice's batch shape is not the one-GPU run's, so its float32 results may round
+  differently (``benchmarks/bench_multi_gpu.py`` counts the per-instance agreement and the per-cell counts).
+  MuJoCo Warp keeps one contact buffer per batch (``naconmax`` over all worlds, not a per-instance field), which a
+  sharded program would split along the wrong axis; each slice gets its own data and buffer, sized for the slice.
 
 The selection is a process-wide default (:func:`select`, set by the command line's ``--devices``) that
 :func:`resolve` reads when a caller names no devices. Nothing here imports JAX at import time.

@@ -326,13 +326,7 @@ def run_split(runners: list, parts: list, progress: Progress | None = None,
         outs.append(jax.tree_util.tree_map(np.asarray, rollout_result(st[1], trace)))
     sizes = [int(p[1].qpos.shape[0]) for p in parts]
     total = sum(sizes)
-
-    def cat(*xs):  # batched leaves joined; a leaf without the batch axis (Warp's contact buffer) is device 0's
-        if all(np.ndim(x) >= 1 and x.shape[0] == b for x, b in zip(xs, sizes)):
-            return np.concatenate(xs, 0)
-        return xs[0]
-
-    out = jax.tree_util.tree_map(cat, *outs)
+    out = _join(outs, sizes)  # batched leaves joined; one without the batch axis (Warp's contact buffer) is device 0's
     timing = dict(compile_s=compile_s, trace_s=trace_s, simulate_s=simulate_s, compiled=compiled,
                   from_cache=from_cache, batch=total, passes=1, instances=total, devices=len(runners),
                   wall_s=time.perf_counter() - t_start)
@@ -342,18 +336,37 @@ def run_split(runners: list, parts: list, progress: Progress | None = None,
     return out
 
 
+def _join(outs: list, sizes: list):
+    """Results of consecutive row groups joined along the batch axis (host NumPy); a leaf without the batch axis
+    (Warp's contact buffer) is the first group's."""
+    def cat(*xs):
+        if all(np.ndim(x) >= 1 and x.shape[0] == b for x, b in zip(xs, sizes)):
+            return np.concatenate(xs, 0)
+        return xs[0]
+
+    return outs[0] if len(outs) == 1 else jax.tree_util.tree_map(cat, *outs)
+
+
 def run_on(devices: list, n: int, inputs_of: Callable, runner_of: Callable, impl: str,
            progress: Progress | None = None, chunk_seconds: float | None = None,
            how: str | None = None) -> RolloutResult:
     """Run a batch of ``n`` instances over ``devices`` in the layout of the resolved simulator ``impl``
-    (:func:`hyqjax.sim.devices.layout`): one device; MJX-JAX's ``mesh`` (one program sharded over
-    :func:`batch_mesh`); MuJoCo Warp's ``split`` (:func:`run_split`: equal contiguous slices, the last padded by
-    repeating instance ``n - 1``, one program per device).
+    (:func:`hyqjax.sim.devices.layout`): ``one`` device, or ``split``, one single-device program per device
+    (:func:`run_split`), the devices running at once:
+
+    * MJX-JAX on host (CPU) devices: the passes of the one-device run (:meth:`BatchRunner.plan`: ``CPU_PASS``
+      rows, or one bucket up to it) dealt out to the devices, ``len(devices)`` passes at a time, from inputs made once for
+      the whole batch: every pass runs the one-device program's shape on the same rows, so the results are
+      bitwise those of one device (XLA's code for another batch shape may round differently). A batch of one pass
+      runs on the first device.
+    * otherwise (a GPU, MuJoCo Warp, a runner without buckets such as a sweep's, whose chunk is its compiled
+      shape): N equal contiguous slices, the last padded by repeating instance ``n - 1``
+      (MuJoCo Warp: each slice's data made for the slice, its contact buffer sized for it).
 
     ``inputs_of(idx)``: ``(mx_batched, d0, params, push)`` of the instances ``idx`` (a host integer array);
     ``runner_of(where)``: the :class:`BatchRunner` for ``where``, None (one device), a mesh, or a device (one
-    runner per device, kept by the caller). ``how`` overrides the layout (``"split"`` under MJX-JAX, to compare
-    the layouts). Returns the :class:`RolloutResult` of the ``n`` instances in order."""
+    runner per device, kept by the caller). ``how`` overrides the layout (``"mesh"``: one program sharded over
+    :func:`batch_mesh`). Returns the :class:`RolloutResult` of the ``n`` instances in order."""
     from hyqjax.sim import devices as hdevices
 
     devices = list(devices)
@@ -362,13 +375,31 @@ def run_on(devices: list, n: int, inputs_of: Callable, runner_of: Callable, impl
         runner = runner_of(None if how == "one" else batch_mesh(devices))
         return runner(*inputs_of(np.arange(n)), progress=progress, chunk_seconds=chunk_seconds)
     k = len(devices)
-    size = -(-n // k)
-    parts = []
-    for i, dev in enumerate(devices):
-        idx = np.minimum(np.arange(i * size, (i + 1) * size), n - 1)
-        parts.append(jax.device_put(inputs_of(idx), dev))
-    out = run_split([runner_of(dev) for dev in devices], parts, progress, chunk_seconds)
-    return jax.tree_util.tree_map(lambda x: x[:n] if np.ndim(x) >= 1 and x.shape[0] == k * size else x, out)
+    rows_of = inputs_of
+    if impl != "warp":  # the inputs made once for the whole batch, then cut: a part's rows are bitwise the batch's
+        mb, d0, params, push = inputs_of(np.arange(n))
+        m_axes, pax = hmodel.model_in_axes(mb), runner_of(devices[0]).params_axes
+
+        def rows_of(idx):
+            return _rows(mb, m_axes, idx), _rows(d0, 0, idx), _rows(params, pax, idx), _rows(push, 0, idx)
+
+    if impl != "warp" and devices[0].platform == "cpu" and runner_of(None).buckets:
+        plan = runner_of(None).plan(n, mb)  # the one-device run's passes (its batch buckets)
+        groups = [[np.minimum(np.arange(p * plan.size, (p + 1) * plan.size), n - 1)
+                   for p in range(r, min(r + k, plan.passes))] for r in range(0, plan.passes, k)]
+    else:
+        size = -(-n // k)
+        groups = [[np.minimum(np.arange(i * size, (i + 1) * size), n - 1) for i in range(k)]]
+    outs, sizes = [], []
+    for g, group in enumerate(groups):
+        parts = [jax.device_put(rows_of(idx), devices[i]) for i, idx in enumerate(group)]
+        prog = None if progress is None else (
+            lambda d, t, g=g: progress(g * t + d, len(groups) * t))
+        outs.append(run_split([runner_of(devices[i]) for i in range(len(group))], parts, prog, chunk_seconds))
+        sizes.append(sum(len(idx) for idx in group))
+    total = sum(sizes)
+    out = _join(outs, sizes)
+    return jax.tree_util.tree_map(lambda x: x[:n] if np.ndim(x) >= 1 and x.shape[0] == total else x, out)
 
 
 class RunnersByPlace:
