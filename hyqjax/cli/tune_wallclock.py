@@ -1,8 +1,8 @@
-"""``hyqjax tune`` without ``--gradient-study`` (the default tuner, ``--quick``, ``--study``): its run and the summary
+"""The run of ``hyqjax tune`` and of the equal-wall-clock study (``python -m experiments.tune_study``) and the summary
 it prints (held-out success with Wilson intervals of the start point, Table I and what each run returned; the
 returned parameters against the start; gradient diagnostics; the selection's validations; the best run of a study).
 The options and their checks, which build the :class:`hyqjax.studies.tune.wallclock.WallClockConfig`, are
-:mod:`hyqjax.cli.tune`'s; the gradient study's run is :mod:`hyqjax.cli.tune_gradient_study`'s.
+:mod:`hyqjax.cli.tune`'s (the study's further options: ``experiments/tune_study.py``).
 """
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ PAUSED = 75
 
 
 def run(args) -> int:
-    """Run the default tuner or ``--study`` (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
+    """Run the tuner or the equal-wall-clock study (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
     under the run directory's lock) and print its summary."""
     from hyqjax.studies.tune import figure, wallclock, wallclock_results
 
     cfg = args.wallclock_config
-    what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
+    what = "equal-wall-clock study" if args.study else ("quick tuner" if args.quick else "tuner")
     print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
           f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
     res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True),

@@ -7,7 +7,12 @@ from __future__ import annotations
 SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search")
 #: The pathwise gradient through closed-loop windows, and the hybrid (search, then gradient polish).
 GRADIENT_METHODS = ("gradient", "hybrid")
-METHODS = SEARCH_METHODS + GRADIENT_METHODS
+#: Guided evolution strategies (Maheswaranathan et al. 2019; evosax GuidedES): antithetic search whose samples
+#: lean into the subspace of recent surrogate gradients from MJX-JAX (:func:`hyqjax.studies.tune.search.run_guided`).
+GUIDED_METHODS = ("guided_es",)
+METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS
+#: Methods that build the gradient's programs (snapshot windows and the tuning step on MJX-JAX).
+USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: The default tuner: the best held-out clean success at the longest budget of the equal-wall-clock study

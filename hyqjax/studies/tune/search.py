@@ -37,7 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.studies.tune.names import GRADIENT_METHODS, METHODS, SEARCH_METHODS  # noqa: E402,F401
+from hyqjax.studies.tune.names import (GRADIENT_METHODS, GUIDED_METHODS, METHODS, SEARCH_METHODS,  # noqa: F401
+                                       USES_GRADIENT)
 from hyqjax.studies.tune.resume import tree_like
 
 
@@ -395,3 +396,108 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
             checkpoint(lambda: dict(step=step, theta=theta, opt=jax.tree.leaves(state)))
     return np.asarray(theta, np.float64)
 
+
+
+def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspace) -> dict:
+    """How far the surrogate gradient ``g`` agrees with the population's own gradient estimate on the same
+    antithetic population (``pop`` (N, P), pairs ``i`` and ``i + N/2``; ``fitness_min`` (N,) the minimised
+    objective, the one ``g`` is a gradient of):
+
+    * ``cos_search``: cosine of ``g`` with ``sum_i (f_i+ - f_i-) z_i``, the direction guided ES's ``tell`` moves
+      the mean against (its samples lean into the gradient subspace, so this one leans towards ``g`` by design);
+    * ``cos_zero_order``: cosine of ``g`` with the unbiased zero-order estimate ``Sigma^-1 sum_i (f_i+ - f_i-)
+      z_i / N`` of the smoothed objective's gradient, ``Sigma = a^2 I + c^2 Q Q^T`` the sampling covariance
+      (``a^2 = sigma^2 alpha / P``, ``c^2 = sigma^2 (1 - alpha) / k``, ``Q`` an orthonormal basis of the ``k``
+      gradients of ``subspace`` (P, k)): the data on whether the surrogate points the right way. NaN when
+      ``alpha`` is 0 (no isotropic part to invert) or either vector is zero."""
+    g = np.asarray(g, np.float64)
+    z = np.asarray(pop, np.float64) - np.asarray(mean, np.float64)[None]
+    n = z.shape[0] // 2
+    f = np.asarray(fitness_min, np.float64)
+    est = (f[:n] - f[n:]) @ z[:n]
+    p, k = z.shape[1], int(np.shape(subspace)[1])
+    q, _ = np.linalg.qr(np.asarray(subspace, np.float64))
+    a2, c2 = sigma**2 * alpha / p, sigma**2 * (1.0 - alpha) / k
+    par = q @ (q.T @ est)
+    white = (est - par) / a2 + par / (a2 + c2) if a2 > 0 else np.full_like(est, np.nan)
+
+    def cos(u, v):
+        nu, nv = np.linalg.norm(u), np.linalg.norm(v)
+        return float(u @ v / (nu * nv)) if nu > 0 and nv > 0 and np.isfinite(nu * nv) else float("nan")
+
+    return dict(cos_search=cos(g, est), cos_zero_order=cos(g, white))
+
+
+def make_guided(size: int, popsize: int, sigma: float, alpha: float = 0.5, subspace: int = 1, lr: float = 0.05):
+    """evosax's ``GuidedES`` (antithetic; the mean moved by Adam at ``lr``; constant ``sigma``) and its
+    parameters; ``alpha = 1`` is isotropic antithetic ES on the same code path."""
+    import optax
+    from evosax.algorithms import GuidedES
+
+    es = GuidedES(population_size=popsize, solution=jnp.zeros(size, jnp.float32),
+                  subspace_dims=max(1, min(int(subspace), size - 1)), optimizer=optax.adam(lr),
+                  std_schedule=optax.constant_schedule(sigma))
+    return es, es.default_params.replace(alpha=float(alpha))
+
+
+def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
+               seed: int = 0, alpha: float = 0.5, subspace: int = 1, lr: float = 0.05, grad_every: int = 1,
+               grad_cost: int = 0, progress: Callable | None = None, resume: dict | None = None,
+               checkpoint: Callable | None = None):
+    """Guided evolution strategies (Maheswaranathan et al., ICML 2019; evosax ``GuidedES``): maximise
+    ``f_gen(thetas (N, P), generation) -> dict(fitness, clean, completed, physics_steps)`` (as :func:`run_search`)
+    with antithetic samples from ``sigma^2 (alpha / P I + (1 - alpha) / k Q Q^T)``, ``Q`` spanning the last ``k =
+    subspace`` surrogate gradients. ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
+    *minimised* (the window objective of :mod:`.objective` on MJX-JAX), evaluated at the mean every
+    ``grad_every`` generations (its wall time on ``clock``, ``grad_cost`` physics steps each) and handed to the
+    search with ``state.replace(grad=g)`` before each ``ask`` (the last one again between two). Only the subspace
+    of the gradients shapes the samples; the mean moves by the population's own antithetic estimate (Adam).
+
+    Every generation's log row holds :func:`guided_cosines` of the surrogate gradient with the population's
+    estimate on the same population. Returns the final mean; ``checkpoint`` / ``resume`` as in
+    :func:`run_search`."""
+    theta0 = np.asarray(theta0, np.float64)
+    es, params = make_guided(theta0.size, popsize, sigma, alpha, subspace, lr)
+    key = jax.random.key(seed)
+    key, k0 = jax.random.split(key)
+    state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
+    ask, tell = jax.jit(es.ask), jax.jit(es.tell)
+    gen, g, loss = 0, None, float("nan")
+    if resume is not None:
+        key, state = jax.random.wrap_key_data(jnp.asarray(resume["key"])), tree_like(state, resume["state"])
+        gen, g, loss = int(resume["gen"]), np.asarray(resume["g"], np.float64), float(resume["loss"])
+        with clock.paused():  # compiled again in this process; the run paid for it once
+            pop, _ = ask(key, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
+            tell(key, pop, jnp.zeros(popsize, jnp.float32), state, params)
+    while not trace.done(clock):
+        key, ka, kt = jax.random.split(key, 3)
+        mean = np.asarray(state.mean, np.float64)
+        fresh = g is None or gen % grad_every == 0
+        if fresh:
+            r = grad_fn(mean)
+            g, loss = np.asarray(r["grad"], np.float64), float(r["loss"])
+            clock.physics_steps += int(grad_cost)
+            if not np.all(np.isfinite(g)):
+                g = np.zeros_like(g)  # a non-finite surrogate guides nothing: isotropic this generation
+        pop, state = ask(ka, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
+        pop64 = np.asarray(pop, np.float64)
+        r = f_gen(np.concatenate([mean[None], pop64]), gen)
+        clock.physics_steps += r["physics_steps"]
+        fit = np.asarray(r["fitness"], np.float64)
+        cosines = guided_cosines(g, pop64, mean, -fit[1:], sigma, alpha, np.asarray(state.grad_subspace))
+        state = tell(kt, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
+        new_mean = np.asarray(state.mean, np.float64)
+        if not np.all(np.isfinite(new_mean)):
+            raise FloatingPointError(f"guided_es: the search mean became non-finite at generation {gen}")
+        trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),
+                                            iterate_clean=float(np.mean(r["clean"][0])),
+                                            best_fitness=float(fit[1:].max()), mean_fitness=float(fit[1:].mean()),
+                                            surrogate_loss=loss, surrogate_grad_norm=float(np.linalg.norm(g)),
+                                            new_gradient=bool(fresh), **cosines))
+        gen += 1
+        if progress:
+            progress(clock, trace)
+        if checkpoint:
+            checkpoint(lambda: dict(gen=gen, key=jax.random.key_data(key), state=jax.tree.leaves(state), g=g,
+                                    loss=loss))
+    return np.asarray(state.mean, np.float64)

@@ -2,9 +2,10 @@
 
 Both layouts ``hyqjax tune`` writes are read:
 
-* the default tuner and the equal-wall-clock study (``--study``): ``res["runs"]["<method>/<dim>"]["theta"]``, the
+* the default tuner and the equal-wall-clock study (``python -m experiments.tune_study``): ``res["runs"]["<method>/<dim>"]["theta"]``, the
   iterate the run returned at its last checkpoint (:mod:`.wallclock`);
-* the gradient study (``--gradient-study``): ``res["<method>"]["theta"]`` (:mod:`.study`).
+* the gradient study (``python -m experiments.tune_study --gradient-study``): ``res["<method>"]["theta"]``
+  (:mod:`.study.gradient`).
 
 Only the parameterisation that is one ``CrawlParams`` (``shared``, :class:`.space.ParamSpace` over the run's
 ``groups``) can be run by the step-down command; the scheduled ones (``per_leg``, ``per_leg_cond``, ...) choose a

@@ -1,6 +1,6 @@
 """The equal-wall-clock tuning study: every method, every parameterisation, the same wall-clock budget on one GPU.
 
-:func:`run_wallclock_study` (``hyqjax tune --study``, ``python -m experiments.tune_study``):
+:func:`run_wallclock_study` (``hyqjax tune`` with one method, ``python -m experiments.tune_study``):
 
 1. **compile charges** (:class:`.search.Charges`): the forward success program (population ``N = popsize + 1``
    members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) compiles in the
@@ -86,8 +86,9 @@ def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
 
 def _fingerprint(config: dict) -> dict:
     """The settings that must agree for runs to share one results file: all but ``methods`` (one process per
-    method composes into one study; each run is stored under its own method's key)."""
-    return {k: v for k, v in config.items() if k != "methods"}
+    method composes into one study; each run is stored under its own method's key). A setting a stored study
+    predates counts at its default."""
+    return {k: v for k, v in {**WallClockConfig.defaults(), **config}.items() if k != "methods"}
 
 
 def _methods_union(*lists) -> list:
@@ -135,7 +136,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         f"per generation, impl {res['impl']}; it compiles in the first search method's clock and is charged to the "
         f"others")
     grad = None
-    if any(m in search.GRADIENT_METHODS for m, _ in todo):
+    if any(m in search.USES_GRADIENT for m, _ in todo):
         log("snapshot windows for the gradient (MJX-JAX) ...")
         with heartbeat(log, lambda t0=time.perf_counter(): f"  snapshot windows: {time.perf_counter() - t0:.0f} s"):
             grad = GradientPrograms(cfg, base, charges, log)

@@ -97,6 +97,15 @@ class WallClockConfig:
     select_every: int = 5
     select_every_s: float = 0.0
     select_seed: int = 5555
+    # guided ES (:func:`.search.run_guided`)
+    #: share of the sampling variance in the full space (1: isotropic antithetic ES; 0: the gradient subspace only)
+    guided_alpha: float = 0.5
+    #: number of recent surrogate gradients that span the guiding subspace
+    guided_subspace: int = 1
+    #: Adam learning rate of the search mean
+    guided_lr: float = 0.05
+    #: a new surrogate gradient (the tuning step's, on MJX-JAX) every this many generations
+    guided_grad_every: int = 1
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -117,8 +126,17 @@ class WallClockConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        if "open_es" in self.methods and self.popsize % 2:
-            raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
+        for m in ("open_es", "guided_es"):
+            if m in self.methods and self.popsize % 2:
+                raise ValueError(f"popsize must be even with {m} (it samples antithetic pairs), got {self.popsize}")
+        if not 0.0 <= float(self.guided_alpha) <= 1.0:
+            raise ValueError(f"guided_alpha must be in [0, 1], got {self.guided_alpha}")
+        if not 0.0 < float(self.guided_lr) <= 1.0:
+            raise ValueError(f"guided_lr must be in (0, 1], got {self.guided_lr}")
+        for k, lo, hi in (("guided_subspace", 1, 64), ("guided_grad_every", 1, 10**4)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
         for k in ("charge_compile", "cold_compile", "retake_windows"):
             if not isinstance(getattr(self, k), bool):
                 raise ValueError(f"{k} must be True or False, got {getattr(self, k)!r}")

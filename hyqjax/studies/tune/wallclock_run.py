@@ -43,7 +43,7 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     segment :class:`.resume.Paused` is raised."""
     theta0 = dict(cfg.start_from).get(run_key(method, param.name))
     theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
-    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
+    if method in search.USES_GRADIENT:  # compiled (and charged) before the clock starts
         with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
             grad.programs(param)
@@ -133,7 +133,7 @@ def selection_program(cfg: WallClockConfig) -> str:
 
 def forward_programs(method: str, cfg: WallClockConfig) -> list:
     """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
-    out = ["forward"] if method in search.SEARCH_METHODS or method == "hybrid" else []
+    out = ["forward"] if method in search.SEARCH_METHODS + search.GUIDED_METHODS or method == "hybrid" else []
     if cfg.select_instances and selection_program(cfg) not in out:
         out.append(selection_program(cfg))
     return out
@@ -141,7 +141,7 @@ def forward_programs(method: str, cfg: WallClockConfig) -> list:
 
 def _warm_up(method, param, cfg, evaluator, charges, theta0, phase) -> None:
     """A resumed run's forward programs compiled again (their outputs dropped), before its clock goes on."""
-    if method in search.SEARCH_METHODS or phase["name"] == "search":
+    if method in search.SEARCH_METHODS + search.GUIDED_METHODS or phase["name"] == "search":
         with charges.track("forward"):
             evaluator(np.repeat(np.asarray(theta0, np.float64)[None], cfg.popsize + 1, 0),
                       forward.train_scenarios(cfg.train_instances, generation_seed(cfg.seed, param.name), 0,
@@ -165,6 +165,16 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
             if name in charges.seconds:
                 charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
         trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
+    if method in search.GUIDED_METHODS:
+        step_fn, _, _ = grad.programs(param)
+        if stored is None:
+            for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
+                charge(charges.seconds[name])
+        search.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                          alpha=cfg.guided_alpha, subspace=cfg.guided_subspace, lr=cfg.guided_lr,
+                          grad_every=cfg.guided_grad_every, grad_cost=grad.step_costs[param.name],
+                          progress=progress, resume=state, checkpoint=hook(phase))
+        return
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           progress=progress, resume=state, checkpoint=hook(phase))
