@@ -161,7 +161,7 @@ def validate(args) -> None:
     for k, v in GRADIENT_STUDY_ONLY.items():
         if getattr(args, k) != v:
             raise UsageError(f"--{k.replace('_', '-')} belongs to --gradient-study; the wall-clock study does not use it")
-    args.study, args.wall_minutes = True, args.wall_minutes or [1.0, 3.0, 10.0]
+    args.study = True
     if args.guided_comparison:
         args.methods = args.methods or GUIDED_COMPARISON["methods"]
         args.dims = args.dims or GUIDED_COMPARISON["dims"]
@@ -189,7 +189,7 @@ def _validate_gradient_study(args) -> None:
     from hyqjax.cli.common import UsageError, check_all, check_out_free, check_impl, check_range, prepare_out
 
     for opt, val in (("--method", args.methods), ("--dim", args.dims), ("--wall-minutes", args.wall_minutes),
-                     ("--start-from", args.start_from or None)):
+                     ("--start-from", args.start_from or None), ("--preset", args.preset)):
         if val is not None:
             raise UsageError(f"{opt} belongs to the wall-clock studies, not to --gradient-study")
     check_impl(args.impl)

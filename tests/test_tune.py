@@ -994,6 +994,7 @@ def test_wallclock_config_validation(kw, match):
                                          (["--gradient-study", "--cold-compile"], "--cold-compile belongs"),
                                          (["--gradient-study", "--guided-alpha", "0.2"], "--guided-alpha belongs"),
                                          (["--gradient-study", "--objective", "reach"], "--objective belongs"),
+                                         (["--gradient-study", "--preset", "paper"], "--preset belongs"),
                                          (["--state-every-s", "-1"], "--state-every-s must be"),
                                          (["--gradient-study", "--segment-minutes", "5"], "--segment-minutes belongs")])
 def test_tune_study_refuses_bad_settings_in_one_line(argv, match, tmp_path, capsys):
@@ -1011,6 +1012,8 @@ def test_tune_study_refuses_bad_settings_in_one_line(argv, match, tmp_path, caps
                                          (["--start-from", "/nonexistent.json"], "--start-from"),
                                          (["--segment-minutes", "0"], "--segment-minutes must be"),
                                          (["--study"], "unrecognized arguments: --study"),
+                                         (["--preset", "nosuch"], "--preset"),
+                                         (["--preset", "paper", "--start-from", "r.json"], "two start points"),
                                          (["--gradient-study"], "unrecognized arguments: --gradient-study")])
 def test_tune_cli_refuses_bad_settings_in_one_line(argv, match, tmp_path, capsys):
     from hyqjax.cli.app import main

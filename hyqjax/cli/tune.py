@@ -68,13 +68,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         f"per_leg_cond_all (98) (default: {names.DEFAULT_DIM})")
     p.add_argument("--wall-minutes", type=float, nargs="+", default=None,
                    help="wall-clock checkpoints (minutes, increasing; the last is the budget; compile included). "
-                        "Default 1 3 10")
+                        f"Default {' '.join(f'{m:g}' for m in names.DEFAULT_WALL_MINUTES)}")
     p.add_argument("--objective", default="clean", choices=sorted(OBJECTIVES),
                    help="clean: clean success on the training spread at 16-28 cm; reach: clean success on the wide "
                         "spread at 24-30 cm")
+    p.add_argument("--preset", default=None,
+                   help="start point: a crawl preset of hyqjax.presets (hyqjax presets lists them), or none for "
+                        "Table I with the shin remedy; default: the best measured preset the parameterisation can "
+                        "start from (" + ", ".join(f"{d} {p}" for (o, d), p in names.DEFAULT_PRESETS.items()
+                                                   if o == "clean") + "; reach: shared reach)")
     p.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier run; its last iterate of the same method and "
-                        "parameterisation is the start (default: Table I with the shin remedy)")
+                        "parameterisation is the start")
     p.add_argument("--groups", default="k_base,damping,mobility,k_x,delta,body_height,step_length,step_height,"
                                        "search_forward,terrain_adaptation",
                    help="tuned groups, comma-separated, from k_base, damping, mobility, k_x, delta, k_kl, "
@@ -131,7 +136,8 @@ def validate_wallclock(args) -> None:
     heights, spread = OBJECTIVES[args.objective]
     args.train_heights = heights if args.train_heights is None else args.train_heights
     args.train_spread = spread if args.train_spread is None else args.train_spread
-    wm = tuple(args.wall_minutes) if args.wall_minutes else (1.0, 3.0, 10.0)
+    wm = tuple(args.wall_minutes) if args.wall_minutes else (
+        names.STUDY_WALL_MINUTES if args.study else names.DEFAULT_WALL_MINUTES)
     check_all("--wall-minutes", wm, 0.0, 600.0, "min", lo_open=True)
     if list(wm) != sorted(set(wm)):
         raise UsageError(f"--wall-minutes must be increasing, got {' '.join(f'{x:g}' for x in wm)}")
@@ -195,6 +201,7 @@ def validate_wallclock(args) -> None:
         space.ParamSpace.make(groups)
     except ValueError as e:
         raise UsageError(f"--groups: {e}") from None
+    preset = _start_preset(args, methods, dims)
     from hyqjax.studies.tune import wallclock  # the study itself: MJX and the step-down, after every cheap check
 
     try:
@@ -213,7 +220,7 @@ def validate_wallclock(args) -> None:
             contacts_from_distance=args.contacts_from_distance,
             train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             guided_alpha=args.guided_alpha, guided_subspace=args.guided_subspace, guided_lr=args.guided_lr,
-            guided_grad_every=args.guided_grad_every,
+            guided_grad_every=args.guided_grad_every, start_preset=preset,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)
@@ -227,6 +234,52 @@ def validate_wallclock(args) -> None:
         raise UsageError(str(e)) from None
     args.wallclock_config = cfg
     args.options_checked = True
+
+
+def _start_preset(args, methods, dims) -> str:
+    """The start preset's name ('' for Table I with the shin remedy), checked in one line: a known crawl preset
+    whose stored values are in their ranges, a per-leg set only for per-leg parameterisations, not with
+    --start-from. Without --preset: ``hyqjax tune`` starts from :data:`names.DEFAULT_PRESETS` where the registry
+    holds it; the studies start from Table I with the shin remedy, as every stored study did."""
+    from hyqjax.cli.common import UsageError
+    from hyqjax.studies.tune import names
+
+    given = args.preset
+    if given is not None and args.start_from:
+        raise UsageError(f"--preset {given} and --start-from {args.start_from} are two start points; give one")
+    if given is None and (args.study or args.start_from or len(dims) != 1):
+        return ""
+    if given is not None and given.lower() == "none":
+        return ""
+    try:
+        from hyqjax import presets
+    except ImportError:
+        if given is None:
+            return ""
+        raise UsageError(f"--preset {given}: this installation has no preset registry (hyqjax.presets); give "
+                         f"--preset none or --start-from") from None
+    name = given if given is not None else names.DEFAULT_PRESETS.get((args.objective, dims[0]))
+    if name is None:
+        return ""
+    if given is None and name not in presets.names():
+        return ""
+    try:
+        rec = presets.get(name)
+    except ValueError as e:
+        raise UsageError(f"--preset: {e}") from None
+    if rec.kind != "crawl":
+        raise UsageError(f"--preset {name} is a {rec.kind} preset; the tuner starts from a crawl preset: "
+                         f"{', '.join(presets.names('crawl'))}")
+    if (rec.values or {}).get("per_leg"):
+        flat = [d for d in dims if not d.startswith("per_leg")]
+        if flat:
+            raise UsageError(f"--preset {name} is a per-leg set: it starts per-leg parameterisations only (per_leg, "
+                             f"per_leg_cond, per_leg_cond_all), not {','.join(flat)}")
+    try:
+        presets.load(name)  # its stored values in their declared ranges (JAX's parameter classes, no MJX)
+    except ValueError as e:
+        raise UsageError(f"--preset: {e}") from None
+    return name
 
 
 def _defaults():

@@ -45,7 +45,9 @@ def run(args) -> int:
 
         m, d = cfg.methods[0], cfg.dims[0]
         par = schedule.make(d, cfg.groups)
-        start = par.describe(par.theta_of(wallclock.start_params(cfg)))
+        from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+        start = par.describe(start_theta(par, start_point(cfg)))
         got = res["runs"][f"{m}/{d}"]["params"]
         print("returned parameters (start in brackets): " + ", ".join(
             f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))

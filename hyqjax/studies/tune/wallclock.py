@@ -55,7 +55,8 @@ from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
-from hyqjax.studies.tune.wallclock_config import WallClockConfig
+from hyqjax.studies.tune.wallclock_config import (WallClockConfig, is_per_leg, start_point,  # noqa: F401
+                                                   start_theta)
 from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, step_cost_line, summarize
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
@@ -224,7 +225,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
 def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict:
     """Name -> (parameterisation, theta, base CrawlParams) of every set the held-out evaluation runs."""
     p0 = params[cfg.dims[0]]
-    out = {"table1": (p0, p0.theta_of(base), crawl.CrawlParams.make()), "start": (p0, p0.theta_of(base), base)}
+    # Table I as every study ran it (the tuned coordinates of the default crawl's start, the paper's crawl around)
+    t1 = p0.theta_of(crawl.CrawlParams.make(shin_remedy=cfg.remedy))
+    out = {"table1": (p0, t1, crawl.CrawlParams.make()), "start": (p0, start_theta(p0, start_point(cfg)), base)}
     for key, r in res["runs"].items():
         for pt in r["points"]:
             out[member_key(r["method"], r["dim"], pt["seconds"])] = (params[r["dim"]], np.asarray(pt["theta"]), base)

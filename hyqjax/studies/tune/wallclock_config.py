@@ -83,6 +83,10 @@ class WallClockConfig:
     impl: str = "auto"
     #: warm starts: ``(("method/dim", theta), ...)``, the start of that method on that parameterisation
     start_from: tuple = ()
+    #: the start point of every run not in ``start_from``: a crawl preset of :mod:`hyqjax.presets` (its values
+    #: outside the tuned coordinates stay fixed; a per-leg set starts the per-leg parameterisations from its four
+    #: rows); "": Table I and the default crawl (with the shin remedy if ``remedy``)
+    start_preset: str = ""
     #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
     charge_compile: bool = True
     #: compile every program cold: JAX's persistent compilation cache and Warp's kernel cache in fresh empty
@@ -193,6 +197,9 @@ class WallClockConfig:
             if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
                 raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
 
+        if not isinstance(self.start_preset, str):
+            raise ValueError(f"start_preset must be a preset name or '', got {self.start_preset!r}")
+
     @property
     def checkpoints_s(self) -> tuple:
         return tuple(60.0 * float(m) for m in self.wall_minutes)
@@ -214,3 +221,31 @@ class WallClockConfig:
         tup = lambda v: tuple(tup(x) for x in v) if isinstance(v, list) else v  # noqa: E731
         return cls(**{k: tup(v) for k, v in config.items() if k in names})
 
+
+
+def start_point(cfg: WallClockConfig):
+    """Where every run starts: the crawl preset ``cfg.start_preset`` (a ``CrawlParams`` or a per-leg set), else
+    Table I and the default crawl, with the shin-strike remedy if ``cfg.remedy``."""
+    if cfg.start_preset:
+        from hyqjax import presets
+
+        return presets.load(cfg.start_preset)
+    from hyqjax.crawl import controller as crawl
+
+    return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
+
+
+def is_per_leg(start) -> bool:
+    """Whether a start point is a per-leg set (``base`` and one ``row(i)`` per swing leg)."""
+    return hasattr(start, "row") and hasattr(start, "base")
+
+
+def start_theta(param: schedule.Parameterisation, start) -> np.ndarray:
+    """The ``theta`` of ``param`` that runs ``start``: a ``CrawlParams`` on every leg, or a per-leg set's four rows
+    (per-leg parameterisations only; no conditioning)."""
+    if not is_per_leg(start):
+        return param.theta_of(start)
+    if not param.per_leg:
+        raise ValueError(f"a per-leg start point needs a per-leg parameterisation, not {param.name}")
+    rows = [param.space.theta_of(start.row(i)) for i in range(4)]
+    return np.concatenate(rows + [np.zeros(param.size - 4 * param.space.size)])

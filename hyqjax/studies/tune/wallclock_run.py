@@ -11,7 +11,7 @@ import numpy as np
 
 from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.gradient_programs import GradientPrograms
-from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
+from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed, start_point, start_theta
 
 
 @contextlib.contextmanager
@@ -42,7 +42,7 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     the run's state is stored as it goes and a stored state is resumed (:mod:`.resume`); at the end of a
     segment :class:`.resume.Paused` is raised."""
     theta0 = dict(cfg.start_from).get(run_key(method, param.name))
-    theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
+    theta0 = start_theta(param, start_point(cfg)) if theta0 is None else np.asarray(theta0, np.float64)
     if method in search.USES_GRADIENT:  # compiled (and charged) before the clock starts
         with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
