@@ -292,28 +292,37 @@ def _run_gradient_study(args) -> int:
 
 
 def _run_comparison(args) -> int:
-    """``--guided-comparison``: one equal-wall-clock study per seed, then DIR/comparison.json."""
+    """``--guided-comparison``: one equal-wall-clock study per seed in DIR/seed<N> (each locked on its own, so
+    processes with other ``--seeds`` may share DIR, one per GPU), then DIR/comparison.json over every finished
+    seed directory in DIR."""
+    import glob
     import json
 
     from hyqjax.cli import tune_wallclock
+    from hyqjax.io.atomic import write_json
+    from hyqjax.io.lock import DirLock
     from hyqjax.studies.tune.study import guided as guided_report
 
-    results = {}
-    for seed, out, cfg in args.comparison:
-        args.out, args.seed, args.wallclock_config = out, seed, cfg
-        print(f"tune_study: guided comparison, seed {seed} -> {out}", flush=True)
-        rc = tune_wallclock.run(args)
+    out = args.out
+    for seed, seed_out, cfg in args.comparison:
+        args.out, args.seed, args.wallclock_config = seed_out, seed, cfg
+        print(f"tune_study: guided comparison, seed {seed} -> {seed_out}", flush=True)
+        with DirLock(seed_out, wait=args.wait, what="tune study"):
+            rc = tune_wallclock.run(args)
         if rc:
             return rc
-        with open(os.path.join(out, "results.json")) as f:
-            results[seed] = json.load(f)
+    args.out = out
+    results = {}
+    for path in sorted(glob.glob(os.path.join(out, "seed*", "results.json"))):
+        with open(path) as f:
+            res = json.load(f)
+        if res.get("complete"):
+            results[int(res["config"]["seed"])] = res
     comp = guided_report.compare(results, args.comparison[0][2].wall_minutes[-1])
-    out = os.path.dirname(args.comparison[0][1])
     path = os.path.join(out, "comparison.json")
-    with open(path, "w") as f:
-        json.dump(comp, f, indent=1)
+    write_json(path, comp)
     print(guided_report.markdown(comp))
-    print(f"wrote {path}")
+    print(f"wrote {path} ({len(results)} seeds: {', '.join(map(str, sorted(results)))})")
     return 0
 
 
@@ -323,11 +332,11 @@ def run(args) -> int:
     from hyqjax.cli import tune_wallclock
     from hyqjax.io.lock import DirLock
 
+    if args.guided_comparison:
+        return _run_comparison(args)
     with DirLock(args.out, wait=args.wait, what="tune study"):
         if args.gradient_study:
             return _run_gradient_study(args)
-        if args.guided_comparison:
-            return _run_comparison(args)
         return tune_wallclock.run(args)
 
 

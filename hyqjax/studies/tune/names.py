@@ -16,13 +16,14 @@ USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: The default tuner (``hyqjax tune`` with no method, parameterisation or budget given): CMA-ES on the 56 per-leg
-#: coordinates for 30 minutes (checkpoints 3, 10, 30). On the project's independent held-out set (2,400
-#: step-downs at heights between the trained ones, another seed, the wide spread; one H200, 2026-11-29, issue 58's
-#: table) CMA-ES on 56 per-leg coordinates returned 0.735 clean at 10 minutes and 0.841 [0.826, 0.855] at 30
-#: (one run), against 0.677 (mean of 8 runs, 0.645-0.714) for CMA-ES on the 14 shared coordinates at 10 minutes
-#: and 0.735 for the shared 30-minute run at 30: the per-leg run is ahead at both budgets and still gaining
-#: from 10 to 30 minutes, the shared one is not (docs/tuning.md). One per-leg run each: the spread over runs of
-#: this default is not measured yet.
+#: coordinates for 30 minutes (checkpoints 3, 10, 30), the best set measured. On the project's independent
+#: held-out set (2,400 step-downs at heights between the trained ones, another seed, the wide spread; one H200,
+#: 2026-11-29, issue 58) the 30-minute per-leg run returned 0.735 clean at 10 minutes and 0.841 [0.826, 0.855] at
+#: 30; the 30-minute run on the 14 shared coordinates 0.777 at 10 and 0.735 at 30; eight 10-minute shared runs
+#: 0.677 (0.645-0.714). So at 10 minutes the two parameterisations are not apart, and at 30 only the per-leg one
+#: still gains (on the study's own held-out set: per-leg 0.415 / 0.592 / 0.741 at 3 / 10 / 30 minutes, shared
+#: 0.381 / 0.623 / 0.621; docs/results/tune_cells_h200_30min). One run each at 30 minutes: the spread over runs
+#: of this default is not measured yet.
 DEFAULT_METHOD = "cma_es"
 DEFAULT_DIM = "per_leg"
 DEFAULT_WALL_MINUTES = (3.0, 10.0, 30.0)
