@@ -114,3 +114,31 @@ def test_guided_es_on_the_step_down_records_finite_agreement(tmp_path):
     assert run["physics_steps"] > 0
     h = res["heldout"][member_key("guided_es", "shared", 90.0)]
     assert h["n"] == 4 and 0.0 <= h["clean"] <= 1.0
+
+
+def test_the_guided_comparison_summarises_seeds_and_agreement():
+    """``--guided-comparison``'s summary (:mod:`hyqjax.studies.tune.study.guided`) of two seeds' results: per
+    method the held-out clean of each seed, their mean and t-interval, and per guided-ES run the agreement data
+    over its generations (null cosines, generations whose pairs all tied, left out)."""
+    from hyqjax.studies.tune.study import guided
+    from hyqjax.studies.tune.wallclock import WallClockConfig
+    from hyqjax.studies.tune.wallclock_results import member_key
+
+    def res(seed, clean_g, clean_c, cos):
+        cfg = WallClockConfig(methods=("guided_es", "cma_es"), dims=("per_leg",), wall_minutes=(1.0,), seed=seed)
+        h = lambda c: dict(clean=c, completed=c, clean_ci95=[c - 0.01, c + 0.01], n=100)  # noqa: E731
+        log = [dict(cos_search=c, cos_zero_order=c / 2, descent_slope=c) for c in cos] + [
+            dict(cos_search=None, cos_zero_order=None, descent_slope=0.0)]
+        return dict(kind="wallclock", config=cfg.to_dict(), heldout_set=dict(instances=100, seed=7777),
+                    runs={"guided_es/per_leg": dict(method="guided_es", dim="per_leg", log=log),
+                          "cma_es/per_leg": dict(method="cma_es", dim="per_leg", log=[])},
+                    heldout={member_key("guided_es", "per_leg", 60.0): h(clean_g),
+                             member_key("cma_es", "per_leg", 60.0): h(clean_c), "start": h(0.4)})
+
+    comp = guided.compare({0: res(0, 0.6, 0.5, [0.2, 0.4, 0.6]), 1: res(1, 0.8, 0.55, [-0.1, 0.3, 0.5])}, 1.0)
+    g = comp["summary"]["guided_es/per_leg"]["clean"]
+    assert g["n"] == 2 and g["mean"] == pytest.approx(0.7) and g["ci95"][0] < 0.7 < g["ci95"][1]
+    c0 = comp["cosines"]["guided_es/per_leg"]["seed0"]["cos_search"]
+    assert c0["n"] == 3 and c0["median"] == pytest.approx(0.4) and c0["share_positive"] == 1.0
+    assert comp["cosines"]["guided_es/per_leg"]["seed1"]["cos_search"]["share_positive"] == pytest.approx(2 / 3)
+    assert "guided_es/per_leg" in guided.markdown(comp)
