@@ -1398,3 +1398,25 @@ def test_training_draws_take_the_configured_heights_and_spread():
     np.testing.assert_allclose(np.unique(np.asarray(sel.terrain.platform_height)), hs, atol=1e-6)
     with pytest.raises(ValueError, match="train_spread"):
         wallclock.WallClockConfig(train_spread="narrow")
+
+
+@pytest.mark.parametrize("change", [["--guided-alpha", "0.3"], ["--objective", "reach"], ["--guided-subspace", "2"]])
+def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(change, tmp_path, capsys):
+    """A directory holding a study of one configuration: the same command with another guided-ES setting or
+    objective is refused in one line before anything is compiled, and the directory is left as it was."""
+    import json
+
+    from experiments import tune_study
+
+    out = tmp_path / "o"
+    base = ["--out", str(out), "--methods", "guided_es,cma_es", "--dims", "shared", "--impl", "c", "--no-cache"]
+    args = tune_study.build_parser().parse_args(base)
+    args.validate_command(args)
+    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=args.wallclock_config.to_dict(),
+                                                      runs={}, heldout={})))
+    before = sorted(p.name for p in out.iterdir())
+    traced = len(TRACED)
+    assert tune_study.main(base + change) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "another configuration" in lines[0] and "Traceback" not in lines[0], lines
+    assert len(TRACED) == traced and sorted(p.name for p in out.iterdir()) == before
