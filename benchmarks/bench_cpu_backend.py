@@ -64,7 +64,7 @@ def workload(task: str, impl: str, batch: int, duration: float, seed: int):
         from hyqjax.bounding import params as bparams
         from hyqjax.bounding import rollout as brollout
 
-        plist = [bparams.default_params(**BOUND_COMMANDS[i % len(BOUND_COMMANDS)]) for i in range(batch)]
+        plist = [bparams.paper_params(**BOUND_COMMANDS[i % len(BOUND_COMMANDS)]) for i in range(batch)]
         ro = brollout.make_bounding_rollout(brollout.BoundingRolloutConfig(duration=duration, impl=impl))
         return ro, bbatch.make_batch(plist, seed=seed)
     scen, _ = stepdown.make_scenarios(HEIGHTS, [False, True], -(-batch // 6), seed)

@@ -2,15 +2,16 @@
 
     python -m experiments.bounding_envelope --out docs/results --name bounding_envelope_default
     python -m experiments.bounding_envelope --params out/robust/params_gradient.json --name bounding_envelope_gradient
+    python -m experiments.bounding_envelope --preset bound_robust --name bounding_envelope_robust
 
 Sweeps forward speed x yaw rate x lateral speed (``--speeds LO HI STEP`` and so on), ``--instances`` per
 command with friction in ``--friction`` and payload in ``--payload`` (the same draws for every command), runs
 ``--duration`` s each as one batch (``--impl warp`` on a GPU), and writes ``OUT/NAME.json`` (per command: failures
 and reasons, fall rate with its Wilson interval, worst / 95th-percentile yaw error, rate above 4 deg; the area
 of the map with a fall rate below 1%; provenance) and ``OUT/NAME.png``. ``--params FILE`` runs the controller
-with stored optimised parameters (:func:`hyqjax.bounding.robust.save_params`; ``--params robust`` or
-``robust_8s``: a shipped preset, :data:`hyqjax.bounding.robust.PRESETS`). Bad options: one line naming
-the option, exit code 2, before anything compiles.
+with stored optimised parameters (:func:`hyqjax.bounding.robust.save_params`), ``--preset NAME`` with a bounding
+preset of :mod:`hyqjax.presets` (default ``bound_paper``, the paper's gains). Bad options: one line naming the
+option, exit code 2, before anything compiles.
 """
 from __future__ import annotations
 
@@ -20,6 +21,10 @@ import sys
 import time
 
 import numpy as np
+
+
+#: The gains a map runs without --preset or --params: the paper's (the maps of docs/bounding.md named "default").
+DEFAULT_PRESET = "bound_paper"
 
 
 def grid(name, lo, hi, step, lim):
@@ -93,9 +98,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m experiments.bounding_envelope", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(ap)
-    ap.add_argument("--params", metavar="FILE|PRESET",
-                    help="optimised parameters (a file of hyqjax.bounding.robust.save_params, or a preset shipped in "
-                         "hyqjax.bounding.robust.PRESETS: robust, robust_8s)")
+    ap.add_argument("--preset", default=None, metavar="NAME",
+                    help="a bounding preset of hyqjax.presets (`hyqjax presets --kind bound`); default: bound_paper, "
+                         "the paper's gains, whose maps docs/bounding.md shows as 'default'")
+    ap.add_argument("--params", metavar="FILE",
+                    help="optimised parameters (a file of hyqjax.bounding.robust.save_params; the old names robust "
+                         "and robust_8s are the presets bound_robust_grad and bound_robust)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
     ap.add_argument("--out", default="docs/results")
@@ -112,7 +120,14 @@ def main(argv=None) -> int:
             raise ValueError(f"--name may hold letters, digits, '.', '_' and '-' only, got {args.name!r}")
         if not (1 <= args.max_batch <= 1 << 20):
             raise ValueError(f"--max-batch must be in [1, 1048576], got {args.max_batch}")
-        base = robust.params_from_values(robust.load_params(args.params)) if args.params else None
+        if args.params and args.preset:
+            raise ValueError("give one of --params and --preset")
+        if args.params:
+            base = robust.params_from_values(robust.load_params(args.params))
+        else:
+            from hyqjax import presets
+
+            base = presets.load(presets.check_kind(args.preset or DEFAULT_PRESET, "bound").name)
         impl = backend.resolve_impl(args.impl)
     except ValueError as e:
         name = getattr(e, "name", None)

@@ -1,4 +1,5 @@
-"""Regenerate the bounding figures and the numbers behind them (Orsolino et al., turning while bounding).
+"""Regenerate the bounding figures and the numbers behind them (Orsolino et al., turning while bounding), with the
+paper's gains (preset ``bound_paper``, :func:`hyqjax.bounding.params.paper_params`) so the tables stay the paper's.
 
     python -m experiments.bounding_figures FIGURE [--out docs/results] [options]
 
@@ -43,7 +44,7 @@ def optimise(args) -> dict:
     from hyqjax.bounding import plots
     from hyqjax.bounding import stability as bst
 
-    params = bp.default_params(apex_feedback=False, stance_feedback=False)
+    params = bp.paper_params(apex_feedback=False, stance_feedback=False)
     u0 = bc.initial_guesses(params, args.guesses, seed=args.seed)
     t0 = time.time()
     res = bc.optimise_cycle(params, u0, iterations=args.iterations)
@@ -78,7 +79,7 @@ def gradient(args) -> dict:
     from hyqjax.bounding import cycle as bc
     from hyqjax.bounding import params as bp
 
-    params = bp.default_params(apex_feedback=False, stance_feedback=False)
+    params = bp.paper_params(apex_feedback=False, stance_feedback=False)
     idx, eps = (0, 1, 2, 3, 4, 6), (2.0, 2.0, 2.0, 2.0, 0.002, 0.02)
     t0 = time.time()
     r0, j_fwd, j_fd = bc.gradient_check(params, bc.stored_cycle(), indices=idx, eps=eps)
@@ -97,7 +98,7 @@ def eigen(args) -> dict:
     from hyqjax.bounding import stability as bst
 
     u = bc.stored_cycle()
-    pf = bc.with_cycle(bp.default_params(), jnp.asarray(u, jnp.float32))
+    pf = bc.with_cycle(bp.paper_params(), jnp.asarray(u, jnp.float32))
     s = np.asarray(bc.apex_state(jnp.asarray(u, jnp.float32)))
     configs = dict(none=bst.with_feedback(pf, False), stance=bst.with_feedback(pf, False, True), stance_apex=pf)
     t0 = time.time()
@@ -159,13 +160,13 @@ def turning(args) -> dict:
     spec = []
     for sgn, side in ((1, "L"), (-1, "R")):
         for name, kin, cf in abl:
-            spec.append((f"turn{side}_{name}", [bp.default_params(speed=v, yaw_rate=sgn * w, kinematic_adjustment=kin,
+            spec.append((f"turn{side}_{name}", [bp.paper_params(speed=v, yaw_rate=sgn * w, kinematic_adjustment=kin,
                                                                   centrifugal=cf)] * n, {}))
         for name, lin, ang in (("no_kinematic_linear", False, True), ("no_kinematic_angular", True, False)):
-            p = bp.default_params(speed=v, yaw_rate=sgn * w)
+            p = bp.paper_params(speed=v, yaw_rate=sgn * w)
             p = p.replace(switches=bp.Switches.make(kinematic_linear=lin, kinematic_angular=ang))
             spec.append((f"turn{side}_{name}", [p] * n, {}))
-        spec.append((f"turn{side}_rate_only_paper", [bp.default_params(speed=v, yaw_rate=sgn * w, k_yaw=0.0)] * n, {}))
+        spec.append((f"turn{side}_rate_only_paper", [bp.paper_params(speed=v, yaw_rate=sgn * w, k_yaw=0.0)] * n, {}))
     agg, run, raw = _closed_loop(args, spec)
     inst, idx = raw["inst"], raw["idx"]
     names = [a[0] for a in abl] + ["no_kinematic_linear", "no_kinematic_angular", "rate_only_paper"]
@@ -193,7 +194,7 @@ def speed(args) -> dict:
     from hyqjax.bounding import plots
 
     speeds = (0.0, 0.25, 0.5, 0.75, 1.0)
-    spec = [(f"speed_{v:g}", [bp.default_params(speed=v)] * args.instances, {}) for v in speeds]
+    spec = [(f"speed_{v:g}", [bp.paper_params(speed=v)] * args.instances, {}) for v in speeds]
     agg, run, raw = _closed_loop(args, spec)
     f = plots.tracking_figures(raw["trace"], {f"{v:g} m/s": raw["idx"][f"speed_{v:g}"] for v in speeds}, args.out,
                                prefix=f"bounding_speed{args.suffix}_")
@@ -206,7 +207,7 @@ def robustness(args) -> dict:
     from hyqjax.bounding import params as bp
     from hyqjax.bounding import plots
 
-    n, p = args.instances, bp.default_params(speed=0.5)
+    n, p = args.instances, bp.paper_params(speed=0.5)
     pushes = (0.0, 150.0, 300.0, 450.0)
     spec = [(f"push_{f:g}N", [p] * n, dict(push_force=f, push_time=3.0, push_duration=0.1)) for f in pushes]
     spec += [("friction_0.4-0.5", [p] * n, dict(rand=bbatch.Randomisation(friction=(0.4, 0.5)))),

@@ -6,7 +6,8 @@ evaluation, envelope after. One command, every stage written as it finishes:
 Stages (``OUT/results.json`` after each; a rerun of the same command on the same directory keeps the finished
 stages and reruns the others):
 
-1. ``envelope_before``: the command map (:mod:`experiments.bounding_envelope`) of the default controller;
+1. ``envelope_before``: the command map (:mod:`experiments.bounding_envelope`) of the paper's gains (preset
+   ``bound_paper``, the study's start point);
 2. ``gradient``: Adam with a batched line search on the training cost (:mod:`hyqjax.bounding.robust`; forward-mode
    Jacobian through MJX under its JAX implementation) over ``--train`` instances of ``--train-duration`` s, until
    ``--opt-seconds`` of wall-clock have passed (compiles included);
@@ -223,7 +224,7 @@ def run(args) -> dict:
     # 1. envelope before
     if "envelope_before" in want and "envelope_before" not in res["stages_done"]:
         log("stage envelope_before")
-        r = be.run_map(spec, None, args.impl, args.max_batch, "envelope_before", out, log, command)
+        r = be.run_map(spec, robust.paper_params(), args.impl, args.max_batch, "envelope_before", out, log, command)
         res["envelope_before"] = dict(overall=r["overall"], safe_area=r["safe_area"], wall_time_s=r["wall_time_s"],
                                       file="envelope_before.json")
         done("envelope_before")

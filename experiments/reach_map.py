@@ -1,6 +1,7 @@
 """The reach map: how tall a step each crawl steps down, on the README's narrow scenario spread and on a wide one.
 
     python -m experiments.reach_map --out DIR --impl warp --instances 1024                 # GPU: the full map
+    python -m experiments.reach_map --out DIR --impl warp --instances 1024 --spread wide --preset paper reach
     python -m experiments.reach_map --out DIR --impl jax --instances 1 --heights 0.16 --duration 2 \\
         --variants default --spread narrow                                                    # CPU check
 
@@ -112,9 +113,26 @@ def parse_tuned_run(text: str) -> tuple[str, tuple[str, str, dict]]:
     return parts[0], (parts[1], parts[2], settings)
 
 
-def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tuned_runs: dict | None = None) -> dict:
-    """``CrawlParams`` of every variant (validated before anything compiles); ``tuned_runs`` maps further variant
-    names to a tuning study's ``(results.json, method)``."""
+def check_presets(names) -> list[str]:
+    """The crawl presets of ``--preset`` (one line naming the known ones for an unknown or bounding preset)."""
+    from hyqjax import presets as registry
+
+    for n in names:
+        try:
+            registry.check_kind(n, "crawl")
+        except ValueError as e:
+            raise UsageError(str(e)) from None
+    if len(set(names)) != len(names):
+        raise UsageError("--preset: a preset is named twice")
+    return list(names)
+
+
+def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tuned_runs: dict | None = None,
+                   preset_names=()) -> dict:
+    """Crawl parameters of every variant (validated before anything compiles); ``tuned_runs`` maps further variant
+    names to a tuning study's ``(results.json, method)``; ``preset_names`` are registry presets
+    (:mod:`hyqjax.presets`; a per-leg one gives a per-leg set)."""
+    from hyqjax import presets as registry
     from hyqjax.core.params import ParameterError
     from hyqjax.crawl import controller as crawl
 
@@ -122,7 +140,9 @@ def variant_params(names, custom: dict, tuned_path: str, tuned_method: str, tune
     out = {}
     for name in names:
         try:
-            if name in tuned_runs:
+            if name in preset_names:
+                out[name] = registry.load(name)
+            elif name in tuned_runs:
                 path, method, settings = tuned_runs[name]
                 out[name] = tuned_params(path, method, option=f"--tuned-run {name}", settings=settings)
             elif name == "tuned":
@@ -353,8 +373,12 @@ def main(argv=None) -> int:
     ap.add_argument("--instances", type=int, default=1024, help="instances per (variant, spread, height) cell")
     ap.add_argument("--heights", type=float, nargs="+", default=list(HEIGHTS), help="platform heights (m)")
     ap.add_argument("--spread", nargs="+", default=["wide", "narrow"], help="wide | narrow (one or both)")
-    ap.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS),
-                    help=f"named variants ({', '.join(VARIANTS)}) and the names of --custom ones")
+    ap.add_argument("--variants", nargs="+", default=None,
+                    help=f"named variants ({', '.join(VARIANTS)}) and the names of --custom ones (default: "
+                         f"{' '.join(DEFAULT_VARIANTS)}; with --preset: the presets only)")
+    ap.add_argument("--preset", nargs="+", default=[], metavar="NAME",
+                    help="crawl presets of hyqjax.presets (`hyqjax presets --kind crawl`) run as variants of their "
+                         "own name, e.g. --preset paper reach tuned_per_leg")
     ap.add_argument("--custom", action="append", default=[], metavar="NAME:field=value,...",
                     help="a variant of CrawlParams.make settings (repeatable)")
     ap.add_argument("--tuned", default=DEFAULT_TUNED, help="a tuning study's results.json (variant 'tuned')")
@@ -442,23 +466,42 @@ def check(args) -> dict:
         raise UsageError(f"--chunk {args.chunk}: must be >= 0 (0: automatic)")
     custom = dict(parse_custom(c) for c in args.custom)
     tuned_runs = dict(parse_tuned_run(t) for t in args.tuned_run)
+    preset_names = check_presets(args.preset)
+    if args.variants is None:
+        args.variants = list(preset_names) if preset_names else list(DEFAULT_VARIANTS)
+    else:
+        args.variants = list(args.variants) + [n for n in preset_names if n not in args.variants]
+    clash = sorted(set(preset_names) & (set(custom) | set(tuned_runs)))
+    if clash:
+        raise UsageError(f"--preset {clash[0]}: also a --custom or --tuned-run name; give each variant one name")
     both = sorted(set(custom) & set(tuned_runs))
     if both:
         raise UsageError(f"--tuned-run {both[0]!r}: also a --custom name; give each variant one name")
-    unknown = [v for v in args.variants if v not in VARIANTS and v not in custom and v not in tuned_runs]
+    unknown = [v for v in args.variants if v not in VARIANTS and v not in custom and v not in tuned_runs
+               and v not in preset_names]
     if unknown:
         raise UsageError(f"--variants {unknown[0]!r}: not one of {', '.join(VARIANTS)} nor a --custom or "
                          "--tuned-run name")
     if len(set(args.variants)) != len(args.variants):
         raise UsageError("--variants: a variant is named twice")
-    params = variant_params(args.variants, custom, args.tuned, args.tuned_method, tuned_runs)
+    params = variant_params(args.variants, custom, args.tuned, args.tuned_method, tuned_runs, preset_names)
+    from hyqjax.crawl import scheduled
+
     described = {}
     for v in args.variants:
-        p = params[v]
+        p = scheduled.base_of(params[v])
         described[v] = {f.name: np.asarray(getattr(p, f.name)).tolist() for f in dataclasses.fields(p)
                         if f.name not in ("gains", "reflex")}
         described[v]["reflex"] = {f.name: np.asarray(getattr(p.reflex, f.name)).tolist()
                                   for f in dataclasses.fields(p.reflex)}
+        if params[v] is not p:  # a scheduled set: its per-leg (and conditioned) values
+            described[v]["scheduled"] = params[v].describe()
+    # Variants are stacked into one batch: with a per-leg set among them, every variant becomes one (the same
+    # per-leg fields; a CrawlParams's rows all equal, which runs bit for bit as itself).
+    try:
+        params = scheduled.common_structure(params)
+    except ValueError as e:
+        raise UsageError(f"--variants: {e}") from None
     return dict(impl=args.impl, instances=args.instances, heights=[float(h) for h in args.heights],
                 spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
                 seed=args.seed, duration=args.duration, terminate=not args.no_terminate,

@@ -12,12 +12,13 @@ Subpackages by concept (docs/architecture.md draws the layers):
 
 The public API is re-exported here and imported on first use (``import hyqjax`` loads no JAX):
 ``StepdownConfig``, ``Scenario``, ``make_scenarios``, ``make_stepdown_rollout``, ``StepdownOutcome``,
-``run_batch``, ``summarize``, ``format_table``; ``CrawlParams``, ``ReflexParams``, ``batch_params``;
+``run_batch``, ``summarize``, ``format_table``; ``CrawlParams``, ``PerLegCrawlParams``, ``ReflexParams``,
+``batch_params``;
 ``Observation``, ``Controller``, ``Metrics``, ``Push`` (MJX-free, :mod:`hyqjax.core.types`);
 ``SimConfig``, ``make_batch_runner``, ``rollout``, ``batch_mesh``; ``load_model``, ``model_ids``,
 ``InstanceTerrain``, ``batch_model``; ``resolve_impl``; the bound: ``BoundingRolloutConfig``,
 ``make_bounding_rollout``, ``BoundingRollout``, ``BoundingOutcome``, ``BoundingParams`` (batches from
-``hyqjax.bounding.make_batch``).
+``hyqjax.bounding.make_batch``). Named parameter sets: ``hyqjax.presets`` (``load``, ``get``, ``names``).
 """
 from __future__ import annotations
 
@@ -48,6 +49,7 @@ _PUBLIC = {
     "StepdownOutcome": "hyqjax.studies.stepdown_outcome", "FAILURE_REASONS": "hyqjax.studies.stepdown_outcome",
     "summarize": "hyqjax.studies.stepdown_table", "format_table": "hyqjax.studies.stepdown_table",
     "CrawlParams": "hyqjax.crawl.controller", "ReflexParams": "hyqjax.reflex.params",
+    "PerLegCrawlParams": "hyqjax.crawl.scheduled",
     "batch_params": "hyqjax.core.params",
     "SimConfig": "hyqjax.sim.rollout", "rollout": "hyqjax.sim.rollout", "Observation": "hyqjax.core.types",
     "Controller": "hyqjax.core.types", "Metrics": "hyqjax.core.types", "Push": "hyqjax.core.types",

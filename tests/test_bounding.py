@@ -84,13 +84,13 @@ def test_input_validation_names_the_parameter():
         (lambda: bd.GaitParams.make(bezier=(0.1, 1.0, 0.0)), "bezier"),
         (lambda: bd.BoundingGains.make(k_speed=-1.0), "k_speed"),
         (lambda: bd.BoundingGains.make(tau_est=0.0), "tau_est"),
-        (lambda: bd.default_params(cycle_apex=[0.1, 0, 0, 0, 0]), "cycle_apex"),
+        (lambda: bd.paper_params(cycle_apex=[0.1, 0, 0, 0, 0]), "cycle_apex"),
         (lambda: bbatch.Randomisation(friction=(0.0, 1.0)), "friction"),
-        (lambda: bbatch.make_batch([bd.default_params()] * 3, n_unique=2), "n_unique"),
-        (lambda: bbatch.make_batch([bd.default_params()], push_force=1e5), "push_force"),
-        (lambda: bc.optimise_cycle(bd.default_params(), np.full((1, 8), np.nan)), "u0"),
-        (lambda: bc.optimise_cycle(bd.default_params(), np.zeros((1, 8)), iterations=0), "iterations"),
-        (lambda: bd.default_params().replace(mass=jnp.float32(-1.0)), "mass"),
+        (lambda: bbatch.make_batch([bd.paper_params()] * 3, n_unique=2), "n_unique"),
+        (lambda: bbatch.make_batch([bd.paper_params()], push_force=1e5), "push_force"),
+        (lambda: bc.optimise_cycle(bd.paper_params(), np.full((1, 8), np.nan)), "u0"),
+        (lambda: bc.optimise_cycle(bd.paper_params(), np.zeros((1, 8)), iterations=0), "iterations"),
+        (lambda: bd.paper_params().replace(mass=jnp.float32(-1.0)), "mass"),
         (lambda: bd.BoundingGains.make(k_unknown=1.0), "k_unknown"),
         (lambda: bbatch.validate_run(speed=5.0), "speed"),
         (lambda: bbatch.validate_run(instances=0), "instances"),
@@ -99,8 +99,8 @@ def test_input_validation_names_the_parameter():
         (lambda: bbatch.validate_run(duration=1.3), "duration"),
         (lambda: bbatch.validate_run(push=float("inf")), "push"),
         (lambda: bbatch.validate_run(seed=-1), "seed"),
-        (lambda: bc.gradient_check(bd.default_params(), np.zeros(8), indices=(9,)), "indices"),
-        (lambda: bc.initial_guesses(bd.default_params(), 0), "n"),
+        (lambda: bc.gradient_check(bd.paper_params(), np.zeros(8), indices=(9,)), "indices"),
+        (lambda: bc.initial_guesses(bd.paper_params(), 0), "n"),
     ]
     for fn, name in cases:
         with pytest.raises(ValueError, match=name):
@@ -109,7 +109,7 @@ def test_input_validation_names_the_parameter():
 
 @pytest.mark.slow
 def test_parameters_validate_batched_leaves_and_stay_differentiable():
-    plist = [bd.default_params(speed=v) for v in (0.0, 0.5, 1.0)]
+    plist = [bd.paper_params(speed=v) for v in (0.0, 0.5, 1.0)]
     batch = bbatch.stack_params(plist)
     assert batch.validate() is batch  # batched leaves are checked element-wise
     with pytest.raises(ValueError, match="k_speed"):  # one bad element of a batch is refused
@@ -133,7 +133,7 @@ def test_apex_sample_is_named_and_round_trips():
     a = bd.Apex.of(jnp.arange(5.0))
     assert bd.APEX_NAMES == ("z", "pitch", "vx", "vz", "pitch_rate") and float(a.vz) == 3.0
     np.testing.assert_array_equal(np.asarray(a.array()), np.arange(5.0))
-    p = bd.default_params()
+    p = bd.paper_params()
     np.testing.assert_allclose(np.asarray(p.apex_ref.array()), bdef.stored().apex, rtol=1e-6)
 
 
@@ -214,7 +214,7 @@ def test_cli_validation_names_the_option():
 
 @pytest.fixture(scope="module")
 def cycle_check():
-    params = bd.default_params(apex_feedback=False, stance_feedback=False)
+    params = bd.paper_params(apex_feedback=False, stance_feedback=False)
     u = bc.stored_cycle()
     return bc.gradient_check(params, u, indices=(0, 1), eps=(2.0, 2.0))
 
@@ -262,7 +262,7 @@ def test_levenberg_marquardt_batch_rows_are_their_single_runs():
 def test_levenberg_marquardt_returns_to_the_cycle():
     """optimistix's LM with forward-mode Jacobians, from the stored cycle with its vertical impulses moved by
     +-15 N: three LM steps shrink the periodicity residual (Eq. C2) by more than 10x."""
-    params = bd.default_params(apex_feedback=False, stance_feedback=False)
+    params = bd.paper_params(apex_feedback=False, stance_feedback=False)
     u0 = bc.stored_cycle() + np.array([15.0, -15.0, 0, 0, 0, 0, 0, 0])
     res = bc.optimise_cycle(params, u0[None], iterations=3, progress=False)
     r0, r1 = res.residual_history[0, 0], res.residual_norm[0]  # at the guess, at the last accepted iterate
@@ -284,7 +284,7 @@ DURATION = 6.0
 
 @pytest.fixture(scope="module")
 def closed_loop():
-    plist = [bd.default_params(**s) for s in SCENARIOS]
+    plist = [bd.paper_params(**s) for s in SCENARIOS]
     batch = bbatch.make_batch(plist, seed=3)
     res, trace = brollout.run(batch, duration=DURATION, impl="c")
     summary = bs.summarise(res, trace, batch)

@@ -28,8 +28,8 @@ from hyqjax.core.params import param_ranges
 # ----------------------------------------------------------------------------------------------
 
 
-def test_space_starts_at_the_default_controller_and_stays_in_the_declared_ranges():
-    base = bp.default_params()
+def test_space_starts_at_the_paper_controller_and_stays_in_the_declared_ranges():
+    base = bp.paper_params()
     sp = rb.RobustSpace.make(base)
     assert sp.size == len(rb.COORDS) == 22
     got = sp.describe(np.zeros(sp.size))
@@ -60,7 +60,7 @@ def test_space_starts_at_the_default_controller_and_stays_in_the_declared_ranges
 
 
 def test_space_apply_is_differentiable():
-    base = bp.default_params()
+    base = bp.paper_params()
     sp = rb.RobustSpace.make(base, names=("a_fz", "k_speed"))
     g = jax.jacfwd(lambda th: jnp.stack([sp.apply(th, base).amplitudes[1, 2], sp.apply(th, base).gains.k_speed]))(
         jnp.zeros(2))
@@ -99,8 +99,8 @@ def test_stored_parameters_round_trip_and_bad_files(tmp_path):
 def test_shipped_robust_presets_are_the_measured_results(preset, study, file):
     """Each shipped preset holds the parameters of its H100 study (``robust``: the gradient's of
     docs/results/bounding_robust_h100; ``robust_8s``: CMA-ES's of docs/results/bounding_robust_h100_8s) exactly,
-    inside every declared range, and builds a controller that differs from the default only in the 22 optimised
-    coordinates."""
+    inside every declared range, and builds a controller that differs from the paper's (bound_paper) only in the 22
+    optimised coordinates."""
     import os
 
     vals = rb.load_params(preset)
@@ -112,14 +112,14 @@ def test_shipped_robust_presets_are_the_measured_results(preset, study, file):
     for name, _, lo, hi in rb.COORDS:
         assert lo <= vals[name] <= hi, name
     p = rb.preset_params(preset, speed=0.5, yaw_rate=0.3)
-    d = bp.default_params(speed=0.5, yaw_rate=0.3)
+    d = bp.paper_params(speed=0.5, yaw_rate=0.3)
     assert p.validate() is p
     sp = rb.RobustSpace.make(d)
     np.testing.assert_allclose(sp.values(sp.theta_of(vals), np), [vals[n] for n in sp.names], rtol=1e-12)
     for n in sp.names:
         assert rb.value_of(p, n) == pytest.approx(vals[n], rel=1e-6), n
-    # Everything else (cycle apex, stance reference, gait, command, other gains) is the default's: the preset is
-    # the default moved along the optimised coordinates only.
+    # Everything else (cycle apex, stance reference, gait, command, other gains) is the paper's: the preset is
+    # the paper's controller moved along the optimised coordinates only.
     moved = sp.apply(jnp.asarray(sp.theta_of(vals), jnp.float32), d)
     leaves_p, tree_p = jax.tree_util.tree_flatten(p)
     leaves_m, tree_m = jax.tree_util.tree_flatten(moved)

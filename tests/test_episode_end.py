@@ -2,7 +2,7 @@
 episode end each keep it from diverging.
 
 ``tests/data/divergent_stepdown.npz`` is the closed-loop state (MJX data and the crawl's state) of a wide-spread step
--down (25 cm, payload 5.5 kg, shin remedy; docs/stepdown.md, "Divergences") 34 ticks before it diverged, as the
+-down (25 cm, payload 5.5 kg, shin remedy; docs/notes/stepdown.md, "Divergences") 34 ticks before it diverged, as the
 crawl ran before ``CrawlParams.joint_speed_limit`` and the episode end existed: HyQ lies on its back after a fall,
 and the trunk controller still distributes its weight over legs whose feet are in the air. One compiled program
 replays 60 ticks for four instances of that state:

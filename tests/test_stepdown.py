@@ -46,7 +46,7 @@ def test_reflex_is_needed_at_24_cm(stepdown_run):
     assert off["lost_footholds"] >= 1 and off["n_limit_stops"] >= 1
     # With it, the stance legs take over part of the searching motion and every foot finds the ground.
     # The one failure the reflex does not address is a front shin resting on the edge when a foot lands
-    # just past it (blind crawl; 42% of runs at 24 cm on a GPU, README): allowed here, nothing else is.
+    # just past it (blind crawl; 42% of runs at 24 cm on a GPU, docs/stepdown.md): allowed here, nothing else is.
     assert on["completed"], stepdown.failure_labels(on)
     assert stepdown.failure_labels(on) in ([], ["shin strike"]), stepdown.failure_labels(on)
     assert on["lost_footholds"] == 0 and on["n_limit_stops"] == 0

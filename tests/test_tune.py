@@ -1420,3 +1420,48 @@ def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(ch
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and "another configuration" in lines[0] and "Traceback" not in lines[0], lines
     assert len(TRACED) == traced and sorted(p.name for p in out.iterdir()) == before
+
+
+def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
+    """The default start of ``hyqjax tune`` (per_leg) is the preset ``tuned_per_leg``, the 30-minute per-leg CMA-ES
+    set: its start ``theta`` is the stored run's returned ``theta`` (float32 storage); a conditioned preset starts its
+    own parameterisation at its own ``theta``."""
+    import json
+
+    from hyqjax import presets
+    from hyqjax.cli.app import build_parser
+    from hyqjax.studies.tune import schedule, wallclock
+    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+    root = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_cells_h200_30min",
+                        "cma_es_per_leg_30min", "results.json")
+    with open(root) as f:
+        r = json.load(f)
+    p = schedule.make("per_leg", tuple(r["config"]["groups"]))
+    np.testing.assert_allclose(start_theta(p, presets.load("tuned_per_leg")), r["runs"]["cma_es/per_leg"]["theta"],
+                               atol=1e-4)
+    args = build_parser().parse_args(["tune", "--out", "o"])
+    from hyqjax.cli import tune as tune_cli
+
+    tune_cli._fill_hidden(args)
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "tuned_per_leg"
+    args.preset = "none"
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == ""
+    c = presets.get("tuned_per_leg_cond").values["conditioned"]
+    pc = schedule.make(c["parameterisation"], tuple(c["groups"]))
+    cfg = wallclock.WallClockConfig(dims=(pc.name,), methods=("cma_es",), start_preset="tuned_per_leg_cond")
+    np.testing.assert_allclose(start_theta(pc, start_point(cfg)), c["theta"], atol=1e-4)
+
+
+@pytest.mark.parametrize("argv, match", [(["--preset", "bound_robust"], "bound preset"),
+                                         (["--preset", "nosuch"], "tuned_per_leg"),
+                                         (["--preset", "tuned_per_leg", "--dim", "shared"], "per-leg set"),
+                                         (["--preset", "tuned_per_leg_cond", "--dim", "per_leg"], "conditioned set")])
+def test_tune_refuses_a_preset_it_cannot_start_from_in_one_line(argv, match, tmp_path, capsys):
+    from hyqjax.cli.app import main
+
+    out = tmp_path / "o"
+    assert main(["tune", "--out", str(out), *argv]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0] and lines[0].startswith("hyqjax tune: --preset"), lines
+    assert not out.exists() or not any(out.iterdir())

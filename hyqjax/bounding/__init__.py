@@ -32,6 +32,8 @@ from hyqjax.bounding.params import (
     GaitParams,
     Switches,
     default_params,
+    paper_params,
+    params_of_values,
 )
 from hyqjax.bounding.batch import Batch, Randomisation, make_batch
 from hyqjax.bounding.rollout import (
@@ -46,4 +48,5 @@ from hyqjax.bounding.state import BoundingInfo, BoundingState
 __all__ = ["APEX_NAMES", "Apex", "Batch", "BoundingCommand", "BoundingGains", "BoundingInfo", "BoundingOutcome",
            "BoundingParams", "BoundingRollout", "BoundingRolloutConfig", "BoundingState", "GaitParams", "Randomisation",
            "Switches", "bounding_controller", "bounding_init", "bounding_step", "default_params", "instance_args",
+           "paper_params", "params_of_values",
            "make_batch", "make_bounding_rollout"]

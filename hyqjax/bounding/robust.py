@@ -28,9 +28,11 @@ whole command envelope instead:
 The optimised parameters are stored as JSON (:func:`save_params`, :func:`load_params`);
 ``params_from_values(load_params(path), speed=...)`` rebuilds the controller. :data:`PRESETS` names the sets
 shipped with the package: ``"robust"`` is the gradient's result of the study on one H100 recorded in
-``docs/bounding.md`` (``preset_params("robust", speed=0.8, yaw_rate=0.5)``), ``"robust_8s"`` CMA-ES's result of
-the study trained on 8 s rollouts, the one with no held-out fall; :func:`default_params` stays the paper's
-reference cycle with its hand-set gains.
+``docs/bounding.md`` (``preset_params("robust", speed=0.8, yaw_rate=0.5)``; preset ``bound_robust_grad``),
+``"robust_8s"`` CMA-ES's result of the study trained on 8 s rollouts, the one with no held-out fall (preset
+``bound_robust``, which :func:`hyqjax.bounding.params.default_params` runs); the study starts from and compares
+with the paper's reference cycle and hand-set gains (:func:`hyqjax.bounding.params.paper_params`, preset
+``bound_paper``).
 """
 from __future__ import annotations
 
@@ -47,7 +49,7 @@ import numpy as np
 from hyqjax.bounding import cycle as bc
 from hyqjax.bounding import batch as bbatch
 from hyqjax.bounding import tracking
-from hyqjax.bounding.params import BoundingGains, BoundingParams, default_params
+from hyqjax.bounding.params import BoundingGains, BoundingParams, paper_params, params_of_values
 from hyqjax.core.batching import vmap_unless_one
 from hyqjax.core.params import param_ranges
 from hyqjax.io import atomic
@@ -68,13 +70,14 @@ COORDS: tuple = (
 )
 AMPLITUDE_NAMES = ("a_fz", "a_hz", "a_fx", "a_hx")
 FORMAT = "hyqjax.bounding.robust/1"
-#: Parameter files shipped with the package, by name (files next to this module; :func:`load_params` takes the
-#: name in place of a path). ``robust``: the gradient's parameters of ``experiments.bounding_robust`` on one H100
+#: The old names of the shipped parameter sets: aliases of the bounding presets of :mod:`hyqjax.presets`
+#: (``hyqjax/presets/<name>.json``; :func:`load_params` takes either name in place of a path). ``robust``: the
+#: gradient's parameters of ``experiments.bounding_robust`` on one H100
 #: (2026-11-25; ``docs/results/bounding_robust_h100/params_gradient.json``): 10 falls in 4,096 held-out
-#: instances against 692 with the default gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
+#: instances against 692 with the paper's gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
 #: 8 s rollouts (2026-11-26; ``docs/results/bounding_robust_h100_8s/params_cma_es.json``): 0 falls in the same
-#: 4,096 held-out instances (default gains: 708), worst yaw error 3.24 deg.
-PRESETS = {"robust": "robust_params.json", "robust_8s": "robust_8s_params.json"}
+#: 4,096 held-out instances (the paper's gains: 708), worst yaw error 3.24 deg.
+PRESETS = {"robust": "bound_robust_grad", "robust_8s": "bound_robust"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,8 +90,9 @@ class RobustSpace:
 
     @staticmethod
     def make(base: BoundingParams | None = None, names=None) -> "RobustSpace":
-        """The space around ``base`` (default: :func:`default_params`) over ``names`` (default: all of COORDS)."""
-        base = base or default_params()
+        """The space around ``base`` (default: the paper's gains, :func:`hyqjax.bounding.params.paper_params`, the
+        study's start point) over ``names`` (default: all of COORDS)."""
+        base = base or paper_params()
         known = [c[0] for c in COORDS]
         names = tuple(known if names is None else names)
         bad = [n for n in names if n not in known]
@@ -180,9 +184,9 @@ class Draw:
                         -1)
 
     def batch(self, n: int, seed: int, base: BoundingParams | None = None) -> bbatch.Batch:
-        """``n`` instances of ``base`` (default controller) with commands, initial perturbations, friction and
-        payload from ``seed``."""
-        base = base or default_params()
+        """``n`` instances of ``base`` (default: the paper's gains, the study's reference) with commands, initial
+        perturbations, friction and payload from ``seed``."""
+        base = base or paper_params()
         p = bbatch.command_params(base, self.commands(n, seed), self.ramp_time)
         return bbatch.make_batch(p, seed=seed, rand=bbatch.Randomisation(friction=self.friction, payload=self.payload))
 
@@ -353,25 +357,34 @@ def save_params(path: str | os.PathLike, values: dict, provenance: dict | None =
 
 
 def preset_path(name: str) -> str:
-    """The file of the shipped parameter set ``name`` (:data:`PRESETS`)."""
-    if name not in PRESETS:
-        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
-    return os.path.join(os.path.dirname(os.path.abspath(__file__)), PRESETS[name])
+    """The registry file of the shipped parameter set ``name`` (a key of :data:`PRESETS` or a bounding preset of
+    :mod:`hyqjax.presets`)."""
+    from hyqjax.presets import registry as presets
+
+    reg = PRESETS.get(name, name)
+    if reg not in presets.names("bound"):
+        raise ValueError(f"preset must be one of {sorted(set(PRESETS) | set(presets.names('bound')))}, got {name!r}")
+    return os.path.join(os.path.dirname(os.path.abspath(presets.__file__)), f"{reg}.json")
 
 
 def load_params(path: str | os.PathLike) -> dict:
-    """The parameter values of a file written by :func:`save_params` (by name), or of the shipped set named
-    ``path`` (a key of :data:`PRESETS`, which takes precedence over a file of that name); ``ValueError`` naming
-    the file and the bad entry (an unknown name, a value outside the declared range, not such a file)."""
-    if isinstance(path, str) and path in PRESETS:
+    """The parameter values of a file written by :func:`save_params` (by name), of a bounding preset file of
+    :mod:`hyqjax.presets`, or of the shipped set named ``path`` (a key of :data:`PRESETS` or a bounding preset's
+    name, which take precedence over a file of that name); ``ValueError`` naming the file and the bad entry (an
+    unknown name, a value outside the declared range, not such a file)."""
+    from hyqjax.presets import registry as presets
+
+    if isinstance(path, str) and (path in PRESETS or path in presets.names("bound")):
         path = preset_path(path)
     try:
         with open(path) as f:
             d = json.load(f)
-        if d.get("format") != FORMAT:
+        if d.get("format") == presets.FORMAT and d.get("kind") == "bound":
+            d = d["values"]
+        elif d.get("format") != FORMAT:
             raise ValueError(f"format is {d.get('format')!r}, expected {FORMAT!r}")
         vals = {k: float(v) for k, v in dict(d["amplitudes"], **d["gains"]).items()}
-    except (OSError, KeyError, TypeError, ValueError) as e:
+    except (OSError, KeyError, TypeError, ValueError, AttributeError) as e:
         raise ValueError(f"{path} is not a bounding parameter file: {e}") from None
     known = {c[0] for c in COORDS} | set(param_ranges(BoundingGains))
     for k, v in vals.items():
@@ -381,19 +394,13 @@ def load_params(path: str | os.PathLike) -> dict:
 
 
 def params_from_values(values: dict, **kw) -> BoundingParams:
-    """:func:`hyqjax.bounding.params.default_params` (``kw``: command, switches) with the stored amplitudes and
-    gains of ``values`` (validated by the parameter classes' declared ranges)."""
-    from hyqjax.bounding import defaults as bdef
-
-    amp = np.array(bdef.stored().amplitudes, np.float64)
-    for i, k in enumerate(AMPLITUDE_NAMES):
-        if k in values:
-            amp[i] = values[k]
-    gains = {k: v for k, v in values.items() if k not in AMPLITUDE_NAMES}
-    return default_params(cycle_amplitudes=amp, **gains, **kw)
+    """:func:`hyqjax.bounding.params.params_of_values`: :func:`hyqjax.bounding.params.paper_params` (``kw``:
+    command, switches) with the stored amplitudes and gains of ``values`` (validated by the parameter classes'
+    declared ranges)."""
+    return params_of_values(values, **kw)
 
 
 def preset_params(name: str = "robust", **kw) -> BoundingParams:
-    """:func:`params_from_values` of the shipped parameter set ``name`` (:data:`PRESETS`); ``kw`` as for
-    :func:`hyqjax.bounding.params.default_params` (command, switches)."""
+    """:func:`params_from_values` of the shipped parameter set ``name`` (:data:`PRESETS` or a bounding preset of
+    :mod:`hyqjax.presets`); ``kw`` as for :func:`hyqjax.bounding.params.paper_params` (command, switches)."""
     return params_from_values(load_params(preset_path(name)), **kw)

@@ -12,8 +12,12 @@ simulator's ground truth. --ablation runs all four on/off combinations of the ki
 the centrifugal compensation on the same instances (one compiled rollout) and reports each part's
 contribution.
 
+The gains are the preset bound_robust's (`hyqjax presets bound_robust`) unless --preset or --params names others;
+--preset bound_paper runs the paper's.
+
 Examples:
   hyqjax bound --out out/bound                             # forward 0.5 m/s, turning 0.3 rad/s, 8 instances
+  hyqjax bound --preset bound_paper                        # the paper's gains on the same instances
   hyqjax bound --speed 0.9 --yaw-rate 0.5 --ablation       # each part's contribution, same instances
   hyqjax bound --duration 2.4 --instances 2                # a quick run (tracking errors need cycles after 2 s)
 """
@@ -59,11 +63,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--friction", type=float, nargs=2, default=(0.7, 1.0), metavar=("LO", "HI"),
                    help="ground friction range")
     p.add_argument("--payload", type=float, default=5.0, metavar="KG", help="payload mass range [0, KG]")
-    p.add_argument("--params", metavar="FILE|robust|robust_8s", default=None,
-                   help="impulse amplitudes and gains from a file of hyqjax.bounding.robust.save_params, or a "
-                        "shipped set: 'robust' (the gradient's) or 'robust_8s' (CMA-ES's on 8 s rollouts; no fall "
-                        "in 4,096 held-out runs), optimised over commands, friction and payload (docs/bounding.md); "
-                        "default: the paper's reference cycle with the default gains")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="a bounding preset (`hyqjax presets --kind bound`): bound_robust (the default: CMA-ES's "
+                        "impulses and gains over commands, friction and payload; no fall in 4,096 held-out runs), "
+                        "bound_paper (the paper's gains), bound_robust_grad (the gradient's)")
+    p.add_argument("--params", metavar="FILE", default=None,
+                   help="impulse amplitudes and gains from a file of hyqjax.bounding.robust.save_params (your own "
+                        "optimisation, docs/bounding.md); the old names 'robust_8s' and 'robust' are aliases of "
+                        "--preset bound_robust and --preset bound_robust_grad")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     add_impl_argument(p, TASK.impls)
 
@@ -104,6 +111,7 @@ def check_options(args) -> None:
     if lo > hi:
         raise ValueError(f"--friction LO HI must satisfy 0 < LO <= HI <= 5, got {lo} {hi}")
     check_out_free(args.out)
+    args.preset = _preset_name(args)
     if args.params is not None:
         from hyqjax.bounding import robust as rb
 
@@ -111,6 +119,10 @@ def check_options(args) -> None:
             rb.params_from_values(rb.load_params(args.params))
         except ValueError as e:
             raise ValueError(f"--params: {e}") from None
+    else:
+        from hyqjax import presets
+
+        presets.load(args.preset)  # a stored value outside its declared range is refused here
     from hyqjax.bounding import batch as bbatch
 
     try:
@@ -124,6 +136,31 @@ def check_options(args) -> None:
 
 
 _validate = check_options
+
+#: The old shipped-set names of --params: aliases of presets.
+PARAMS_ALIASES = {"robust_8s": "bound_robust", "robust": "bound_robust_grad"}
+
+
+def _preset_name(args) -> str | None:
+    """The bounding preset to run (``--preset``, an alias given to ``--params``, else the default gains'
+    preset, ``hyqjax.bounding.params.DEFAULT_PRESET``), checked by name and kind; None when ``--params`` names a
+    file."""
+    from hyqjax import presets
+    from hyqjax.bounding.params import DEFAULT_PRESET
+
+    if args.params in PARAMS_ALIASES:  # the old shipped names take precedence over a file of that name, as before
+        alias = PARAMS_ALIASES[args.params]
+        if args.preset not in (None, alias):
+            raise ValueError(f"--params {args.params} is --preset {alias}; give one of them")
+        args.params = None
+        args.preset = alias
+    if args.params is not None:
+        if args.preset is not None:
+            raise ValueError("--params runs the parameters of a file; give one of --params and --preset")
+        return None
+    name = DEFAULT_PRESET if args.preset is None else args.preset
+    presets.check_kind(name, "bound")
+    return name
 
 
 def configurations(args) -> list[tuple[str, bool, bool]]:
@@ -148,7 +185,11 @@ def run(args) -> int:
     n = args.instances
     values = None
     if args.params is None:
-        make = bd.default_params
+        from hyqjax import presets
+
+        preset = presets.get(args.preset)
+        values = dict(preset.values.get("amplitudes", {}), **preset.values.get("gains", {}))
+        make = lambda **kw: bd.params_of_values(values, **kw)  # noqa: E731
     else:
         from hyqjax.bounding import robust as rb
 
@@ -186,7 +227,7 @@ def run(args) -> int:
                env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                batches=status.timings, groups=groups)
     if values is not None:
-        out["params"] = dict(source=args.params, values=values)
+        out["params"] = dict(source=args.params or f"preset {args.preset}", preset=args.preset, values=values)
     if args.ablation:
         out["contributions"] = bs.contributions(groups)
     os.makedirs(args.out, exist_ok=True)

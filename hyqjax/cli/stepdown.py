@@ -17,7 +17,9 @@ one shorter than a typical run needs gets a warning.
 
 Examples:
   hyqjax stepdown --instances 3 --out out/stepdown        # the paper's table at CPU size
-  hyqjax stepdown --heights 0.24 --reflex on --remedy      # one height, the shin-strike remedy
+  hyqjax stepdown --heights 0.24 --reflex on --preset remedy  # one height, the shin-strike remedy
+  hyqjax stepdown --preset reach --heights 0.27 --reflex on   # the configuration that reaches furthest
+  hyqjax stepdown --preset tuned_per_leg --instances 1     # a per-leg tuned set
   hyqjax stepdown --params out/tune/results.json           # the crawl and reflex gains `hyqjax tune` returned
   hyqjax render out/stepdown --where height=0.24 reflex=on # a video of one recorded run
 """
@@ -31,7 +33,6 @@ import sys
 import threading
 import time
 
-from hyqjax.crawl import presets
 from hyqjax.studies import tasks
 
 NAME = "stepdown"
@@ -51,19 +52,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the per-instance randomisation")
     p.add_argument("--duration", type=float, default=24.0, help="simulated seconds per instance")
     p.add_argument("--speed", type=float, default=0.1, help="desired forward velocity (m/s)")
+    from hyqjax.presets import registry
+
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="a crawl preset (`hyqjax presets --kind crawl`): " + ", ".join(registry.names("crawl")) +
+                        "; default: paper (Table I, the paper's crawl); reach reaches furthest")
     p.add_argument("--remedy", action="store_true",
-                   help="the shin-strike remedy with the trunk following 80%% of the feet plane's tilt "
-                        "(CrawlParams shin_remedy=True, terrain_adaptation=0.8; docs/stepdown.md); without it: the "
-                        "paper's crawl")
+                   help="alias of --preset remedy: the shin-strike remedy with the trunk following 80%% of the feet "
+                        "plane's tilt (docs/stepdown.md)")
     p.add_argument("--crawl", default="", metavar="FIELD=VALUE,...",
-                   help="more CrawlParams.make settings, after --remedy's, e.g. 'search_forward_limit=0.10,"
+                   help="more CrawlParams.make settings over the preset's, e.g. 'search_forward_limit=0.10,"
                         "stance_min_force=1' (the saturating search and the slip-aware trunk load, docs/stepdown.md); "
                         "forward_velocity is --speed")
     p.add_argument("--params", default="", metavar="RESULTS[:RUN]",
                    help="run the crawl and reflex parameters a tuning run returned: its results.json (`hyqjax tune "
                         "--out DIR` writes DIR/results.json), and with several runs the one to take, e.g. "
-                        "results.json:snes/shared; the run's remedy setting is kept (no --remedy), --crawl may set "
-                        "only fields it did not tune")
+                        "results.json:snes/shared (a per_leg run runs as a per-leg set); the run's remedy setting is "
+                        "kept (no --preset), --crawl may set only fields it did not tune")
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
@@ -93,7 +98,8 @@ def validate(args) -> None:
     if len(set(args.reflex)) != len(args.reflex):
         raise ValueError(f"--reflex lists a setting twice: {args.reflex}")
     args.crawl_settings = _crawl_settings(args)
-    args.tuned_params = _tuned_params(args) if args.params else None
+    args.preset = _preset_name(args)
+    args.tuned_params = _tuned_params(args) if args.params else _preset_params(args)
     check_impl(args.impl, supported=TASK.impls)
     args.recorded = _recorded_instances(args)
     args.duration_warning = _check_duration(args)
@@ -121,7 +127,60 @@ def _crawl_settings(args) -> dict:
                 specs[key].check(np.asarray(value, np.float64), "CrawlParams")
             except ParameterError as e:
                 raise ValueError(f"--crawl: {e}") from None
-    return {**(presets.REMEDY if args.remedy else {}), **extra}
+    return extra
+
+
+#: The crawl preset the step-down runs without --preset (its table reproduces the paper's).
+DEFAULT_PRESET = "paper"
+#: The preset whose reach the summary's last line names.
+REACH_PRESET = "reach"
+
+
+def _preset_name(args) -> str | None:
+    """The crawl preset of ``--preset`` / ``--remedy`` (its alias), checked by name and kind; None with
+    ``--params`` (a tuning run's parameters)."""
+    from hyqjax import presets as registry
+
+    if args.remedy and args.preset not in (None, "remedy"):
+        raise ValueError(f"--remedy is --preset remedy; give one of --remedy and --preset {args.preset}")
+    name = "remedy" if args.remedy else args.preset
+    if args.params:
+        if name is not None:
+            raise ValueError(f"--params runs a tuning run's parameters; give one of --params and "
+                             f"{'--remedy' if args.remedy else '--preset'}")
+        return None
+    name = DEFAULT_PRESET if name is None else name
+    registry.check_kind(name, "crawl")
+    return name
+
+
+def _preset_params(args):
+    """The crawl parameters of the preset with ``--speed`` and ``--crawl``'s settings, checked before anything
+    compiles (a ``CrawlParams``, or a per-leg set: :mod:`hyqjax.crawl.scheduled`)."""
+    from hyqjax import presets as registry
+
+    try:
+        return registry.load(args.preset, forward_velocity=args.speed, **args.crawl_settings)
+    except ValueError as e:
+        raise ValueError(f"--preset {args.preset}" + (f" with --crawl {args.crawl}" if args.crawl else "") +
+                         f": {e}") from None
+
+
+def reach_line(preset: str | None) -> str | None:
+    """The summary's last line: the preset that reaches further than ``preset`` and both h90 figures."""
+    from hyqjax import presets as registry
+
+    if preset == REACH_PRESET:
+        return None
+
+    def h90(name):
+        f = next((f for f in registry.get(name).figures if f["what"].startswith("h90")), None)
+        return f"{f['value']:g} {f['unit']}" if f else None
+
+    mine = h90(preset) if preset else None
+    far = h90(REACH_PRESET)
+    return (f"reaches further: --preset {REACH_PRESET} (h90 {far} on the wide spread"
+            + (f", against {mine} for {preset}" if mine else "") + f"; `hyqjax presets {REACH_PRESET}`)")
 
 
 def _tuned_params(args):
@@ -129,8 +188,6 @@ def _tuned_params(args):
     ``--speed`` and ``--crawl``'s settings, checked before anything compiles."""
     from hyqjax.studies.tune import tuned
 
-    if args.remedy:
-        raise ValueError("--remedy: --params runs the tuned parameters with the remedy setting of their run; give one")
     path, run = args.params, None
     if not os.path.exists(path) and ":" in path:
         path, _, run = path.rpartition(":")
@@ -180,7 +237,6 @@ def run(args) -> int:
     import jax
     import numpy as np
 
-    from hyqjax.crawl import controller as crawl
     from hyqjax.cli.common import sim_progress, user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import recording
@@ -192,7 +248,7 @@ def run(args) -> int:
     if getattr(args, "duration_warning", None):
         print(f"hyqjax stepdown: {args.duration_warning}", file=sys.stderr, flush=True)
     recorded = args.recorded
-    params = args.tuned_params or crawl.CrawlParams.make(forward_velocity=args.speed, **args.crawl_settings)
+    params = args.tuned_params
     scenario, table = stepdown.make_scenarios(args.heights, [m == "on" for m in args.reflex], args.instances,
                                               args.seed, params=params)
     record_every = 0 if args.no_figures else args.record_every
@@ -231,8 +287,14 @@ def run(args) -> int:
     timing = dict(wall_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
                   env_steps_per_s=n * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
                   batches=status.timings)
+    preset = None
+    if args.preset:
+        from hyqjax import presets as registry
+
+        rec = registry.get(args.preset)
+        preset = dict(name=rec.name, description=rec.description, values=rec.values, provenance=rec.provenance)
     io.write_json(os.path.join(args.out, "results.json"), dict(
-        provenance=io.provenance(seed=args.seed), config=config, impl=impl, summary=rows,
+        provenance=io.provenance(seed=args.seed), config=config, preset=preset, impl=impl, summary=rows,
         instances=instances, figures=figs, wall_time_s=wall, timing=timing))
     wrote = ["results.json (summary and one row per instance)"]
     if saving is not None:
@@ -245,6 +307,9 @@ def run(args) -> int:
     if pngs:
         wrote.append("figures " + ", ".join(pngs))
     print(f"wrote to {args.out}/: " + "; ".join(wrote) + f"; `hyqjax report {args.out}` makes one HTML page")
+    line = reach_line(args.preset)
+    if line:
+        print(line)
     return 0
 
 

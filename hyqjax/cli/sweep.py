@@ -82,6 +82,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-retries", type=int, default=3, help="retries of a Ray task whose worker died, in [0, 100]")
     p.add_argument("--dry-run", action="store_true", help="validate and print the sweep's size, run nothing")
     p.add_argument("--list-axes", action="store_true", help="print the axes with ranges and defaults, then exit")
+    p.add_argument("--preset", default=None, metavar="NAME",
+                   help="the crawl preset every instance runs (`hyqjax presets --kind crawl`; the spec's `preset`, "
+                        "else paper); axes override its values")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_impl_argument(p)
 
@@ -129,6 +132,8 @@ def build_spec_dict(args) -> dict:
                 if isinstance(d.get(other), dict):
                     d[other].pop(k, None)
             d.setdefault(sec, {})[k] = v[0] if sec == "fixed" and len(v) == 1 else v
+    if getattr(args, "preset", None) is not None:
+        d["preset"] = "" if args.preset == "paper" else args.preset
     for k in ("samples", "seed"):
         if getattr(args, k) is not None:
             d[k] = getattr(args, k)

@@ -227,18 +227,19 @@ def validate_wallclock(args) -> None:
         opt = msg.split(" ")[0].replace("_", "-")
         raise UsageError(f"--{opt}: {msg}" if not msg.startswith("--") else msg) from None
     check_out_free(args.out)
-    prepare_out(args.out)
     try:
         wallclock.previous(args.out, cfg)
     except RuntimeError as e:
         raise UsageError(str(e)) from None
+    _load_preset(preset)
+    prepare_out(args.out)
     args.wallclock_config = cfg
     args.options_checked = True
 
 
 def _start_preset(args, methods, dims) -> str:
     """The start preset's name ('' for Table I with the shin remedy), checked in one line: a known crawl preset
-    whose stored values are in their ranges, a per-leg set only for per-leg parameterisations, not with
+    (its values are checked by :func:`_load_preset`), a per-leg set only for per-leg parameterisations, not with
     --start-from. Without --preset: ``hyqjax tune`` starts from :data:`names.DEFAULT_PRESETS` where the registry
     holds it; the studies start from Table I with the shin remedy, as every stored study did."""
     from hyqjax.cli.common import UsageError
@@ -270,16 +271,31 @@ def _start_preset(args, methods, dims) -> str:
     if rec.kind != "crawl":
         raise UsageError(f"--preset {name} is a {rec.kind} preset; the tuner starts from a crawl preset: "
                          f"{', '.join(presets.names('crawl'))}")
+    cond = (rec.values or {}).get("conditioned")
+    if cond and (list(dims) != [cond.get("parameterisation")] or list(split_names(args.groups)) != list(cond.get("groups", ()))):
+        raise UsageError(f"--preset {name} is a conditioned set of {cond.get('parameterisation')}: it starts --dim "
+                         f"{cond.get('parameterisation')} with --groups {','.join(cond.get('groups', ()))} only")
     if (rec.values or {}).get("per_leg"):
         flat = [d for d in dims if not d.startswith("per_leg")]
         if flat:
             raise UsageError(f"--preset {name} is a per-leg set: it starts per-leg parameterisations only (per_leg, "
                              f"per_leg_cond, per_leg_cond_all), not {','.join(flat)}")
+    return name
+
+
+def _load_preset(name: str) -> None:
+    """The preset's stored values in their declared ranges (JAX's parameter classes, no MJX): after every other
+    check, since it runs JAX operations."""
+    from hyqjax.cli.common import UsageError
+
+    if not name:
+        return
+    from hyqjax import presets
+
     try:
-        presets.load(name)  # its stored values in their declared ranges (JAX's parameter classes, no MJX)
+        presets.load(name)
     except ValueError as e:
         raise UsageError(f"--preset: {e}") from None
-    return name
 
 
 def _defaults():

@@ -33,6 +33,7 @@ from hyqjax.core import kinematics
 from hyqjax.core import robot
 from hyqjax.crawl import edge
 from hyqjax.crawl import remedy
+from hyqjax.crawl import scheduled
 from hyqjax.crawl import swing
 from hyqjax.crawl.params import COM_OFFSET_B, FOOT_SEQUENCES, JOINT_SPEED_BAND, CrawlParams  # noqa: F401
 from hyqjax.crawl.state import (  # noqa: F401  (re-exported)
@@ -53,8 +54,8 @@ def pressing_feet(p: CrawlParams, foot_force_b, h_r_b):
 def loaded_stance(p: CrawlParams, stance, loaded, pressing):
     """The stance legs that carry the trunk: ``stance`` without the feet that pressed on the ground since their
     touchdown (``loaded``) and press no more (``~pressing``): a foot that slipped off an edge. Loading it anyway
-    drives its leg at the torque the trunk's weight asks for (docs/stepdown.md, "Divergences"). A foot that has not
-    pressed yet (a swing that ended at a limit with its foot in the air) keeps its share, which pushes it down onto
+    drives its leg at the torque the trunk's weight asks for (docs/notes/stepdown.md, "Divergences"). A foot that has
+    not pressed yet (a swing that ended at a limit with its foot in the air) keeps its share, which pushes it down onto
     the ground. At least two legs carry the trunk (else every stance leg, as with ``stance_min_force`` 0: off)."""
     gated = stance * (~(loaded & ~pressing)).astype(stance.dtype)
     return jnp.where((p.stance_min_force > 0) & (jnp.sum(gated) >= 2), gated, stance)
@@ -90,7 +91,7 @@ def speed_limited_torques(tau, qd, limit):
     Without it an ideal torque source spins an unloaded lower leg (about 0.036 kg m^2 about the knee, armature
     included) at 150 N m / 0.036 kg m^2 = 4,000 rad/s^2: a stance foot that has slipped off the edge, or every leg
     of a robot that has fallen over while the trunk controller still distributes its weight over them, reaches
-    100 rad/s in about 12 ticks (docs/stepdown.md, "Divergences")."""
+    100 rad/s in about 12 ticks (docs/notes/stepdown.md, "Divergences")."""
     scale = jnp.clip((limit + JOINT_SPEED_BAND - jnp.abs(qd)) / JOINT_SPEED_BAND, 0.0, 1.0)
     return jnp.where((tau * qd > 0) & (scale < 1.0), tau * scale, tau)
 
@@ -181,5 +182,14 @@ def crawl_step(p: CrawlParams, st: CrawlState, obs: Observation, dt: float):
 
 
 def crawl_controller(dt: float) -> Controller:
-    """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds."""
-    return Controller(crawl_init, lambda p, s, o: crawl_step(p, s, o, dt), tie_rollout_carry=True)
+    """The crawl as a :class:`hyqjax.core.types.Controller` ticking every ``dt`` seconds. Its parameters are a
+    ``CrawlParams`` or a scheduled set (a per-leg set, :class:`hyqjax.crawl.scheduled.PerLegCrawlParams`, or a
+    conditioned one), whose choice for the tick runs (:func:`hyqjax.crawl.scheduled.at_tick`; a ``CrawlParams``
+    runs as itself)."""
+    def init(p, obs):
+        return crawl_init(scheduled.at_tick(p, None, obs), obs)
+
+    def step(p, st, obs):
+        return crawl_step(scheduled.at_tick(p, st, obs), st, obs, dt)
+
+    return Controller(init, step, tie_rollout_carry=True)

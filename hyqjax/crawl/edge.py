@@ -3,8 +3,8 @@
 The blind crawl learns about a step down when a front swing searches past its nominal foothold (``deep_search``).
 Where the edge lies is then known only to within a step: the foot stood on the platform at lift-off and found no
 ground at its nominal foothold, at the lift-off height. That is 0.3 m, the whole range of start distances that
-decides the step down's outcome (docs/stepdown.md, "The start distance decides the wide spread"). This module keeps
-bounds ``edge_lo < x_edge < edge_hi`` on the edge's position along ``H0``'s x (the edge taken perpendicular to the
+decides the step down's outcome (docs/notes/stepdown.md, "The start distance decides the wide spread"). This module
+keeps bounds ``edge_lo < x_edge < edge_hi`` on the edge's position along ``H0``'s x (the edge taken perpendicular to the
 trunk's heading) and narrows them with one probing step.
 
 The rule (``edge_probe = L > 0``; at ``edge_probe = 0`` the crawl's outputs are bitwise those without it):

@@ -1,4 +1,6 @@
-"""Hand-set crawl configurations: one home for the named ``CrawlParams.make`` settings that the CLI's ``--remedy``,
+"""Hand-set crawl configurations of the study scripts (the user-facing names are the registry's,
+:mod:`hyqjax.presets`: ``paper``, ``remedy``, ``reach``, ...): one home for the named ``CrawlParams.make`` settings
+that the CLI's ``--remedy``,
 the reach map (``experiments/reach_map.py``) and the tuning study's hand-set comparison
 (``experiments/tune_handset.py``) run.
 
@@ -13,8 +15,11 @@ lowerings on the same runs and confirmed on 256 runs of seed 9696; docs/stepdown
 """
 from __future__ import annotations
 
-#: ``--remedy``: the shin-strike remedy with the trunk at 80% of the feet plane.
-REMEDY = dict(shin_remedy=True, terrain_adaptation=0.8)
+from hyqjax.presets import registry as _registry
+
+#: ``--remedy`` (preset ``remedy`` of :mod:`hyqjax.presets`, whose file holds the values): the shin-strike remedy
+#: with the trunk at 80% of the feet plane.
+REMEDY = _registry.crawl_settings("remedy")
 
 #: The edge probe's settings of the recommended step-down configuration (docs/stepdown.md, "The tilt by the measured
 #: depth"): a 10 cm probe, the trunk at 30% of the feet plane and 1 cm lower until the front hips are 10 cm past the

@@ -1,7 +1,7 @@
 """Which simulator steps the physics: ``impl`` = ``"auto" | "jax" | "warp" | "c"``, and the one object per
 implementation that the rest of hyqjax talks to (:func:`get`).
 
-* ``jax``: MJX's pure-JAX physics. Differentiable (forward mode, see README), runs everywhere.
+* ``jax``: MJX's pure-JAX physics. Differentiable (forward mode, see docs/architecture.md), runs everywhere.
 * ``warp``: MuJoCo Warp kernels called from JAX (``mjx.put_model(m, impl="warp")``), several times faster
   on a GPU, forward only. Needs ``warp-lang`` (``pip install "hyqjax[warp]"``). Its contacts live in one
   buffer of ``naconmax`` contacts shared by all worlds of a batch and at most ``njmax`` constraint rows per

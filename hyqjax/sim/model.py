@@ -135,7 +135,7 @@ def load_model(layout: TerrainLayout = TerrainLayout(), timestep: float = 0.002,
       layout: static terrain structure.
       timestep: physics step (s); must be in (0, 0.01].
       iterations, ls_iterations: MuJoCo's Newton solver iterations and line-search iterations
-        (defaults chosen in README "MJX settings": HyQ stands and walks with them in float32).
+        (defaults chosen in docs/architecture.md, "MJX settings": HyQ stands and walks with them in float32).
     """
     if not 0.0 < timestep <= 0.01:
         raise ValueError(f"timestep must be in (0, 0.01] s, got {timestep}")

@@ -34,6 +34,7 @@ import numpy as np
 from hyqjax.core import robot
 from hyqjax.core.batching import row_index, take_rows
 from hyqjax.crawl import controller as crawl
+from hyqjax.crawl import scheduled
 from hyqjax.sim import backend
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
@@ -100,7 +101,8 @@ class Scenario:
       start_distance: distance of the front feet from the platform edge at the start (m).
       lateral_offset: initial lateral offset of the trunk (m).
       yaw: initial heading (rad).
-      params: crawl parameters (with ``use_reflex`` and the reflex parameters); what :meth:`StepdownRollout.run`
+      params: crawl parameters, a ``CrawlParams`` or a per-leg set (:mod:`hyqjax.crawl.scheduled`; with ``use_reflex``
+        and the reflex parameters); what :meth:`StepdownRollout.run`
         runs. The single-instance ``rollout(params, scenario)`` takes its parameters as ``params`` instead.
       push: lateral push on the trunk.
     """
@@ -285,7 +287,7 @@ def summarize_instances(res: sim.RolloutResult, scenario: Scenario, cfg: Stepdow
 
 
 def make_scenarios(heights, reflex_modes, instances: int, seed: int, *, friction=(0.7, 1.0), payload=(0.0, 10.0),
-                   start_distance=(0.0, 0.04), lateral=(-0.03, 0.03), yaw=(-0.05, 0.05), params: crawl.CrawlParams | None = None,
+                   start_distance=(0.0, 0.04), lateral=(-0.03, 0.03), yaw=(-0.05, 0.05), params=None,
                    n_blocks: int = 0) -> tuple[Scenario, dict[str, np.ndarray]]:
     """A batch over ``heights x reflex_modes x instances`` with per-instance randomisation from ``seed``.
 
@@ -321,7 +323,7 @@ def make_scenarios(heights, reflex_modes, instances: int, seed: int, *, friction
     # Broadcast in NumPy, then put (a jnp.broadcast_to of each field would compile one small program per shape).
     batched = lambda x: jnp.asarray(np.broadcast_to(np.asarray(x), (b,) + np.shape(x)))  # noqa: E731
     bparams = jax.tree_util.tree_map(batched, base)
-    bparams = dataclasses.replace(bparams, use_reflex=jnp.asarray(np.asarray(table["reflex"], np.float32)))
+    bparams = scheduled.replace_base(bparams, use_reflex=jnp.asarray(np.asarray(table["reflex"], np.float32)))
     scenario = Scenario(terrain=terrain, start_distance=jnp.asarray(table["start_distance"]),
                         lateral_offset=jnp.asarray(table["lateral_offset"]), yaw=jnp.asarray(table["yaw"]),
                         params=bparams,

@@ -23,7 +23,9 @@ import numpy as np
 
 from hyqjax.control import impedance
 from hyqjax.core import spatial
+from hyqjax import presets
 from hyqjax.crawl import controller as crawl
+from hyqjax.crawl import scheduled
 from hyqjax.reflex import step as hreflex
 from hyqjax.sim import model as hmodel
 from hyqjax.sim import rollout as sim
@@ -48,7 +50,7 @@ class SensorParams:
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class SensedParams:
-    crawl: crawl.CrawlParams
+    crawl: crawl.CrawlParams  # or a per-leg set (hyqjax.crawl.scheduled)
     sensor: SensorParams
 
 
@@ -100,16 +102,17 @@ def build_scenario(rows: dict[str, np.ndarray], spec: SweepSpec) -> tuple[stepdo
     terrain = hmodel.InstanceTerrain.make(rows["height"], rows["friction"], rows["payload_mass"], com,
                                           rows["block_heights"], n_blocks=n_blocks)
     f32 = lambda x: jnp.asarray(x, jnp.float32)  # noqa: E731
-    base = crawl.CrawlParams.make()
-    params = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), base)
+    loaded = presets.load(spec.preset) if spec.preset else crawl.CrawlParams.make()
+    params = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (b,) + jnp.shape(x)), loaded)
     seq = np.asarray([crawl.FOOT_SEQUENCES[str(s)] for s in rows["foot_sequence"]], np.int32)
     gains = impedance.ImpedanceGains(
         kp=f32(np.stack([rows["kp_haa"], rows["kp_hfe"], rows["kp_kfe"]], -1)),
         kd=f32(np.stack([rows["kd_haa"], rows["kd_hfe"], rows["kd_kfe"]], -1)))
+    # A reflex field no axis names has the preset's value in the rows (SweepSpec.preset_defaults).
     rp = hreflex.ReflexParams(**{f.name: f32(rows[f"reflex_{f.name}"])
                                  for f in dataclasses.fields(hreflex.ReflexParams)})
-    params = dataclasses.replace(params, forward_velocity=f32(rows["speed"]), foot_sequence=jnp.asarray(seq),
-                                 use_reflex=f32(rows["reflex"]), gains=gains, reflex=rp)
+    params = scheduled.replace_base(params, forward_velocity=f32(rows["speed"]), foot_sequence=jnp.asarray(seq),
+                                    use_reflex=f32(rows["reflex"]), gains=gains, reflex=rp)
     force = np.stack([rows["push_force_x"], rows["push_force_y"], np.zeros(b)], -1)
     push = sim.Push(f32(force), f32(rows["push_t_start"]), f32(rows["push_duration"]))
     scenario = stepdown.Scenario(terrain=terrain, start_distance=f32(rows["start_distance"]),

@@ -35,7 +35,27 @@ from hyqjax.sim import model as hmodel
 from hyqjax.studies.sweep.axes import AXES, SENSOR_AXES, Axis, SpecError, axis_value, get_axis  # noqa: F401
 
 _TOP_KEYS = ("seed", "samples", "paired", "duration", "control_dt", "max_tilt", "min_progress", "blocks",
-             "grid", "random", "fixed", "maps", "bins")
+             "grid", "random", "fixed", "maps", "bins", "preset")
+
+
+def _preset(name, axes: dict) -> str:
+    """A crawl preset's name (``""``: none), checked by name and kind; a per-leg preset whose per-leg field is also
+    an axis is refused."""
+    if name in ("", None):
+        return ""
+    from hyqjax.presets import registry as presets
+
+    if not isinstance(name, str):
+        raise SpecError(f"preset must be the name of a crawl preset ({', '.join(presets.names('crawl'))}), "
+                        f"got {name!r}")
+    try:
+        p = presets.check_kind(name, "crawl", "preset")
+    except ValueError as e:
+        raise SpecError(str(e)) from None
+    clash = sorted(k.replace(".", "_") for k in p.scheduled_fields if k.replace(".", "_") in axes)
+    if clash:
+        raise SpecError(f"axis {clash[0]!r}: preset {name} sets it per leg; leave the axis out")
+    return name
 
 
 _BUILDING = threading.local()  # inside SweepSpec.from_dict (which validates) on this thread
@@ -56,6 +76,8 @@ class SweepSpec:
       blocks: ``(n_blocks_x, n_blocks_y)`` rough-terrain grid per level (0: none).
       maps: axis pairs of the success maps.
       bins: bins of a random float axis in maps and height curves.
+      preset: the crawl preset (:mod:`hyqjax.presets`) every instance runs, its values wherever no axis sets the
+        field ("" : the paper's crawl, ``CrawlParams.make()``); a per-leg preset's per-leg fields take no axis.
     """
 
     grid: tuple = ()
@@ -71,6 +93,7 @@ class SweepSpec:
     blocks: tuple = (0, 0)
     maps: tuple = (("height", "friction"), ("height", "payload_mass"))
     bins: int = 4
+    preset: str = ""
 
     def __post_init__(self):
         """Direct construction (``SweepSpec(...)``, ``dataclasses.replace``) is validated as :meth:`from_dict` is."""
@@ -160,6 +183,7 @@ class SweepSpec:
                 control_dt=num("control_dt", 1e-4, 0.02, 0.002), max_tilt=num("max_tilt", 0.01, 1.5, 0.4),
                 min_progress=num("min_progress", -10.0, 10.0, 0.5), blocks=(int(blocks[0]), int(blocks[1])),
                 maps=tuple((str(a), str(b)) for a, b in maps), bins=num("bins", 1, 100, 4, integer=True),
+                preset=_preset(d.get("preset", ""), seen),
             )
         finally:
             _BUILDING.depth -= 1
@@ -180,8 +204,9 @@ class SweepSpec:
         return spec
 
     def to_dict(self) -> dict:
-        """Canonical plain-JSON form (what the spec hash covers)."""
-        return dict(
+        """Canonical plain-JSON form (what the spec hash covers; ``preset`` only when set, so a spec without one
+        keeps the hash it always had)."""
+        return dict(**({"preset": self.preset} if self.preset else {}),
             grid={k: list(v) for k, v in self.grid}, random={k: list(v) for k, v in self.random},
             fixed=dict(self.fixed), samples=self.samples, seed=self.seed, paired=self.paired,
             duration=self.duration, control_dt=self.control_dt, max_tilt=self.max_tilt,
@@ -260,6 +285,16 @@ class SweepSpec:
             raise SpecError(f"reflex_{e.param}: {e} (at the spec's largest gains and smallest damping: "
                             f"{', '.join(f'reflex_{k}={worst[k]:g}' for k in ('k_x', 'k_base', 'k_kl', 'd_sw_min', 'd_st_min'))})") from None
 
+    def preset_defaults(self) -> dict:
+        """``{axis: value}`` of the preset's shared reflex values (``reflex_<field>``), the values of the axes the
+        spec does not name (empty without a preset: the axes' own defaults, Table I)."""
+        if not self.preset:
+            return {}
+        from hyqjax.presets import registry as presets
+
+        vals = presets.get(self.preset).values.get("reflex", {})
+        return {f"reflex_{k}": float(v) for k, v in vals.items() if f"reflex_{k}" in AXES}
+
     # ---------------------------------------------------------------- instances
     def instance_inputs(self, start: int, stop: int) -> dict[str, np.ndarray]:
         """Input rows of instances ``start..stop-1`` (deterministic in ``seed`` and the index only)."""
@@ -287,9 +322,10 @@ class SweepSpec:
         rows.update(draws)
         for k, v in self.fixed:
             rows[k] = np.full(n, v, dtype=object)
+        defaults = self.preset_defaults()
         for k, a in AXES.items():
             if k not in rows:
-                rows[k] = np.full(n, a.default, dtype=object)
+                rows[k] = np.full(n, defaults.get(k, a.default), dtype=object)
         out = {}
         for k, v in rows.items():
             a = AXES.get(k)

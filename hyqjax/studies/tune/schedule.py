@@ -174,6 +174,69 @@ class Parameterisation:
         return out
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ConditionedCrawlParams:
+    """A tuned per-leg, conditioned set as a crawl parameter object: the crawl runs it wherever it runs a
+    ``CrawlParams`` (:func:`hyqjax.crawl.scheduled.at_tick` calls :meth:`at_tick`), with the tuner's own choice of
+    parameters per tick (:meth:`Parameterisation.params_at`: the swing leg's row of ``table`` plus the
+    conditioning ``cond`` times the features the controller measures, :func:`features`). ``base`` holds every
+    field the set does not tune (batched or not, as a ``CrawlParams``); ``parameterisation`` is static."""
+
+    base: crawl.CrawlParams
+    table: jax.Array
+    cond: jax.Array
+    parameterisation: Parameterisation = dataclasses.field(metadata=dict(static=True))
+
+    @staticmethod
+    def of_theta(parameterisation: Parameterisation, theta, base: crawl.CrawlParams) -> "ConditionedCrawlParams":
+        """The set of a concrete ``theta`` of ``parameterisation`` over ``base`` (every tick's parameters lie in
+        their declared ranges by construction: :class:`.space.ParamSpace`)."""
+        th = np.asarray(theta, np.float64)
+        if th.shape != (parameterisation.size,) or not np.all(np.isfinite(th)):
+            raise ValueError(f"theta of {parameterisation.name} must be {parameterisation.size} finite values, got "
+                             f"shape {th.shape}")
+        table, cond = parameterisation.split(jnp.asarray(th, jnp.float32))
+        return ConditionedCrawlParams(base, table, cond, parameterisation)
+
+    @property
+    def fields(self) -> tuple[str, ...]:
+        """The tuned fields (``reflex.<name>`` for a reflex field): chosen per tick, never ``base``'s."""
+        return tuple(f"reflex.{c.name}" if c.owner == "reflex" else c.name for c in self.parameterisation.space.coords)
+
+    def at_tick(self, st=None, obs=None) -> crawl.CrawlParams:
+        """The parameters of this tick (traceable): the swing leg's row and, once the crawl runs (``st`` given),
+        the conditioning on :func:`features`; before the first tick the features are zero, as in the tuner."""
+        from hyqjax.crawl import scheduled
+
+        leg = scheduled.swing_leg(self, st)
+        if st is None:
+            phi = jnp.zeros(self.cond.shape[:-2] + (len(FEATURES),), self.table.dtype)
+        else:
+            phi = features(st, obs).astype(self.table.dtype)
+        return self.parameterisation.params_at(Scheduled(self.base, self.table, self.cond), leg, phi)
+
+    def replace_base(self, **kwargs) -> "ConditionedCrawlParams":
+        """A copy with fields of ``base`` replaced; a tuned crawl field is refused (a reflex field given through
+        ``reflex`` keeps its tuned values, which the set chooses per tick)."""
+        tuned = sorted(set(kwargs) & set(self.fields))
+        if tuned:
+            raise ValueError(f"{tuned[0]} is chosen per tick by the conditioned set {self.parameterisation.name}; "
+                             f"leave it out")
+        return dataclasses.replace(self, base=dataclasses.replace(self.base, **kwargs))
+
+    def describe(self) -> dict:
+        """Per-leg values and conditioning coefficients (concrete, unbatched; :meth:`Parameterisation.describe`)."""
+        pz = self.parameterisation
+        rows = np.asarray(self.table, np.float64).reshape(-1, 4, pz.space.size)[0]
+        th = rows.reshape(-1) if pz.per_leg else rows[0]
+        if pz.conditioned:
+            idx = [pz.space.names.index(c) for c in pz.conditioned]
+            a = np.asarray(self.cond, np.float64).reshape(-1, len(FEATURES), pz.space.size)[0][:, idx]
+            th = np.concatenate([th, a.reshape(-1)])
+        return pz.describe(th)
+
+
 def make(name: str, groups=spmod.DEFAULT_GROUPS) -> Parameterisation:
     """A named parameterisation (:data:`NAMES`) of the ``groups`` of :class:`.space.ParamSpace`."""
     space = spmod.ParamSpace.make(groups)

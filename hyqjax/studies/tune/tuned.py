@@ -7,9 +7,12 @@ Both layouts ``hyqjax tune`` writes are read:
 * the gradient study (``python -m experiments.tune_study --gradient-study``): ``res["<method>"]["theta"]``
   (:mod:`.study.gradient`).
 
-Only the parameterisation that is one ``CrawlParams`` (``shared``, :class:`.space.ParamSpace` over the run's
-``groups``) can be run by the step-down command; the scheduled ones (``per_leg``, ``per_leg_cond``, ...) choose a
-row per swing leg and need their own controller (:class:`.schedule.Parameterisation`), so they are refused here.
+A ``shared`` run (:class:`.space.ParamSpace` over the run's ``groups``) gives one ``CrawlParams``; a ``per_leg``
+run (:class:`.schedule.Parameterisation`: one row per swing leg) gives a per-leg set,
+:class:`hyqjax.crawl.scheduled.PerLegCrawlParams`; a conditioned run (``per_leg_cond``, ``per_leg_cond_all``: the
+rows also move with features the controller measures) gives a
+:class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`. The crawl runs each wherever it runs a
+``CrawlParams``.
 
 ``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it) with the caller's
 other settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned
@@ -23,14 +26,18 @@ import numpy as np
 
 #: The parameterisation whose ``theta`` is one ``CrawlParams``.
 SHARED = "shared"
+#: The parameterisation whose ``theta`` is one ``CrawlParams`` row per swing leg (a per-leg set).
+PER_LEG = "per_leg"
+RUNNABLE = (SHARED, PER_LEG, "per_leg_cond", "per_leg_cond_all")
 
 
 def runs_of(res: dict) -> dict:
-    """``{run name: theta}`` of every run in ``res`` whose ``theta`` is one ``CrawlParams`` (both layouts)."""
+    """``{run name: theta}`` of every run in ``res`` whose ``theta`` runs outside the tuner: one ``CrawlParams``
+    (``shared``) or a per-leg set (``per_leg``); both layouts."""
     out = {}
     runs = res.get("runs") if isinstance(res.get("runs"), dict) else {}
     for key, r in runs.items():
-        if isinstance(r, dict) and "theta" in r and key.endswith("/" + SHARED):
+        if isinstance(r, dict) and "theta" in r and key.rpartition("/")[2] in RUNNABLE:
             out[key] = r["theta"]
     for key, r in res.items():
         if key != "runs" and isinstance(r, dict) and "theta" in r:
@@ -51,30 +58,33 @@ def read(path: str) -> dict:
 
 
 def pick_run(res: dict, run: str | None, path: str = "results.json") -> str:
-    """The run to take: ``run`` (``cma_es`` means ``cma_es/shared``), or the only one ``res`` has."""
+    """The run to take: ``run`` (``cma_es`` means the one ``cma_es`` run, else ``cma_es/shared``), or the only one
+    ``res`` has."""
     found = runs_of(res)
     if run:
-        key = run if run in found or "/" in run else f"{run}/{SHARED}"
+        same = [k for k in found if k.split("/")[0] == run]
+        key = run if run in found or "/" in run else (same[0] if len(same) == 1 else f"{run}/{SHARED}")
         if key not in found:
             other = sorted(k for k in (res.get("runs") or {}) if k not in found)
-            raise ValueError(f"run {run!r} is not a {SHARED} run of {path} (runs: {', '.join(sorted(found)) or 'none'}"
-                             + (f"; not one CrawlParams: {', '.join(other)}" if other else "") + ")")
+            raise ValueError(f"run {run!r} is not a run of {path} (runs: {', '.join(sorted(found)) or 'none'}"
+                             + (f"; of no known parameterisation: {', '.join(other)}" if other else "") + ")")
         return key
     if not found:
         other = sorted(res.get("runs") or {})
-        raise ValueError(f"{path} has no run whose parameters are one CrawlParams (a {SHARED} run)"
-                         + (f"; its runs are scheduled per leg: {', '.join(other)}" if other else ""))
+        raise ValueError(f"{path} has no run of a known parameterisation ({', '.join(RUNNABLE)})"
+                         + (f"; its runs: {', '.join(other)}" if other else ""))
     if len(found) != 1:
-        raise ValueError(f"{path} has {len(found)} runs with one CrawlParams ({', '.join(sorted(found)) or 'none'}): "
+        raise ValueError(f"{path} has {len(found)} runs ({', '.join(sorted(found)) or 'none'}): "
                          f"name one as PATH:RUN")
     return next(iter(found))
 
 
 def crawl_params(path: str, run: str | None = None, **settings):
-    """``CrawlParams`` of ``run`` in the tuning results at ``path`` (module docstring): the run's ``theta`` on the
-    ``ParamSpace`` of its ``groups``, over ``CrawlParams.make(shin_remedy=<the run's remedy>, **settings)``. A
-    ``ValueError`` naming the problem (unreadable file, unknown or ambiguous run, a setting the run tuned, a
-    parameter out of its declared range)."""
+    """``CrawlParams`` (a ``shared`` run) or :class:`hyqjax.crawl.scheduled.PerLegCrawlParams` (a ``per_leg``
+    run) of ``run`` in the tuning results at ``path`` (module docstring): the run's ``theta`` on the
+    ``ParamSpace`` of its ``groups`` (per leg: row by row), over ``CrawlParams.make(shin_remedy=<the run's remedy>,
+    **settings)``. A ``ValueError`` naming the problem (unreadable file, unknown or ambiguous run, a setting the run
+    tuned, a parameter out of its declared range)."""
     from hyqjax.core.params import ParameterError
     from hyqjax.crawl import controller as crawl
     from hyqjax.studies.tune import space as tspace
@@ -87,8 +97,15 @@ def crawl_params(path: str, run: str | None = None, **settings):
         space = tspace.ParamSpace.make(cfg["groups"])
     except (ValueError, TypeError) as e:
         raise ValueError(f"{path}: its groups are not tunable groups ({e})") from None
-    if theta.shape != (space.size,) or not np.all(np.isfinite(theta)):
-        raise ValueError(f"{path}: run {key} has {theta.size} values, not {space.size} finite ones for its groups")
+    from hyqjax.studies.tune import schedule
+
+    dim = key.rpartition("/")[2]
+    dim = dim if dim in schedule.NAMES else SHARED  # the gradient study's layout: shared runs
+    per_leg = dim == PER_LEG
+    pz = schedule.make(dim, cfg["groups"])
+    size = pz.size
+    if theta.shape != (size,) or not np.all(np.isfinite(theta)):
+        raise ValueError(f"{path}: run {key} has {theta.size} values, not {size} finite ones for its groups")
     tuned = sorted({c.name for c in space.coords} & set(settings))
     if tuned:
         raise ValueError(f"{', '.join(tuned)}: tuned by run {key} of {path}; leave it out")
@@ -96,6 +113,26 @@ def crawl_params(path: str, run: str | None = None, **settings):
         raise ValueError(f"shin_remedy: set by run {key} of {path} (remedy {bool(cfg.get('remedy', False))})")
     try:
         base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)), **settings)
-        return space.concrete(theta, base)
+        if dim not in (SHARED, PER_LEG):
+            return schedule.ConditionedCrawlParams.of_theta(pz, theta, base)
+        if not per_leg:
+            return space.concrete(theta, base)
+        return per_leg_params(space, theta.reshape(4, space.size), base)
     except (ParameterError, ValueError, TypeError) as e:
         raise ValueError(f"run {key} of {path}: {e}") from None
+
+
+def per_leg_params(space, rows, base):
+    """The :class:`hyqjax.crawl.scheduled.PerLegCrawlParams` of ``(4, P)`` rows of ``theta`` on ``space`` (legs in
+    :data:`hyqjax.crawl.scheduled.LEGS` order, the rows of :class:`.schedule.Parameterisation`) over ``base``: each
+    leg's values are ``space.concrete(row, base)``'s."""
+    from hyqjax.crawl.scheduled import PerLegCrawlParams
+
+    legs: dict = {}
+    for i in range(4):
+        cp = space.concrete(np.asarray(rows[i], np.float64), base)
+        for c in space.coords:
+            obj = cp.reflex if c.owner == "reflex" else cp
+            legs.setdefault(f"reflex.{c.name}" if c.owner == "reflex" else c.name, []).append(
+                float(np.asarray(getattr(obj, c.name))))
+    return PerLegCrawlParams.make(base, legs)

@@ -236,13 +236,23 @@ def start_point(cfg: WallClockConfig):
 
 
 def is_per_leg(start) -> bool:
-    """Whether a start point is a per-leg set (``base`` and one ``row(i)`` per swing leg)."""
-    return hasattr(start, "row") and hasattr(start, "base")
+    """Whether a start point is a scheduled set around a ``base`` (a per-leg set or a tuner's conditioned set)."""
+    return hasattr(start, "base") and (hasattr(start, "row") or hasattr(start, "parameterisation"))
 
 
 def start_theta(param: schedule.Parameterisation, start) -> np.ndarray:
-    """The ``theta`` of ``param`` that runs ``start``: a ``CrawlParams`` on every leg, or a per-leg set's four rows
-    (per-leg parameterisations only; no conditioning)."""
+    """The ``theta`` of ``param`` that runs ``start``: a ``CrawlParams`` on every leg, a per-leg set's four rows
+    (per-leg parameterisations only; no conditioning), or a conditioned set's own ``theta`` (its
+    parameterisation only)."""
+    if hasattr(start, "parameterisation") and hasattr(start, "table"):
+        pz = start.parameterisation
+        if pz.name != param.name or pz.space != param.space:
+            raise ValueError(f"a start point conditioned as {pz.name} starts that parameterisation with its groups "
+                             f"only, not {param.name}")
+        table, cond = np.asarray(start.table, np.float64), np.asarray(start.cond, np.float64)
+        rows = table.reshape(-1) if param.per_leg else table[0]
+        idx = [param.space.names.index(c) for c in param.conditioned]
+        return np.concatenate([rows, cond[:, idx].reshape(-1) if idx else np.zeros(0)])
     if not is_per_leg(start):
         return param.theta_of(start)
     if not param.per_leg:

@@ -1,0 +1,295 @@
+"""Write the preset registry's files (``hyqjax/presets/<name>.json``) from the stored results they come from.
+
+    python -m experiments.build_presets            # rewrite every preset file
+    python -m experiments.build_presets --check    # exit 1 if a file differs from what the results give
+
+Every value is read from a stored result file (``docs/results/...``): the tuned crawl gains from a tuning run's
+``results.json`` (its returned iterate, mapped on its parameter space exactly as ``hyqjax tune`` reported it),
+the bounding gains from the robust study's ``params_*.json``; every figure from a stored result file with the
+command in its provenance, or from the held-out evaluation of 2026-11-29 (one H200, MuJoCo Warp) whose result
+file is not in the repository, marked as such with the command that re-measures it.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+OUT = os.path.join(ROOT, "hyqjax", "presets")
+R = "docs/results"
+FORMAT = "hyqjax.presets/1"
+
+#: The recommended step-down configuration's edge probe (hyqjax.crawl.presets.PROBE_DEEP).
+PROBE = dict(edge_probe=0.1, edge_tilt=0.3, edge_margin=0.1, edge_lowering=0.01, edge_deep=0.255, edge_tilt_deep=0.5)
+REACH_SRC = f"{R}/tune_reach_h200_10min/snes/results.json"
+PER_LEG_SRC = f"{R}/tune_cells_h200_30min/cma_es_per_leg_30min/results.json"
+REACH_MAP = f"{R}/reach_recommended_h200/warp_wide/reach_map.json"
+HELDOUT_0129 = ("2,400 held-out step-downs of 2026-11-29 (heights between the trained ones, another seed, the wide "
+                "spread: friction 0.4-1.0, payload 0-15 kg, start 0-15 cm)")
+NEW_HELDOUT_SOURCE = "held-out evaluation on one H200, MuJoCo Warp, 2026-11-29 (its result file is not stored)"
+REACH_WIDE_1024 = ("wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), 1,024 runs per height, held-out "
+                   "seed")
+BOUND_ENV = ("five commands of the bounding command envelope at low friction and a 10 kg payload: friction "
+             "0.5-0.6, payload 10 kg, 1,024 x 8 s per command")
+#: The command field of a figure of the 2026-11-29 evaluation, whose command was not recorded.
+UNRECORDED = "unrecorded: held-out evaluation of 2026-11-29 on one H200, MuJoCo Warp (no result file in the repository)"
+BOUND_PRESETS_CMD = "python -m experiments.bounding_presets --impl warp --instances 1024 --out out/bounding_presets"
+
+
+def rel(path):
+    return os.path.relpath(path, ROOT)
+
+
+def read(path):
+    with open(os.path.join(ROOT, path)) as f:
+        return json.load(f)
+
+
+def prov_of(res: dict, source: str, **extra) -> dict:
+    p = res["provenance"]
+    dev = res.get("device") or ", ".join(p.get("devices", []))
+    cmd = p["command"]
+    if cmd.startswith("hyqjax --"):  # `hyqjax tune` stored its command without the subcommand
+        cmd = "hyqjax tune " + cmd[len("hyqjax "):]
+    return dict(command=cmd, seed=p.get("seed"), device=dev, date=p["date"][:10], hyqjax=p.get("hyqjax"),
+                source=source, **extra)
+
+
+def _crawl_values(cp, base) -> tuple[dict, dict]:
+    """(``CrawlParams.make`` settings, ``ReflexParams`` fields) of ``cp`` that differ from ``base``."""
+    from hyqjax.core.params import param_ranges
+
+    crawl, reflex = {}, {}
+    for name in param_ranges(type(cp)):
+        a, b = np.asarray(getattr(cp, name)), np.asarray(getattr(base, name))
+        if a.shape == () and a != b:
+            crawl[name] = float(a)
+    for name in param_ranges(type(cp.reflex)):
+        a, b = np.asarray(getattr(cp.reflex, name)), np.asarray(getattr(base.reflex, name))
+        if a.shape == () and a != b:
+            reflex[name] = float(a)
+    return crawl, reflex
+
+
+def tuned_shared(path: str, run: str):
+    from hyqjax.crawl.params import CrawlParams
+    from hyqjax.studies.tune import tuned
+
+    res = read(path)
+    cp = tuned.crawl_params(os.path.join(ROOT, path), run)
+    base = CrawlParams.make(shin_remedy=bool(res["config"]["remedy"]))
+    crawl, reflex = _crawl_values(cp, base)
+    return dict(dict(shin_remedy=bool(res["config"]["remedy"])), **crawl), reflex, res
+
+
+def tuned_per_leg(path: str, key: str):
+    from hyqjax.crawl.scheduled import LEGS
+    from hyqjax.studies.tune import tuned
+
+    res = read(path)
+    pl = tuned.crawl_params(os.path.join(ROOT, path), key)
+    per_leg = {k: {leg: float(np.asarray(v)[i]) for i, leg in enumerate(LEGS)} for k, v in pl.legs.items()}
+    return dict(shin_remedy=bool(res["config"]["remedy"])), per_leg, res
+
+
+def tuned_conditioned(path: str, key: str):
+    from hyqjax.studies.tune import tuned
+
+    res = read(path)
+    run = res["runs"][key]
+    cs = tuned.crawl_params(os.path.join(ROOT, path), key)
+    cond = dict(parameterisation=run["dim"], groups=list(res["config"]["groups"]),
+                theta=[float(x) for x in run["theta"]], fields=list(cs.fields),
+                values={k: round(float(v), 6) for k, v in cs.describe().items()})
+    return dict(shin_remedy=bool(res["config"]["remedy"])), cond, res
+
+
+def heldout_fig(res, key, what, source, run_cmd):
+    h = res["heldout"][key]
+    hs = res["heldout_set"]
+    r = hs["ranges"]
+    return dict(what=what, value=round(h["clean"], 3), unit="share", interval=[round(x, 3) for x in h["clean_ci95"]],
+                heldout=(f"{hs['instances']} step-downs, seed {hs['seed']}, {hs['duration']:g} s, heights "
+                         f"{hs['heights'][0]:g}-{hs['heights'][-1]:g} m, friction {r['friction'][0]:g}-"
+                         f"{r['friction'][1]:g}, payload {r['payload'][0]:g}-{r['payload'][1]:g} kg, start "
+                         f"{r['start_distance'][0]:g}-{r['start_distance'][1]:g} m"),
+                command=run_cmd, device=res["device"], date=res["provenance"]["date"][:10], source=source)
+
+
+def reach_fig(variant: str):
+    res = read(REACH_MAP)
+    cell = next(c for c in res["cells"] if c["variant"] == variant)
+    n = cell["per_height"][0]["n"]
+    return dict(what="h90, wide spread", value=round(100 * cell["h90"]), unit="cm", interval=None,
+                heldout=f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), {n} runs per height at "
+                        f"14-30 cm, seed {res['provenance']['seed']}",
+                command="python -m experiments.reach_map " + res["provenance"]["command"][len("hyqjax "):],
+                device=res["device"], date=res["provenance"]["date"][:10], source=REACH_MAP)
+
+
+def reach_fig_0129(value_cm: int, variant_cmd: str):
+    return dict(what="h90, wide spread (independent held-out set)", value=value_cm, unit="cm", interval=None,
+                heldout=REACH_WIDE_1024, device="NVIDIA H200, MuJoCo Warp", date="2026-11-29",
+                source=NEW_HELDOUT_SOURCE, command=UNRECORDED,
+                remeasure=f"python -m experiments.reach_map --impl warp --instances 1024 --spread wide --seed 20261129 "
+                          f"--heights 0.14 0.16 0.18 0.20 0.22 0.24 0.26 0.27 0.28 0.30 {variant_cmd}")
+
+
+def clean_fig_0129(value: float, preset: str):  # noqa: ARG001
+    return dict(what="clean success, held-out step-downs", value=value, unit="share", interval=None,
+                heldout=HELDOUT_0129, device="NVIDIA H200, MuJoCo Warp", date="2026-11-29",
+                source=NEW_HELDOUT_SOURCE, command=UNRECORDED)
+
+
+def bound_file(path: str):
+    d = read(path)
+    return d["amplitudes"], d["gains"], d.get("provenance", {})
+
+
+def bound_heldout_fig(method: str, what_prefix=""):
+    path = f"{R}/bounding_robust_h100_8s/results.json"
+    res = read(path)
+    h = res["heldout"]
+    m = h["methods"][method]
+    d = h["draw"]
+    held = (f"{h['instances']:,} runs x {h['duration']:g} s, seed {h['seed']}: speed {d['speed'][0]:g}-"
+            f"{d['speed'][1]:g}"
+            f" m/s, yaw rate +-{d['yaw_rate'][1]:g} rad/s, friction {d['friction'][0]:g}-{d['friction'][1]:g}, "
+            f"payload {d['payload'][0]:g}-{d['payload'][1]:g} kg")
+    common = dict(heldout=held, command="python -m experiments.bounding_robust " + res["provenance"]["command"].split(
+        "experiments.bounding_robust ", 1)[1], device=res["device"], date=res["provenance"]["date"][:10], source=path)
+    return [dict(what="falls, held-out bounding runs", value=m["failures"], unit=f"of {m['n']:,}", interval=None,
+                 **common),
+            dict(what="worst yaw error, held-out bounding runs", value=round(m["yaw_error_worst_deg"], 2), unit="deg",
+                 interval=None, **common)]
+
+
+def bound_envelope_figs(falls: str, yaw: str, nominal: dict | None):
+    out = [dict(what="runs that fall, envelope commands at friction 0.5-0.6, 10 kg (per command)", value=falls,
+                unit="", interval=None, heldout=BOUND_ENV, device="NVIDIA H200, MuJoCo Warp", date="2026-11-29",
+                source=NEW_HELDOUT_SOURCE, command=UNRECORDED, remeasure=BOUND_PRESETS_CMD),
+           dict(what="worst yaw error there", value=yaw, unit="deg", interval=None, heldout=BOUND_ENV,
+                device="NVIDIA H200, MuJoCo Warp", date="2026-11-29", source=NEW_HELDOUT_SOURCE,
+                command=UNRECORDED, remeasure=BOUND_PRESETS_CMD)]
+    if nominal:
+        for what, v, unit in (("yaw rms at (0.5 m/s, 0.3 rad/s)", nominal["yaw"], "deg"),
+                              ("speed rms at (0.5 m/s, 0.3 rad/s)", nominal["speed"], "m/s")):
+            out.append(dict(what=what, value=v, unit=unit, interval=None,
+                            heldout="the nominal command (0.5 m/s, 0.3 rad/s)", device="NVIDIA H200, MuJoCo Warp",
+                            date="2026-11-29",
+                            source=NEW_HELDOUT_SOURCE, command=UNRECORDED, remeasure=BOUND_PRESETS_CMD))
+    return out
+
+
+def build() -> dict[str, dict]:
+    import hyqjax
+
+    presets = {}
+
+    def add(name, kind, description, values, provenance, figures, aliases=()):
+        provenance.setdefault("hyqjax", hyqjax.__version__)
+        presets[name] = dict(format=FORMAT, name=name, kind=kind, description=description, aliases=list(aliases),
+                             values=values, provenance=provenance, figures=figures)
+
+    # ---- crawl ----
+    rm = read(REACH_MAP)
+    rm_prov = dict(command="python -m experiments.reach_map " + rm["provenance"]["command"][len("hyqjax "):],
+                   seed=rm["provenance"]["seed"], device=rm["device"], date=rm["provenance"]["date"][:10],
+                   hyqjax=rm["provenance"]["hyqjax"], source=REACH_MAP)
+    add("paper", "crawl", "the paper's crawl and Table I reflex (CrawlParams.make()); the step-down default",
+        dict(crawl={}, reflex={}),
+        dict(rm_prov, command="CrawlParams.make() (Focchi et al. 2017, Table I)", seed=None,
+             source="hyqjax/crawl/params.py, hyqjax/reflex/params.py"),
+        [reach_fig("default"), reach_fig_0129(21, "--variants default")])
+    add("remedy", "crawl", "shin-strike remedy with the trunk at 80% of the feet plane (old --remedy)",
+        dict(crawl=dict(shin_remedy=True, terrain_adaptation=0.8), reflex={}),
+        dict(rm_prov, command="CrawlParams.make(shin_remedy=True, terrain_adaptation=0.8) (docs/stepdown.md, the "
+                              "remedy study)", seed=None, source="hyqjax/crawl/presets.py (REMEDY)"),
+        [reach_fig("remedy"), reach_fig_0129(23, "--variants remedy")], aliases=("--remedy",))
+    crawl, reflex, res = tuned_shared(REACH_SRC, "snes")
+    reach_prov = prov_of(res, REACH_SRC, note="tuned gains of `snes/shared` with the edge probe and depth gate of "
+                                               "docs/stepdown.md added")
+    add("reach", "crawl", "the recommended reach configuration: reach-trained SNES gains, edge probe and depth gate",
+        dict(crawl=dict(crawl, **PROBE), reflex=reflex), reach_prov,
+        [reach_fig("snes_reach_probe_deep"), reach_fig_0129(27, "--preset reach"), clean_fig_0129(0.857, "reach")])
+    add("tuned_shared", "crawl", "best measured 14-coordinate shared set (SNES, reach-trained, 10 min on one H200)",
+        dict(crawl=crawl, reflex=reflex), prov_of(res, REACH_SRC),
+        [heldout_fig(res, "snes/shared@10min", "clean success, held-out step-downs", REACH_SRC,
+                     prov_of(res, REACH_SRC)["command"])])
+    crawl_b, per_leg, res = tuned_per_leg(PER_LEG_SRC, "cma_es/per_leg")
+    cmd = prov_of(res, PER_LEG_SRC)["command"]
+    add("tuned_per_leg", "crawl", "56-coordinate per-leg set (CMA-ES, 14 coordinates per swing leg, 30 min on one "
+        "H200)", dict(crawl=crawl_b, reflex={}, per_leg=per_leg), prov_of(res, PER_LEG_SRC),
+        [clean_fig_0129(0.841, "tuned_per_leg"),
+         heldout_fig(res, "cma_es/per_leg@30min", "clean success, held-out step-downs", PER_LEG_SRC, cmd)])
+
+    cond_src = f"{R}/tune_wallclock_h200_10min_68/results.json"
+    crawl_c, cond, res = tuned_conditioned(cond_src, "hybrid/per_leg_cond")
+    cmd = prov_of(res, cond_src)["command"]
+    add("tuned_per_leg_cond", "crawl", "68-coordinate per-leg set conditioned on payload, search depth and steps down "
+        "(hybrid search, 10 min on one H200)", dict(crawl=crawl_c, reflex={}, conditioned=cond),
+        prov_of(res, cond_src),
+        [heldout_fig(res, "hybrid/per_leg_cond@10min", "clean success, held-out step-downs", cond_src, cmd)])
+
+    # ---- bound ----
+    add("bound_paper", "bound", "the paper's bounding gains on the stored limit cycle (the reference cycle's)",
+        dict(amplitudes={}, gains={}),
+        dict(command="hyqjax.bounding.params.paper_params() (Orsolino et al.; the stored cycle "
+                     "hyqjax/bounding/default_cycle.json, hand-set gains DEFAULT_GAINS)", seed=None,
+             device=None, date=None, source="hyqjax/bounding/default_cycle.json, hyqjax/bounding/params.py"),
+        bound_heldout_fig("default") + bound_envelope_figs("13-92%", "22-58", dict(yaw=0.43, speed=0.024)))
+    amp, gains, p8 = bound_file(f"{R}/bounding_robust_h100_8s/params_cma_es.json")
+    res8 = read(f"{R}/bounding_robust_h100_8s/results.json")
+    add("bound_robust", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
+        "the default of `hyqjax bound`", dict(amplitudes=amp, gains=gains),
+        prov_of(res8, f"{R}/bounding_robust_h100_8s/params_cma_es.json", method=p8.get("method")),
+        bound_heldout_fig("cma_es") + bound_envelope_figs("0%", "<= 3.5", dict(yaw=0.28, speed=0.012)),
+        aliases=("--params robust_8s",))
+    amp, gains, pg = bound_file(f"{R}/bounding_robust_h100/params_gradient.json")
+    resg = read(f"{R}/bounding_robust_h100/results.json")
+    fg = []
+    h = resg["heldout"]
+    m = h["methods"]["gradient"]
+    d = h["draw"]
+    fg.append(dict(what="falls, held-out bounding runs", value=m["failures"], unit=f"of {m['n']:,}", interval=None,
+                   heldout=(f"{h['instances']:,} runs x {h['duration']:g} s, seed {h['seed']}: speed "
+                            f"{d['speed'][0]:g}-{d['speed'][1]:g} m/s, yaw rate +-{d['yaw_rate'][1]:g} rad/s, friction "
+                            f"{d['friction'][0]:g}-{d['friction'][1]:g}, payload {d['payload'][0]:g}-"
+                            f"{d['payload'][1]:g} kg"),
+                   command="python -m experiments.bounding_robust " + resg["provenance"]["command"].split(
+                       "experiments.bounding_robust ", 1)[1], device=resg["device"],
+                   date=resg["provenance"]["date"][:10], source=f"{R}/bounding_robust_h100/results.json"))
+    add("bound_robust_grad", "bound", "the gradient's (jacfwd + Adam) impulses and gains over commands, friction "
+        "and payload (3.2 s training)", dict(amplitudes=amp, gains=gains),
+        prov_of(resg, f"{R}/bounding_robust_h100/params_gradient.json", method=pg.get("method")), fg,
+        aliases=("--params robust",))
+    return presets
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.build_presets", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--check", action="store_true", help="compare with the files instead of writing them")
+    args = ap.parse_args(argv)
+    bad = 0
+    for name, d in build().items():
+        path = os.path.join(OUT, f"{name}.json")
+        text = json.dumps(d, indent=1) + "\n"
+        if args.check:
+            old = open(path).read() if os.path.exists(path) else None
+            if old != text:
+                print(f"{rel(path)} differs from the stored results", file=sys.stderr)
+                bad = 1
+        else:
+            with open(path, "w") as f:
+                f.write(text)
+            print(f"wrote {rel(path)}")
+    return bad
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
