@@ -272,7 +272,8 @@ def _start_preset(args, methods, dims) -> str:
         raise UsageError(f"--preset {name} is a {rec.kind} preset; the tuner starts from a crawl preset: "
                          f"{', '.join(presets.names('crawl'))}")
     cond = (rec.values or {}).get("conditioned")
-    if cond and (list(dims) != [cond.get("parameterisation")] or list(split_names(args.groups)) != list(cond.get("groups", ()))):
+    groups = list(split_names(args.groups))
+    if cond and (list(dims) != [cond.get("parameterisation")] or groups != list(cond.get("groups", ()))):
         raise UsageError(f"--preset {name} is a conditioned set of {cond.get('parameterisation')}: it starts --dim "
                          f"{cond.get('parameterisation')} with --groups {','.join(cond.get('groups', ()))} only")
     if (rec.values or {}).get("per_leg"):

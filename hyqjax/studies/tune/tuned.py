@@ -2,8 +2,8 @@
 
 Both layouts ``hyqjax tune`` writes are read:
 
-* the default tuner and the equal-wall-clock study (``python -m experiments.tune_study``): ``res["runs"]["<method>/<dim>"]["theta"]``, the
-  iterate the run returned at its last checkpoint (:mod:`.wallclock`);
+* the default tuner and the equal-wall-clock study (``python -m experiments.tune_study``):
+  ``res["runs"]["<method>/<dim>"]["theta"]``, the iterate the run returned at its last checkpoint (:mod:`.wallclock`);
 * the gradient study (``python -m experiments.tune_study --gradient-study``): ``res["<method>"]["theta"]``
   (:mod:`.study.gradient`).
 
