@@ -154,6 +154,7 @@ CASES = [
     (["tune", "--method", "guided_es", "--popsize", "5"], "--popsize"),
     (["tune", "--dim", "huge"], "--dim"),
     (["tune", "--heldout", "-1"], "--heldout"),
+    (["tune", "--final-instances", "-4"], "--final-instances"),
     (["tune", "--train-instances", "6"], "--train-instances"),
     (["tune", "--out", "afile"], "--out"),
     (["tune", "--out", "afile/sub"], "--out"),

@@ -142,3 +142,36 @@ def test_the_guided_comparison_summarises_seeds_and_agreement():
     assert c0["n"] == 3 and c0["median"] == pytest.approx(0.4) and c0["share_positive"] == 1.0
     assert comp["cosines"]["guided_es/per_leg"]["seed1"]["cos_search"]["share_positive"] == pytest.approx(2 / 3)
     assert "guided_es/per_leg" in guided.markdown(comp)
+
+
+def test_final_choice_pools_the_validation_and_the_further_scenarios():
+    """The final re-evaluation (:func:`search.final_choice`): a selection keeps its best validated iterates (best
+    first); re-run on further scenarios, the candidate with the best clean rate pooled over both batches wins, here
+    the second of the validation ranking, whose validation lead was luck of one batch."""
+    calls = []
+
+    def evaluate(th):  # the validation batch of 4 runs: iterate k scores clean at a fixed per-iterate rate
+        calls.append(len(th))
+        rate = {0.0: 0.25, 1.0: 0.75, 2.0: 0.5, 3.0: 1.0}[float(th[0][0])]
+        return dict(clean=np.array([[1.0] * int(4 * rate) + [0.0] * (4 - int(4 * rate))]),
+                    completed=np.ones((1, 4)), physics_steps=4)
+
+    sel = search.Selection(evaluate, every=1, keep=3)
+    clock = search.Clock()
+    for i, x in enumerate((0.0, 1.0, 2.0, 3.0)):
+        sel.validate(clock, np.full(3, x), i)
+    assert [t[1] for t in sel.top] == [3, 1, 2] and [t[0][0] for t in sel.top] == [1.0, 0.75, 0.5]
+    state = sel.state()
+    again = search.Selection(evaluate, every=1, keep=3)
+    again.restore(state)
+    assert [t[1] for t in again.top] == [3, 1, 2] and np.array_equal(again.top[0][2], sel.top[0][2])
+
+    def further(th):  # 12 further runs: iterate 3 clean in 3, iterate 1 in 11, iterate 2 in 6
+        n = {3.0: 3, 1.0: 11, 2.0: 6}
+        clean = np.array([[1.0] * n[float(t[0])] + [0.0] * (12 - n[float(t[0])]) for t in th])
+        return dict(clean=clean, completed=np.ones_like(clean), physics_steps=12 * len(th))
+
+    out = search.final_choice(sel.top, 4, further)
+    assert out["chosen"] == 1 and out["theta"][0] == 1.0 and out["instances"] == 12 and out["physics_steps"] == 36
+    pooled = [c["pooled_clean"] for c in out["candidates"]]
+    np.testing.assert_allclose(pooled, [(4 * 1.0 + 3) / 16, (4 * 0.75 + 11) / 16, (4 * 0.5 + 6) / 16])

@@ -972,7 +972,12 @@ def test_charges_count_compile_not_run_time():
                                        (dict(select_seed=7777), "select_seed must differ"),
                                        (dict(select_seed=1), "select_seed must differ"),
                                        (dict(grad_directions=-1), "grad_directions"),
-                                       (dict(cold_compile=1), "cold_compile")])
+                                       (dict(cold_compile=1), "cold_compile"),
+                                       (dict(final_instances=8, select_instances=0), "needs select_instances"),
+                                       (dict(final_instances=6), "final_instances must be a multiple of 4"),
+                                       (dict(final_instances=8, final_candidates=1), "final_candidates"),
+                                       (dict(guided_alpha=1.5), "guided_alpha"),
+                                       (dict(methods=("guided_es",), popsize=5), "popsize must be even")])
 def test_wallclock_config_validation(kw, match):
     from hyqjax.studies.tune import wallclock
 

@@ -90,6 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "of training heights, 4)")
     p.add_argument("--heldout", type=int, default=None,
                    help="held-out closed-loop instances per parameter set (default 2000)")
+    p.add_argument("--final-instances", type=int, default=None,
+                   help="after the budget, the 3 best validated iterates run on this many further scenarios and the "
+                        "best over both validation batches is returned (0: off; default twice the validation batch, "
+                        "1,088 runs; python -m experiments.tune_study: 0)")
     p.add_argument("--seed", type=int, default=0, help="training seed")
     p.add_argument("--quick", action="store_true",
                    help="a small version for a CPU: %s" % ", ".join(
@@ -185,6 +189,9 @@ def validate_wallclock(args) -> None:
     if args.select_instances is None:
         args.select_instances = (args.popsize + 1) * args.train_instances
     check_range("--select-instances", args.select_instances, 0, 10**6, integer=True)
+    if args.final_instances is None:
+        args.final_instances = 0 if args.study else 2 * args.select_instances
+    check_range("--final-instances", args.final_instances, 0, 10**6, integer=True)
     check_range("--select-every", args.select_every, 0, 10**5, integer=True)
     check_range("--select-every-s", args.select_every_s, 0.0, 3600.0, "s")
     check_range("--select-seed", args.select_seed, 0, 2**31 - 1, integer=True)
@@ -220,7 +227,7 @@ def validate_wallclock(args) -> None:
             contacts_from_distance=args.contacts_from_distance,
             train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             guided_alpha=args.guided_alpha, guided_subspace=args.guided_subspace, guided_lr=args.guided_lr,
-            guided_grad_every=args.guided_grad_every, start_preset=preset,
+            guided_grad_every=args.guided_grad_every, start_preset=preset, final_instances=args.final_instances,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)

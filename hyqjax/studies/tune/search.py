@@ -134,10 +134,13 @@ class Selection:
     Score: (clean rate, completed rate) on the validation batch; an iterate replaces the selected one when its
     score is at least as high (ties go to the later iterate, the one with more optimisation behind it)."""
 
-    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0):
+    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0, keep: int = 1):
         if every <= 0 and every_s <= 0:
             raise ValueError("a selection needs every > 0 iterations or every_s > 0 seconds")
         self.evaluate, self.every, self.every_s = evaluate, int(every), float(every_s)
+        #: the ``keep`` best validated iterates, best first: ``[score, iteration, theta]`` (a final re-evaluation
+        #: of the top candidates chooses among them, :func:`final_choice`)
+        self.keep, self.top = int(keep), []
         self.log: list = []
         self.best: tuple | None = None  # (score, theta)
         self._since, self._t_last, self._theta_last = 0, -math.inf, None
@@ -159,6 +162,8 @@ class Selection:
         better = self.best is None or score >= self.best[0]
         if better:
             self.best = (score, theta)
+        self.top = sorted(self.top + [[list(score), int(iteration), theta]],
+                          key=lambda t: (t[0][0], t[0][1], t[1]), reverse=True)[:self.keep]
         self._since, self._t_last, self._theta_last = 0, clock.elapsed(), theta
         self.log.append(dict(iteration=int(iteration), wall_s=round(clock.elapsed(), 3),
                              physics_steps=int(clock.physics_steps), clean=score[0], completed=score[1],
@@ -168,9 +173,10 @@ class Selection:
 
     def state(self) -> dict:
         return dict(log=self.log, best=None if self.best is None else [list(self.best[0]), self.best[1]],
-                    since=self._since, t_last=self._t_last, theta_last=self._theta_last)
+                    since=self._since, t_last=self._t_last, theta_last=self._theta_last, top=self.top)
 
     def restore(self, s: dict) -> None:
+        self.top = [[list(t[0]), int(t[1]), np.asarray(t[2], np.float64)] for t in s.get("top", [])]
         self.log = list(s["log"])
         self.best = None if s["best"] is None else (tuple(s["best"][0]), np.asarray(s["best"][1], np.float64))
         self._since, self._t_last = int(s["since"]), float(s["t_last"])
@@ -266,6 +272,30 @@ class Trace:
             pt.update(self._last[1] or {})
             self.points.append(pt)
         return self.points
+
+
+def final_choice(top: list, validation_n: int, evaluate: Callable) -> dict:
+    """The final re-evaluation of the top candidates of a selection (``top``: ``[score, iteration, theta]``, best
+    first, ``score[0]`` the clean rate on ``validation_n`` validation runs): ``evaluate(thetas (K, P)) ->
+    dict(clean (K, F), completed (K, F), physics_steps)`` runs them all on ``F`` further scenarios, and the one with
+    the best clean rate pooled over both batches (``(n_v c_v + F c_f) / (n_v + F)``, completed breaking ties, then
+    the earlier rank) is chosen: a larger validation set than the selection's, so that the returned set is less
+    the luck of one batch. Returns ``chosen`` (its index in ``top``), ``theta``, per candidate the rates, and the
+    physics steps spent."""
+    thetas = np.stack([np.asarray(t[2], np.float64) for t in top])
+    r = evaluate(thetas)
+    f_clean = np.asarray(r["clean"], np.float64).mean(axis=1)
+    f_done = np.asarray(r["completed"], np.float64).mean(axis=1)
+    n_f = np.asarray(r["clean"]).shape[1]
+    rows = []
+    for i, t in enumerate(top):
+        pooled = (validation_n * t[0][0] + n_f * f_clean[i]) / (validation_n + n_f)
+        pooled_c = (validation_n * t[0][1] + n_f * f_done[i]) / (validation_n + n_f)
+        rows.append(dict(iteration=int(t[1]), validation_clean=float(t[0][0]), final_clean=float(f_clean[i]),
+                         final_completed=float(f_done[i]), pooled_clean=float(pooled), pooled_completed=float(pooled_c)))
+    chosen = max(range(len(rows)), key=lambda i: (rows[i]["pooled_clean"], rows[i]["pooled_completed"], -i))
+    return dict(chosen=int(chosen), theta=thetas[chosen], candidates=rows, instances=int(n_f),
+                physics_steps=int(r["physics_steps"]))
 
 
 def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float = 0.05):

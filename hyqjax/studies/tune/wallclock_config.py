@@ -101,6 +101,11 @@ class WallClockConfig:
     select_every: int = 5
     select_every_s: float = 0.0
     select_seed: int = 5555
+    #: the final re-evaluation (:func:`.search.final_choice`): after the budget, the ``final_candidates`` best
+    #: validated iterates run on ``final_instances`` further scenarios (drawn like the validation batch, from its
+    #: seed's next draw) and the best pooled over both batches is returned; 0: off (the selected iterate)
+    final_instances: int = 0
+    final_candidates: int = 3
     # guided ES (:func:`.search.run_guided`)
     #: share of the sampling variance in the full space (1: isotropic antithetic ES; 0: the gradient subspace only)
     guided_alpha: float = 0.5
@@ -137,6 +142,16 @@ class WallClockConfig:
             raise ValueError(f"guided_alpha must be in [0, 1], got {self.guided_alpha}")
         if not 0.0 < float(self.guided_lr) <= 1.0:
             raise ValueError(f"guided_lr must be in (0, 1], got {self.guided_lr}")
+        for k, lo, hi in (("final_instances", 0, 10**6), ("final_candidates", 2, 16)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if self.final_instances and not self.select_instances:
+            raise ValueError(f"final_instances ({self.final_instances}) re-evaluates the selection's best iterates: "
+                             f"it needs select_instances > 0")
+        if self.final_instances % len(tuple(self.train_heights)):
+            raise ValueError(f"final_instances must be a multiple of {len(tuple(self.train_heights))} (one share per "
+                             f"training height), got {self.final_instances}")
         for k, lo, hi in (("guided_subspace", 1, 64), ("guided_grad_every", 1, 10**4)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:

@@ -56,7 +56,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
             with charges.track(selection_program(cfg)):  # compiles in this clock unless an earlier method did
                 return evaluator(thetas, sel_sc, param=param)
 
-        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s)
+        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s,
+                                     keep=cfg.final_candidates if cfg.final_instances else 1)
     trace = search.Trace(cfg.checkpoints_s, theta0, select=selection)
     gen_seed = generation_seed(cfg.seed, param.name)
 
@@ -106,12 +107,27 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     with beat:
         _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored, hook)
     points = trace.finish(clock)
+    final = None
+    if selection is not None and cfg.final_instances and len(selection.top) > 1:
+        t0, s0 = time.perf_counter(), clock.physics_steps
+        sc = forward.train_scenarios(cfg.final_instances, cfg.select_seed, 1, cfg.train_heights, cfg.train_spread)
+        log(f"  {run_key(method, param.name)}: final re-evaluation of the {len(selection.top)} best validated "
+            f"iterates on {cfg.final_instances} further scenarios (after the budget)")
+        with charges.track(f"forward/final_{len(selection.top)}x{cfg.final_instances}"):
+            final = search.final_choice(selection.top, cfg.select_instances,
+                                        lambda th: evaluator(th, sc, param=param))
+        final.update(wall_s=time.perf_counter() - t0, after_budget=True)
+        clock.physics_steps = s0 + final["physics_steps"]
+        row = final["candidates"][final["chosen"]]
+        points[-1].update(theta=np.asarray(final.pop("theta")).tolist(), selected_iteration=row["iteration"],
+                          validation_clean=row["pooled_clean"], validation_completed=row["pooled_completed"])
     return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
                 selection=None if selection is None else dict(
                     instances=cfg.select_instances, seed=cfg.select_seed, every=cfg.select_every,
                     every_s=cfg.select_every_s, log=selection.log,
                     physics_steps=int(sum(r["physics_steps_run"] for r in selection.log)),
                     wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
+                final_reevaluation=final,
                 charged_s=clock.charged, wall_s=wall_before + time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
                 segments=segment,
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
