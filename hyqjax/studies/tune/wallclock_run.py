@@ -131,7 +131,17 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
                 charged_s=clock.charged, wall_s=wall_before + time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
                 segments=segment,
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
-                params=param.describe(np.asarray(points[-1]["theta"])))
+                params=describe(param, np.asarray(points[-1]["theta"])))
+
+
+def describe(param: schedule.Parameterisation, theta) -> dict:
+    """``param.describe(theta)``, or, for an iterate so far out that a mapped value rounds onto the edge of its
+    declared range (a search that drifted where every run scores alike), the reason it cannot be described; the
+    run's ``theta`` is kept either way."""
+    try:
+        return param.describe(theta)
+    except ValueError as e:
+        return {"not_describable": str(e)}
 
 
 def validation_scenarios(cfg: WallClockConfig):
