@@ -57,6 +57,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--seeds", type=tune.ints, default=None,
                    help="--guided-comparison: training seeds, one study each in DIR/seed<N> (default 0,1,2,3,4)")
     g = p.add_argument_group("the equal-wall-clock study")
+    g.add_argument("--train-instances", type=int, default=H["train_instances"],
+                   help="training scenarios per generation, the same for every member (a multiple of the number "
+                        "of training heights, 4)")
     g.add_argument("--train-duration", type=float, default=H["train_duration"], help="simulated seconds of a training run")
     g.add_argument("--completed-weight", type=float, default=H["completed_weight"],
                    help="fitness = clean + this x completed (completion breaks ties)")

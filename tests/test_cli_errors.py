@@ -155,7 +155,6 @@ CASES = [
     (["tune", "--dim", "huge"], "--dim"),
     (["tune", "--heldout", "-1"], "--heldout"),
     (["tune", "--final-instances", "-4"], "--final-instances"),
-    (["tune", "--train-instances", "6"], "--train-instances"),
     (["tune", "--out", "afile"], "--out"),
     (["tune", "--out", "afile/sub"], "--out"),
     (["tune", "--seed", "x"], "--seed"),
@@ -246,6 +245,7 @@ STUDY_CASES = [
     (["--guided-comparison", "--seeds", "1,1"], "--seeds"),
     (["--seeds", "1,2"], "--seeds"),
     (["--quick"], "--quick"),
+    (["--train-instances", "6"], "--train-instances"),
 ]
 
 
