@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import os
 import platform
 import sys
@@ -202,8 +201,8 @@ def markdown_table(results: list[dict], steps: int) -> str:
     for r in results:
         by.setdefault(r["batch"], {})[r["mode"]] = r
     lines = [
-        f"| batch | MJX physics (env-steps/s) | closed-loop rollout (env-steps/s) | C MuJoCo rollout (env-steps/s) "
-        f"| physics / C | rollout / physics | compile s (physics / rollout) |",
+        "| batch | MJX physics (env-steps/s) | closed-loop rollout (env-steps/s) | C MuJoCo rollout (env-steps/s) "
+        "| physics / C | rollout / physics | compile s (physics / rollout) |",
         "|---:|---:|---:|---:|---:|---:|---|",
     ]
 

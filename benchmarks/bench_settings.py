@@ -49,7 +49,6 @@ from hyqjax.io import atomic as hio  # noqa: E402
 from hyqjax.sim import model as hmodel  # noqa: E402
 from hyqjax.core import robot  # noqa: E402
 from hyqjax.sim import rollout as sim
-from hyqjax.core import spatial
 from hyqjax.control import stand
 
 DEFAULT_ITERATIONS, DEFAULT_LS_ITERATIONS = 100, 50  # MuJoCo's defaults

@@ -22,6 +22,8 @@ import time
 
 import numpy as np
 
+from hyqjax.cli.common import add_devices_argument, apply_devices
+
 
 #: The gains a map runs without --preset or --params: the paper's (the maps of docs/bounding.md named "default").
 DEFAULT_PRESET = "bound_paper"
@@ -108,6 +110,7 @@ def main(argv=None) -> int:
     ap.add_argument("--impl", default="auto", help="MJX implementation: auto | jax | warp")
     ap.add_argument("--out", default="docs/results")
     ap.add_argument("--name", default="bounding_envelope", help="output file stem (letters, digits, . _ -)")
+    add_devices_argument(ap)
     args = ap.parse_args(argv)
     try:
         from hyqjax.bounding import robust
@@ -129,6 +132,7 @@ def main(argv=None) -> int:
 
             base = presets.load(presets.check_kind(args.preset or DEFAULT_PRESET, "bound").name)
         impl = backend.resolve_impl(args.impl)
+        apply_devices(args)
     except ValueError as e:
         name = getattr(e, "name", None)
         print(f"error: --{name.replace('_', '-')}: {e}" if name else f"error: {e}", file=sys.stderr)

@@ -185,6 +185,33 @@ def bound_envelope_figs(falls: str, yaw: str, nominal: dict | None):
     return out
 
 
+BOUND_PRESETS_H200 = f"{R}/bounding_presets_h200/bounding_presets.json"
+
+
+def bound_presets_figs(preset: str) -> list[dict]:
+    """Figures of ``preset`` from the presets-on-the-same-instances run (``experiments/bounding_presets.py``, stored in
+    :data:`BOUND_PRESETS_H200`): falls and worst yaw error at friction 0.5-0.6 with 10 kg (the nominal command and the
+    four corners of the command box, 1,024 runs each), the speed error at the nominal command."""
+    d = read(BOUND_PRESETS_H200)
+    rows = [r for r in d["rows"] if r["preset"] == preset]
+    low = [r for r in rows if r["condition"] != "nominal"]
+    nom = next(r for r in rows if r["condition"] == "nominal")
+    prov = d["provenance"]
+    cmd = prov["command"].replace("/root/out/", "out/")
+    common = dict(heldout=(f"seed {prov['seed']}: the nominal command (0.5 m/s, 0.3 rad/s) and the corners of the command "
+                           "box (0 and 1.0 m/s x -0.8 and +0.8 rad/s) at friction 0.5-0.6 with a 10 kg payload, "
+                           f"{nom['n']:,} runs x {d['duration']:g} s each"),
+                  command=cmd, device="NVIDIA H200, MuJoCo Warp", date=prov["date"][:10], source=BOUND_PRESETS_H200)
+    per = ", ".join(f"{r['failures']}" for r in low)
+    return [dict(what="runs that fall at friction 0.5-0.6, 10 kg (nominal command, then the four corners)",
+                 value=sum(r["failures"] for r in low), unit=f"of {sum(r['n'] for r in low):,} ({per})",
+                 interval=None, **common),
+            dict(what="worst yaw error there", value=round(max(r["yaw_error_worst_deg"] for r in low), 2), unit="deg",
+                 interval=None, **common),
+            dict(what="mean absolute speed error at the nominal command", value=round(nom["speed_error_mean_abs"], 3),
+                 unit="m/s", interval=None, **common)]
+
+
 def build() -> dict[str, dict]:
     import hyqjax
 
@@ -241,13 +268,13 @@ def build() -> dict[str, dict]:
         dict(command="hyqjax.bounding.params.paper_params() (Orsolino et al.; the stored cycle "
                      "hyqjax/bounding/default_cycle.json, hand-set gains DEFAULT_GAINS)", seed=None,
              device=None, date=None, source="hyqjax/bounding/default_cycle.json, hyqjax/bounding/params.py"),
-        bound_heldout_fig("default") + bound_envelope_figs("13-92%", "22-58", dict(yaw=0.43, speed=0.024)))
+        bound_heldout_fig("default") + bound_presets_figs("bound_paper"))
     amp, gains, p8 = bound_file(f"{R}/bounding_robust_h100_8s/params_cma_es.json")
     res8 = read(f"{R}/bounding_robust_h100_8s/results.json")
     add("bound_robust", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
         "the default of `hyqjax bound`", dict(amplitudes=amp, gains=gains),
         prov_of(res8, f"{R}/bounding_robust_h100_8s/params_cma_es.json", method=p8.get("method")),
-        bound_heldout_fig("cma_es") + bound_envelope_figs("0%", "<= 3.5", dict(yaw=0.28, speed=0.012)),
+        bound_heldout_fig("cma_es") + bound_presets_figs("bound_robust"),
         aliases=("--params robust_8s",))
     amp, gains, pg = bound_file(f"{R}/bounding_robust_h100/params_gradient.json")
     resg = read(f"{R}/bounding_robust_h100/results.json")

@@ -48,6 +48,7 @@ import time
 
 import numpy as np
 
+from hyqjax.cli.common import add_devices_argument, apply_devices
 from hyqjax.crawl import presets
 
 HEIGHTS = tuple(round(0.14 + 0.02 * i, 2) for i in range(9))
@@ -391,21 +392,31 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=0,
                     help="instances per compiled batch (0: as few chunks of at most 65536 on a GPU, 32 on a CPU)")
     ap.add_argument("--no-terminate", action="store_true", help="run fallen instances to the end (no episode end)")
+    add_devices_argument(ap)
     args = ap.parse_args(argv)
     try:
         config = check(args)
+        try:
+            apply_devices(args)
+        except ValueError as e:
+            raise UsageError(str(e)) from None
     except UsageError as e:
         print(f"reach_map: {e}", file=sys.stderr)
         return 2
     import jax
+
+    from hyqjax.sim import devices as hdevices
 
     from hyqjax.io import atomic
     from hyqjax.studies import stepdown
 
     params = config.pop("_params")
     # A map resumes only on the same kind of device and implementation (float32 results depend on the layout).
-    config.update(device=jax.devices()[0].device_kind,
+    devs = hdevices.resolve()
+    config.update(device=devs[0].device_kind,
                   impl_resolved=stepdown.setup(stepdown.StepdownConfig(impl=args.impl)).impl)
+    if len(devs) > 1 and config["impl_resolved"] == "warp":  # Warp's rows depend on the per-device slices
+        config.update(devices=len(devs))
     os.makedirs(args.out, exist_ok=True)
     config_hash = hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()
     cfg_path = os.path.join(args.out, "config.json")
@@ -418,13 +429,13 @@ def main(argv=None) -> int:
             return 2
     else:
         atomic.write_json(cfg_path, dict(config=config, config_hash=config_hash))
-    gpu = jax.devices()[0].platform == "gpu"
+    gpu = devs[0].platform == "gpu"
     rows = build_rows(args.variants, args.spread, args.heights, args.instances, args.seed)
     n = len(rows["height"])
-    chunk = args.chunk or balanced_chunk(n, MAX_CHUNK_GPU if gpu else MAX_CHUNK_CPU)
+    chunk = args.chunk or balanced_chunk(n, (MAX_CHUNK_GPU if gpu else MAX_CHUNK_CPU) * len(devs))
     cfg = stepdown.StepdownConfig(duration=args.duration, impl=args.impl, terminate=not args.no_terminate)
-    print(f"{n} instances x {args.duration:g} s in chunks of {min(chunk, n)} on {jax.devices()[0].device_kind} "
-          f"(impl {stepdown.setup(cfg).impl})", flush=True)
+    print(f"{n} instances x {args.duration:g} s in chunks of {min(chunk, n)} on {devs[0].device_kind}, "
+          f"{hdevices.describe(devs)} (impl {stepdown.setup(cfg).impl})", flush=True)
     t0 = time.time()
     out = run_chunks(rows, params, cfg, min(chunk, n), args.out, config_hash,
                      log=lambda s: print(s, flush=True))
@@ -432,7 +443,7 @@ def main(argv=None) -> int:
     cells = summarise(rows, out, args.variants, args.spread)
     fig = plot(cells, os.path.join(args.out, "reach_map.png"))
     atomic.write_json(os.path.join(args.out, "reach_map.json"), dict(
-        provenance=atomic.provenance(seed=args.seed), config=config, device=jax.devices()[0].device_kind,
+        provenance=atomic.provenance(seed=args.seed), config=config, device=devs[0].device_kind, devices=len(devs),
         impl=stepdown.setup(cfg).impl, n_instances=n, wall_s=wall, chunk=min(chunk, n),
         physics_steps=int(n * round(args.duration / cfg.control_dt)), cells=cells, figure=os.path.basename(fig)))
     np.savez_compressed(os.path.join(args.out, "reach_instances.npz"), **{k: np.asarray(v) for k, v in rows.items()},

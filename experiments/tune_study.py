@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 #: Baselines of the gradient study (``--baselines``: the names of :data:`hyqjax.studies.tune.study.gradient.METHODS`
 #: after the gradient), checked before anything heavy is imported.
@@ -346,7 +345,7 @@ def run(args) -> int:
 def main(argv=None) -> int:
     from hyqjax.cli.app import main as app_main
 
-    return app_main(sys.argv[1:] if argv is None else list(argv), parser=build_parser())
+    return app_main(None if argv is None else list(argv), parser=build_parser())
 
 
 if __name__ == "__main__":

@@ -32,25 +32,57 @@ def cycle_speeds(trace: dict, i: int, period: float = 0.4, control_dt: float = 0
     return 0.5 * (t[:-1] + t[1:]), v[i], yr[i]
 
 
+def _lines(ax, xs, ys, color, label=None, marker=False, **kw):
+    """One ``LineCollection`` of the rows of ``xs`` / ``ys`` (each row a line, drawn as separate paths: the same
+    picture as one ``plot`` call per row, in one artist), with ``marker`` dots in one scatter."""
+    from matplotlib.collections import LineCollection
+
+    xs, ys = np.broadcast_arrays(np.asarray(xs, float), np.asarray(ys, float))
+    if xs.size == 0:
+        return
+    ax.add_collection(LineCollection(np.stack([xs, ys], axis=-1), colors=color, label=label, **kw))
+    if marker:
+        ax.scatter(xs.ravel(), ys.ravel(), s=3, color=color, alpha=kw.get("alpha"), linewidths=0)
+    ax.autoscale_view()
+
+
+#: Instances drawn per group in :func:`tracking_figures` at most (evenly spaced over the group; more lines only
+#: darken the same band, and Agg's time grows with each: 1,024 lines of 400 samples take seconds per panel).
+MAX_LINES = 128
+
+
+def _shown(idx) -> tuple[list[int], str]:
+    """At most :data:`MAX_LINES` of ``idx``, evenly spaced (first and last kept), and a legend note."""
+    idx = list(idx)
+    if len(idx) <= MAX_LINES:
+        return idx, ""
+    keep = np.unique(np.linspace(0, len(idx) - 1, MAX_LINES).round().astype(int))
+    return [idx[k] for k in keep], f" ({len(keep)} of {len(idx)} shown)"
+
+
 def tracking_figures(trace: dict, groups: dict[str, list[int]], outdir: str, prefix: str = "") -> dict:
     """``PREFIXyaw_tracking.png`` (desired vs actual yaw and the yaw error, as the paper's Fig. 4) and
-    ``PREFIXspeed_tracking.png`` (per-cycle forward speed vs command) for every group of instances."""
+    ``PREFIXspeed_tracking.png`` (per-cycle forward speed vs command) for every group of instances (at most
+    :data:`MAX_LINES` of a group, evenly spaced, the legend saying so; each group drawn as one collection of
+    lines)."""
     plt = _plt()
     os.makedirs(outdir, exist_ok=True)
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for g, (name, idx) in enumerate(groups.items()):
         c = colors[g % len(colors)]
-        for k, i in enumerate(idx):
-            t = trace["t"][i]
-            yaw = np.degrees(np.unwrap(trace["rpy"][i, :, 2]))
-            yd = np.degrees(trace["yaw_des"][i])
-            yaw = yaw + 360.0 * np.round((yd[0] - yaw[0]) / 360.0)
-            ax[0].plot(t, yaw, color=c, lw=0.8, alpha=0.8, label=f"{name}: actual" if k == 0 else None)
-            if k == 0:
-                ax[0].plot(t, yd, color=c, lw=1.5, ls="--", label=f"{name}: desired")
-            ax[1].plot(t, np.degrees(np.abs(wrap_angle(trace["yaw_des"][i] - trace["rpy"][i, :, 2]))), color=c, lw=0.8,
-                       alpha=0.8)
+        idx, note = _shown(idx)
+        name = name + note
+        if not idx:
+            continue
+        t = trace["t"][idx]
+        yaw = np.degrees(np.unwrap(trace["rpy"][idx, :, 2], axis=1))
+        yd = np.degrees(trace["yaw_des"][idx])
+        yaw = yaw + 360.0 * np.round((yd[:, :1] - yaw[:, :1]) / 360.0)
+        _lines(ax[0], t, yaw, c, label=f"{name}: actual", lw=0.8, alpha=0.8)
+        ax[0].plot(t[0], yd[0], color=c, lw=1.5, ls="--", label=f"{name}: desired")
+        err = np.degrees(np.abs(wrap_angle(trace["yaw_des"][idx] - trace["rpy"][idx, :, 2])))
+        _lines(ax[1], t, err, c, lw=0.8, alpha=0.8)
     ax[1].axhline(4.0, color="k", ls=":", lw=1, label="4 deg (HyQ, paper Fig. 4)")
     ax[0].set_ylabel("yaw [deg]")
     ax[1].set_ylabel("|yaw error| [deg]")
@@ -61,15 +93,20 @@ def tracking_figures(trace: dict, groups: dict[str, list[int]], outdir: str, pre
     f_yaw = _save(fig, os.path.join(outdir, prefix + "yaw_tracking.png"))
 
     fig, ax = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    cyc, v_all, _, yr_all = per_cycle(trace, 0.4)  # every instance at once (one call, not one per instance)
     for g, (name, idx) in enumerate(groups.items()):
         c = colors[g % len(colors)]
-        for k, i in enumerate(idx):
-            tm, v, yr = cycle_speeds(trace, i)
-            ax[0].plot(tm, v, color=c, lw=0.8, alpha=0.8, marker=".", ms=3, label=name if k == 0 else None)
-            ax[1].plot(tm, yr, color=c, lw=0.8, alpha=0.8, marker=".", ms=3)
-            if k == 0:
-                ax[0].plot(trace["t"][i], trace["v_des"][i, :, 0], color=c, ls="--", lw=1.5)
-                ax[1].plot(trace["t"][i], trace["yaw_rate_des"][i], color=c, ls="--", lw=1.5)
+        idx, note = _shown(idx)
+        name = name + note
+        if not idx:
+            continue
+        tc = trace["t"][idx][:, cyc]
+        tm = 0.5 * (tc[:, :-1] + tc[:, 1:])
+        _lines(ax[0], tm, v_all[idx], c, label=name, marker=True, lw=0.8, alpha=0.8)
+        _lines(ax[1], tm, yr_all[idx], c, marker=True, lw=0.8, alpha=0.8)
+        i = idx[0]
+        ax[0].plot(trace["t"][i], trace["v_des"][i, :, 0], color=c, ls="--", lw=1.5)
+        ax[1].plot(trace["t"][i], trace["yaw_rate_des"][i], color=c, ls="--", lw=1.5)
     ax[0].set_ylabel("forward speed [m/s]\n(per cycle)")
     ax[1].set_ylabel("yaw rate [rad/s]\n(per cycle)")
     ax[1].set_xlabel("time [s]")

@@ -210,16 +210,18 @@ def columns(ms: TrackingMetrics, diverged, diverged_tick, control_dt: float = 0.
 # ----------------------------------------------------------------------------------------------
 
 
-@functools.lru_cache(maxsize=16)
-def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str):
-    """One batch runner per static config, cost spec and simulator (a runner fixes the batched model's pytree
-    structure, which differs between the simulators)."""
+@functools.lru_cache(maxsize=40)
+def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str, where=None):
+    """One batch runner per static config, cost spec, simulator and placement (a runner fixes the batched model's
+    pytree structure, which differs between the simulators; ``where``: None, a mesh, or one device of a split
+    batch, :func:`hyqjax.sim.runner.run_on`)."""
     from hyqjax.bounding import controller as bctrl
     from hyqjax.bounding import cycle as bc
 
     _, _, ids = bc.model()
+    mesh = where if where is not None and hasattr(where, "axis_names") else None
     return backend.get(impl).make_runner(ids, bctrl.bounding_controller, sim_cfg,
-                                         tracking_metrics(spec, sim_cfg.control_dt), None)
+                                         tracking_metrics(spec, sim_cfg.control_dt), None, mesh=mesh)
 
 
 def take(batch: bbatch.Batch, idx) -> bbatch.Batch:
@@ -229,32 +231,47 @@ def take(batch: bbatch.Batch, idx) -> bbatch.Batch:
 
 
 def run_batch(batch: bbatch.Batch, duration: float, impl: str = "auto", spec: CostSpec = CostSpec(),
-              max_batch: int = 16384, control_dt: float = 0.002, progress=None) -> dict[str, np.ndarray]:
+              max_batch: int = 16384, control_dt: float = 0.002, progress=None,
+              devices=None) -> dict[str, np.ndarray]:
     """Simulate every instance of ``batch`` for ``duration`` s (a whole number of gait periods) with
     :func:`tracking_metrics` and return NumPy columns: :func:`columns`, the cost :math:`L` (``cost``) and its
     terms (``cost_<term>``).
 
     Instances run in chunks of at most ``max_batch`` (the last padded by repeating its first instance, so one
     program serves every chunk; the padding is dropped). ``impl``: simulator (``auto | jax | warp | c``).
-    ``progress(done, total)`` is called after every chunk with the instances done.
+    ``progress(done, total)`` is called after every chunk with the instances done. ``devices``: where each chunk
+    runs (:func:`hyqjax.sim.devices.resolve`; None: the process's selection, every local device by default), in
+    the simulator's layout (:func:`hyqjax.sim.runner.run_on`); ``max_batch`` counts the instances of a chunk over
+    all of them.
     """
+    from hyqjax.sim import backend as hbackend
+    from hyqjax.sim import runner as srunner
+
     cfg = brollout.BoundingRolloutConfig(duration=duration, control_dt=control_dt, impl=impl)
     cfg.check_period(batch.params.gait.period)
     if not (isinstance(max_batch, int) and max_batch >= 1):
         raise ValueError(f"max_batch must be an int >= 1, got {max_batch!r}")
     st = brollout.setup(control_dt, impl)
-    run = _runner(cfg.sim_config(), spec, st.impl)
+    devs = hbackend.devices_for(st.impl, devices)
     n = int(np.shape(batch.apex0)[0])
     size = -(-n // -(-n // max_batch))  # balanced chunks of at most max_batch
     out: list[dict] = []
     for start in range(0, n, size):
         idx = np.arange(start, min(start + size, n))
         pad = np.concatenate([idx, np.full(size - idx.size, idx[0])])
-        b = take(batch, pad)
-        mb = st.backend.batch_model(st.mx, st.ids, b.terrain)
-        d0 = brollout.apex_initial_data(b, st.m, st.mx_jax)
-        d0 = st.backend.from_jax_data(mb, d0, st.m)  # the JAX state as the simulator's data of the batch
-        res = run(mb, d0, b.params, b.push)
+
+        def inputs_of(rows, pad=pad):
+            b = take(batch, pad[rows])
+            mb = st.backend.batch_model(st.mx, st.ids, b.terrain)
+            d0 = brollout.apex_initial_data(b, st.m, st.mx_jax)
+            d0 = st.backend.from_jax_data(mb, d0, st.m)  # the JAX state as the simulator's data of the batch
+            return mb, d0, b.params, b.push
+
+        if devs == [None]:  # C MuJoCo: its own CPU runner
+            res = _runner(cfg.sim_config(), spec, st.impl)(*inputs_of(np.arange(size)))
+        else:
+            res = srunner.run_on(devs, size, inputs_of, lambda where: _runner(cfg.sim_config(), spec, st.impl,
+                                                                                   where), st.impl)
         ms = jax.tree_util.tree_map(np.asarray, res.metrics)
         cols = columns(ms, res.diverged, res.diverged_tick, control_dt)
         terms = cost_terms(ms, spec, np)

@@ -33,7 +33,7 @@ from typing import NoReturn
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 import hyqjax  # noqa: E402
-from hyqjax.cli.common import USAGE_EXIT, UsageError, enable_compilation_cache  # noqa: E402
+from hyqjax.cli.common import USAGE_EXIT, UsageError, apply_devices, enable_compilation_cache  # noqa: E402
 from hyqjax.io.cache import StderrFilter  # noqa: E402
 
 
@@ -99,6 +99,10 @@ def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None =
     exit statuses of the module docstring. ``parser``: another program's parser with the same contract (its
     ``--debug`` and ``--no-cache``, and ``run_command`` / ``validate_command`` defaults; e.g.
     ``python -m experiments.tune_study``); default the ``hyqjax`` command line."""
+    from hyqjax.io import phases
+
+    # The command's clock (hyqjax.io.phases): from the process's start on the command line, from now in-process.
+    phases.start(process=argv is None)
     parser = build_parser() if parser is None else parser
     args = parser.parse_args(argv)
     if not getattr(args, "run_command", None):
@@ -113,6 +117,7 @@ def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None =
                 args.validate_command(args)
             except ValueError as e:  # raised while checking options: the user's to fix
                 raise UsageError(str(e)) from e
+        apply_devices(args)  # --devices, where the command has it: checked before anything compiles
         if not args.no_cache:
             enable_compilation_cache()
             # The command line itself (not main([...]) inside another program), not with Ray's processes.

@@ -1,7 +1,8 @@
 """Bounding in place, forward and turning (Orsolino et al.): a batch of randomised instances with the
 impulse-based bound, apex and stance feedback, speed / yaw control, kinematic adjustment and
 centrifugal compensation. Prints a summary table and writes DIR/results.json, DIR/yaw_tracking.png
-(the paper's Fig. 4) and DIR/speed_tracking.png.
+(the paper's Fig. 4), DIR/speed_tracking.png and DIR/traces.npz, the traces of --record-instances (by default
+a few of each configuration and its first failures; format: hyqjax/io/recording.py).
 
 Each instance gets a small random perturbation of the initial apex state, a friction coefficient and a
 payload from --seed. A fall (trunk below 0.35 m, |roll| or |pitch| above 0.7 rad) or a diverged
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 from hyqjax.studies import tasks
 
@@ -72,6 +72,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "optimisation, docs/bounding.md); the old names 'robust_8s' and 'robust' are aliases of "
                         "--preset bound_robust and --preset bound_robust_grad")
     p.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    p.add_argument("--record-instances", default="few", metavar="SPEC",
+                   help="instances written to traces.npz: 'few' (the first 3 of each configuration and its first 3 "
+                        "failures), 'all', 'none' or indices like 0,3,5-7 (in results.json's order); the file "
+                        "format is in hyqjax/io/recording.py")
     add_impl_argument(p, TASK.impls)
 
 
@@ -112,6 +116,9 @@ def check_options(args) -> None:
         raise ValueError(f"--friction LO HI must satisfy 0 < LO <= HI <= 5, got {lo} {hi}")
     check_out_free(args.out)
     args.preset = _preset_name(args)
+    from hyqjax.io import recording
+
+    args.recorded = recording.parse_instances(args.record_instances, len(configurations(args)) * args.instances)
     if args.params is not None:
         from hyqjax.bounding import robust as rb
 
@@ -171,6 +178,7 @@ def configurations(args) -> list[tuple[str, bool, bool]]:
 
 def run(args) -> int:
     import jax
+    import jax.numpy as jnp
     import numpy as np
 
     from hyqjax.bounding import batch as bbatch
@@ -195,26 +203,42 @@ def run(args) -> int:
 
         values = rb.load_params(args.params)
         make = lambda **kw: rb.params_from_values(values, **kw)  # noqa: E731
-    plist = []
-    for _, kin, cf in configs:
-        plist += [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
-                       ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf)
-                  for _ in range(n)]
+    # One parameter set per configuration, repeated for its n instances (the same leaves, types and values as n
+    # calls each and a stack, without their cost: about 28 ms per instance on 2 cores).
+    per_config = [make(speed=args.speed, yaw_rate=args.yaw_rate, lateral_speed=args.lateral_speed,
+                       ramp_time=args.ramp_time, kinematic_adjustment=kin, centrifugal=cf) for _, kin, cf in configs]
+    params = jax.tree_util.tree_map(
+        lambda *xs: jnp.concatenate([jnp.broadcast_to(jnp.asarray(x), (n,) + jnp.shape(x)) for x in xs]), *per_config)
+    n_total = len(configs) * n
     rand = bbatch.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
-    batch = bbatch.make_batch(plist, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
+    batch = bbatch.make_batch(params, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
                               push_duration=args.push_duration, n_unique=n)
-    from hyqjax.cli.common import sim_progress
+    from hyqjax.cli.common import lap_batch_run, sim_progress
+    from hyqjax.io import phases, recording
 
-    print(f"hyqjax bound: {len(plist)} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
-          f"{int(round(args.duration / 0.002))} ticks", flush=True)
-    t0 = time.time()
-    with sim_progress(f"bound: {len(plist)} instances", args.duration) as progress:
-        rollout = TASK.rollout(TASK.config(duration=args.duration, record_every=10, impl=args.impl))
+    clock = phases.current()
+    rollout = TASK.rollout(TASK.config(duration=args.duration, record_every=10, impl=args.impl))
+    print(f"hyqjax bound: {n_total} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
+          f"{int(round(args.duration / 0.002))} ticks, simulator {rollout.setup.impl}", flush=True)
+    clock.lap("startup")
+    with sim_progress(f"bound: {n_total} instances", args.duration) as progress:
         _, res = rollout.run(batch, progress=progress)
-    trace = jax.tree_util.tree_map(np.asarray, res.trace)
-    wall = time.time() - t0
+        trace = jax.tree_util.tree_map(np.asarray, res.trace)
     status = progress.status
+    lap_batch_run(clock, status)
     summary = bs.summarise(res, trace, batch)
+    failed = np.array([not p.success for p in summary.instances])
+    group = np.repeat(np.arange(len(configs)), n)
+    recorded = recording.few_instances(group, failed) if args.recorded is None else args.recorded
+    traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    os.makedirs(args.out, exist_ok=True)
+    saving = None
+    if len(recorded):  # hyqjax.io.recording's format, for `hyqjax render` / `hyqjax view`, written meanwhile
+        inputs = dict(friction=np.asarray(batch.terrain.friction),
+                      payload_mass=np.asarray(batch.terrain.payload_mass), group=group)
+        saving = recording.BackgroundSave(traces_path, trace, inputs, recorded, record_every=10, control_dt=0.002)
+    elif os.path.exists(traces_path):
+        os.remove(traces_path)  # a previous run's traces would not match this results.json
     groups = {}
     for g, (name, kin, cf) in enumerate(configs):
         per = summary.instances[g * n:(g + 1) * n]
@@ -222,36 +246,39 @@ def run(args) -> int:
                             instances=[p.to_dict() for p in per])
     opts = user_options(args)
     n_ticks = int(round(args.duration / 0.002))
+    sim_s = status.pure_simulate_s
     out = dict(provenance=io.provenance(seed=args.seed), args=opts, impl=rollout.setup.impl,
-               wall_time_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
-               env_steps_per_s=len(plist) * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
-               batches=status.timings, groups=groups)
+               compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s, simulate_s=sim_s,
+               env_steps_per_s=n_total * n_ticks / sim_s if sim_s > 0 else None,
+               batches=status.timings, groups=groups, recorded_instances=recorded.tolist())
     if values is not None:
         out["params"] = dict(source=args.params or f"preset {args.preset}", preset=args.preset, values=values)
     if args.ablation:
         out["contributions"] = bs.contributions(groups)
-    os.makedirs(args.out, exist_ok=True)
+    print(bs.format_table(groups, settle=args.ramp_time + 1.0, duration=args.duration))
+    if args.ablation:
+        print(bs.format_contributions(out["contributions"]))
+    print(status.throughput_text(n_total, n_ticks), flush=True)
+    clock.lap("summary")
     if not args.no_figures:
         from hyqjax.bounding import plots as bp
 
         idx = {name: list(range(g * n, (g + 1) * n)) for g, (name, _, _) in enumerate(configs)}
         out["figures"] = bp.tracking_figures(trace, idx, args.out)
-    # Traces of every instance in hyqjax.io.recording's format, for `hyqjax render` / `hyqjax view`.
-    import numpy as np
-
-    from hyqjax.io import recording
-
-    inputs = dict(friction=np.asarray(batch.terrain.friction), payload_mass=np.asarray(batch.terrain.payload_mass),
-                  group=np.repeat(np.arange(len(configs)), n))
-    recording.save(os.path.join(args.out, "traces.npz"), trace, inputs, np.arange(len(plist)), record_every=10,
-                   control_dt=0.002)
-    io.write_json(os.path.join(args.out, "results.json"), out)
-    print(bs.format_table(groups, settle=args.ramp_time + 1.0, duration=args.duration))
-    if args.ablation:
-        print(bs.format_contributions(out["contributions"]))
-    print(f"{status.throughput_text(len(plist), n_ticks)}; wall {wall:.1f} s in all")
+        clock.lap("figures")
+    if saving is not None:
+        out["traces_write_s"] = saving.join()  # its error, if any
+        clock.lap("traces")
+    out["phases"] = clock.to_dict()
+    out["wall_time_s"] = out["phases"]["wall_s"]
+    io.write_json(os.path.join(args.out, "results.json"), out)  # the last write
     figs = ", ".join(os.path.basename(p) for p in (out.get("figures") or {}).values()) if isinstance(
         out.get("figures"), dict) else ""
-    print(f"wrote to {args.out}/: results.json (per instance and per configuration), traces.npz (every instance: "
-          f"`hyqjax render {args.out}` makes a video)" + (f", {figs}" if figs else ""))
+    wrote = ["results.json (per instance and per configuration)"]
+    if saving is not None:
+        wrote.append(f"{recording.TRACES_FILE} ({len(recorded)} recorded instances, --record-instances "
+                     f"{args.record_instances}: `hyqjax render {args.out}` makes a video)")
+    print(f"wrote to {args.out}/: " + ", ".join(wrote) + (f", {figs}" if figs else ""))
+    clock.lap("summary")
+    print(clock.line(), flush=True)
     return 0

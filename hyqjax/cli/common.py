@@ -133,9 +133,37 @@ class CompileStatus:
         self._thread = None
         self._request_t0: float | None = None  # an XLA compile request in flight since
         self.compiling = False  # this phase compiles (a request went past COMPILE_AFTER_S or compiled)
+        # MuJoCo Warp's kernel modules loaded (built, or read from Warp's cache) while listening
+        # (hyqjax.sim.warp_kernels), and the part of it inside a compile phase
+        self.kernel_s = self.kernel_in_compile_s = 0.0
+        self.kernels_compiled = self.kernels_loaded = 0
+        self._in_compile = False
+        self._kernel_bar = None
+        self._kernel_cache = ""
+
+    @property
+    def xla_compile_s(self) -> float:
+        """The compile phases' seconds less the Warp kernel loads inside them."""
+        return max(self.compile_s - self.kernel_in_compile_s, 0.0)
+
+    @property
+    def pure_simulate_s(self) -> float:
+        """The runs' simulating seconds less the Warp kernel loads inside them (a first run's build)."""
+        return max(self.simulate_s - (self.kernel_s - self.kernel_in_compile_s), 0.0)
 
     def __call__(self, event: str, info: dict) -> None:
+        if event == "kernels_start":
+            self._kernel_cache = info.get("cache") or self._kernel_cache
+            self._open_kernel_bar()
+            return
+        if event == "kernels":
+            self.kernel_s += info["seconds"]
+            self.kernel_in_compile_s += info["seconds"] if self._in_compile else 0.0
+            self.kernels_loaded += 1
+            self.kernels_compiled += int(bool(info.get("compiled")))
+            return
         if event == "start":
+            self._in_compile = True
             self.compiling = False
             self._request_t0 = None
             self._open()
@@ -148,6 +176,7 @@ class CompileStatus:
             if not info.get("from_cache", False):
                 self._show_compiling()
         elif event == "end":
+            self._in_compile = False
             self._request_t0 = None
             self.compile_s += info["seconds"]
             self.compiles += 1
@@ -155,8 +184,46 @@ class CompileStatus:
             if self.on_end is not None:
                 self.on_end()
         elif event == "done":
+            self.kernels_done()
             self.simulate_s += info["simulate_s"]
             self.timings.append(dict(info))
+
+    def _open_kernel_bar(self) -> None:
+        """``PREFIX: building MuJoCo Warp kernels (first run on this machine; cached in DIR) 0:42`` on stderr
+        until :meth:`kernels_done`."""
+        if self.disable or self._kernel_bar is not None:
+            return
+        from tqdm import tqdm
+
+        head = self.prefix + ": " if self.prefix else ""
+        where = f"cached in {self._kernel_cache}" if self._kernel_cache else "cached afterwards"
+        self._kernel_bar = tqdm(total=None, desc=f"{head}building MuJoCo Warp kernels (first run on this machine; "
+                                                 f"{where})", bar_format="{desc} {elapsed}", leave=False,
+                                dynamic_ncols=True, mininterval=1.0)
+        stop = threading.Event()
+
+        def tick(bar=self._kernel_bar):
+            while not stop.wait(0.5):
+                bar.refresh()
+
+        self._kernel_stop = stop
+        threading.Thread(target=tick, daemon=True, name="hyqjax-kernel-status").start()
+
+    def kernels_done(self) -> None:
+        """Close the kernel build's line (the first chunk came back) with one line saying what it took."""
+        if self._kernel_bar is None:
+            return
+        self._kernel_stop.set()
+        self._kernel_bar.close()
+        self._kernel_bar = None
+        from tqdm import tqdm
+
+        head = self.prefix + ": " if self.prefix else ""
+        where = f" into {self._kernel_cache}" if self._kernel_cache else ""
+        cached = self.kernels_loaded - self.kernels_compiled
+        tqdm.write(f"{head}built MuJoCo Warp kernels{where} in {self.kernel_s:.1f} s ({self.kernels_compiled} "
+                   f"modules built, {cached} read from the cache; counted as kernel build, not simulation; later runs "
+                   f"read them from the cache)", file=sys.stderr)
 
     def _show_compiling(self) -> None:
         self.compiling = True
@@ -201,6 +268,7 @@ class CompileStatus:
                        file=sys.stderr)
 
     def close(self) -> None:
+        self.kernels_done()
         if self._bar is not None:
             self._stop.set()
             self._thread.join()
@@ -209,7 +277,8 @@ class CompileStatus:
 
     def throughput_text(self, instances: int, ticks: int) -> str:
         """``simulated ... env-steps/s (compile ... s besides)``: the rate over simulating time only."""
-        rate = instances * ticks / self.simulate_s if self.simulate_s > 0 else float("nan")
+        sim = self.pure_simulate_s
+        rate = instances * ticks / sim if sim > 0 else float("nan")
         pad = ""
         if self.timings:
             t = self.timings[-1]
@@ -219,8 +288,9 @@ class CompileStatus:
                 pad = (f"; {shards} shards of {t['batch'] // shards} rows" if shards > 1 else
                        f"; batches of {t['batch']}" + (f" x {t['passes']} passes" if t["passes"] > 1 else ""))
                 pad += f", {extra} padded rows not counted" if extra else ""
-        return (f"simulating {self.simulate_s:.1f} s: {rate:,.0f} env-steps/s of {instances} instances; compile "
-                f"{self.compile_s:.1f} s besides{pad}")
+        kernels = f", Warp kernel build {self.kernel_s:.1f} s" if self.kernels_loaded else ""
+        return (f"simulating {sim:.1f} s: {rate:,.0f} env-steps/s of {instances} instances; compile "
+                f"{self.xla_compile_s:.1f} s{kernels} besides{pad}")
 
 
 @contextlib.contextmanager
@@ -257,6 +327,7 @@ class SimProgress:
         return self.bar
 
     def __call__(self, done_s: float, total_s: float) -> None:
+        self.status.kernels_done()
         bar = self._ensure_bar()
         total = float(total_s)
         if abs(total - bar.total) > 1e-9:
@@ -286,6 +357,13 @@ def sim_progress(desc: str, total_s: float, disable: bool = False):
         prog.close()
 
 
+def lap_batch_run(clock, status: CompileStatus) -> None:
+    """End ``clock``'s lap of a batched run (:class:`hyqjax.io.phases.Clock`): MuJoCo Warp's kernel build (every
+    module load of the lap) and the XLA compile that ``status`` saw (less the kernel loads inside it) carved out, the
+    rest simulation."""
+    clock.lap("simulation", compile=status.xla_compile_s)
+
+
 def add_impl_argument(p, supported: tuple[str, ...] | None = None) -> None:
     """``--impl auto|jax|warp|c``: the simulator of a forward-only run (:mod:`hyqjax.sim.backend`); ``supported``
     restricts the choices to a task's simulators (default: all)."""
@@ -294,6 +372,33 @@ def add_impl_argument(p, supported: tuple[str, ...] | None = None) -> None:
     supported = backend.ALL_IMPLS if supported is None else supported
     p.add_argument("--impl", choices=["auto", *supported], default="auto",
                    help="simulator: " + backend.describe(supported))
+    add_devices_argument(p)
+
+
+def add_devices_argument(p) -> None:
+    """``--devices all|N|ID,ID,...``: the local devices a batch runs over (:mod:`hyqjax.sim.devices`); checked and
+    made the process's selection by :func:`apply_devices` (``hyqjax``'s ``main`` calls it for every command)."""
+    from hyqjax.sim.devices import DEVICES_HELP
+
+    p.add_argument("--devices", default="all", metavar="all|N|IDS",
+                   help=f"devices the batch runs over: {DEVICES_HELP} (default: all; MJX-JAX shards one program "
+                        "over them, MuJoCo Warp runs one program per device; C MuJoCo ignores it)")
+
+
+def apply_devices(args) -> None:
+    """Check ``args.devices`` (its form first, without JAX; then against the host's devices) and make it the
+    process's device selection (:func:`hyqjax.sim.devices.select`). A bad value is a :class:`UsageError` naming
+    ``--devices`` and what is allowed. Does nothing for a command without the option."""
+    if getattr(args, "devices", None) is None:
+        return
+    from hyqjax.sim import devices
+
+    try:
+        sel = devices.parse(args.devices)
+        if sel is not None or devices.selected() is not None:
+            devices.select(sel)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
 
 
 def check_impl(impl: str, option: str = "--impl", supported: tuple[str, ...] | None = None) -> None:

@@ -62,6 +62,6 @@ def run(args) -> int:
         print(f"{n:<{w}}  {kind:<5}  {desc}")
         if figs:
             print(f"{'':<{w}}         {figs}")
-    print(f"\n`hyqjax presets NAME` shows one with its provenance and the command of every figure; "
-          f"`--preset NAME` runs one (stepdown, sweep: crawl presets; bound: bounding presets)")
+    print("\n`hyqjax presets NAME` shows one with its provenance and the command of every figure; "
+          "`--preset NAME` runs one (stepdown, sweep: crawl presets; bound: bounding presets)")
     return 0

@@ -26,7 +26,6 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import importlib
 import os
 import sys
@@ -72,8 +71,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-figures", action="store_true", help="skip traces and figures (less memory)")
     p.add_argument("--record-every", type=int, default=10, metavar="TICKS",
                    help="trace decimation in control ticks (2 ms each); must divide the number of ticks")
-    p.add_argument("--record-instances", default="all", metavar="SPEC",
-                   help="instances written to traces.npz: 'all', 'none' or indices like 0,3,5-7 (rows of "
+    p.add_argument("--record-instances", default="few", metavar="SPEC",
+                   help="instances written to traces.npz: 'few' (the first 3 of each height and reflex setting and "
+                        "its first 3 runs that are not clean), 'all', 'none' or indices like 0,3,5-7 (rows of "
                         "results.json); the file format is in hyqjax/io/recording.py")
     p.add_argument("--out", default="out/stepdown", help="output directory")
     add_impl_argument(p, TASK.impls)
@@ -237,9 +237,9 @@ def run(args) -> int:
     import jax
     import numpy as np
 
-    from hyqjax.cli.common import sim_progress, user_options
+    from hyqjax.cli.common import lap_batch_run, sim_progress, user_options
     from hyqjax.io import atomic as io
-    from hyqjax.io import recording
+    from hyqjax.io import phases, recording
     from hyqjax.sim.compile_phase import compile_listener
     from hyqjax.studies import stepdown, stepdown_outcome
 
@@ -257,51 +257,66 @@ def run(args) -> int:
     n_ticks = cfg.sim_config().n_ticks
     rollout = TASK.rollout(cfg)
     impl = rollout.setup.impl
+    from hyqjax.sim import backend as hbackend, devices as hdevices
+
+    devs = hbackend.devices_for(impl)
+    where = "" if devs == [None] else f" on {hdevices.describe(devs)}"
     print(f"hyqjax stepdown: {n} instances ({len(args.heights)} heights x {len(args.reflex)} reflex settings x "
-          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}", flush=True)
+          f"{args.instances}), {args.duration:g} s each, {n_ticks} ticks, simulator {impl}{where}", flush=True)
+    clock = phases.current()
+    clock.lap("startup")
     t0 = time.time()
     with compile_listener(_import_figures_while_xla_compiles(bool(record_every))), \
             sim_progress(f"stepdown: {n} instances", args.duration) as progress:
         outcome, res = rollout.run(scenario, progress=progress)
-    out = stepdown_outcome.to_columns(outcome)
-    trace = jax.tree_util.tree_map(np.asarray, res.trace) if record_every else None
-    wall = time.time() - t0
+        out = stepdown_outcome.to_columns(outcome)
+        trace = jax.tree_util.tree_map(np.asarray, res.trace) if record_every else None
     status = progress.status
+    lap_batch_run(clock, status)
+    os.makedirs(args.out, exist_ok=True)
+    traces_path = os.path.join(args.out, recording.TRACES_FILE)
+    if recorded is None:  # --record-instances few: chosen now that the failures are known
+        recorded = recording.few_instances(np.arange(n) // args.instances, ~np.asarray(out["clean"], bool))
+    # traces.npz is compressed in a background thread (zlib releases the GIL) while the summary and the figures
+    # are made; the command waits for it at the end.
+    saving = (recording.BackgroundSave(traces_path, trace, table, recorded, record_every, cfg.control_dt)
+              if trace is not None and len(recorded) else None)
     rows = stepdown.summarize(table, out)
     print(stepdown.format_table(rows))
-    print(f"{status.throughput_text(n, n_ticks)}; wall {wall:.1f} s in all")
-    os.makedirs(args.out, exist_ok=True)
-    from hyqjax.studies import stepdown_figures  # matplotlib, imported once the simulation is done
-
-    traces_path = os.path.join(args.out, recording.TRACES_FILE)
-    # traces.npz is compressed (zlib, without the GIL) while matplotlib draws; both are done when the block ends.
-    with concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="hyqjax-traces") as pool:
-        saving = pool.submit(recording.save, traces_path, trace, table, recorded, record_every,
-                             cfg.control_dt) if trace is not None and len(recorded) else None
-        figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
-    if saving is not None:
-        saving.result()  # its error, if any
+    print(status.throughput_text(n, n_ticks), flush=True)
     instances = [{**{k: v[i] for k, v in table.items()}, **{k: v[i] for k, v in out.items()}} for i in range(n)]
     config = user_options(args)
     config.pop("duration_warning", None)
-    timing = dict(wall_s=wall, compile_s=status.compile_s, simulate_s=status.simulate_s,
-                  env_steps_per_s=n * n_ticks / status.simulate_s if status.simulate_s > 0 else None,
-                  batches=status.timings)
+    sim_s = status.pure_simulate_s
     preset = None
     if args.preset:
         from hyqjax import presets as registry
 
         rec = registry.get(args.preset)
         preset = dict(name=rec.name, description=rec.description, values=rec.values, provenance=rec.provenance)
+    timing = dict(compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s, simulate_s=sim_s,
+                  env_steps_per_s=n * n_ticks / sim_s if sim_s > 0 else None, batches=status.timings)
+    clock.lap("summary")
+    from hyqjax.studies import stepdown_figures  # matplotlib, imported once the simulation is done
+
+    figs = stepdown_figures.all_figures(args.out, table, out, rows, trace)
+    clock.lap("figures")
+    traces_write_s = saving.join() if saving is not None else None  # its error, if any
+    clock.lap("traces")
+    if saving is None and os.path.exists(traces_path):
+        os.remove(traces_path)  # a previous run's traces would not match this results.json
+    timing["traces_write_s"] = traces_write_s
+    clocked = clock.to_dict()
+    timing["wall_s"] = clocked["wall_s"]
     io.write_json(os.path.join(args.out, "results.json"), dict(
         provenance=io.provenance(seed=args.seed), config=config, preset=preset, impl=impl, summary=rows,
-        instances=instances, figures=figs, wall_time_s=wall, timing=timing))
+        instances=instances, figures=figs, wall_time_s=clocked["wall_s"], timing=timing, phases=clocked,
+        recorded_instances=np.asarray(recorded).tolist()))  # the last write
     wrote = ["results.json (summary and one row per instance)"]
     if saving is not None:
-        wrote.append(f"{recording.TRACES_FILE} ({len(recorded)} recorded instances: `hyqjax render {args.out}` makes "
-                     f"a video, `hyqjax view {args.out}` replays one)")
-    elif os.path.exists(traces_path):
-        os.remove(traces_path)  # a previous run's traces would not match this results.json
+        wrote.append(f"{recording.TRACES_FILE} ({len(recorded)} recorded instances, --record-instances "
+                     f"{args.record_instances}: `hyqjax render {args.out}` makes a video, `hyqjax view {args.out}` "
+                     f"replays one)")
     pngs = sorted(f for f in os.listdir(args.out) if f.endswith(".png")
                   and os.path.getmtime(os.path.join(args.out, f)) >= t0)
     if pngs:
@@ -310,6 +325,8 @@ def run(args) -> int:
     line = reach_line(args.preset)
     if line:
         print(line)
+    clock.lap("summary")
+    print(clock.line(), flush=True)
     return 0
 
 

@@ -20,6 +20,14 @@ Examples:
     hyqjax sweep --out out/sweep                            # the default sweep (12 instances)
     hyqjax sweep --grid height=0.16,0.24 --grid reflex=true,false --random friction=0.4,1.0 --samples 8
     hyqjax sweep spec.toml --out out/big --max-chunks 2     # two chunks now, resume later
+    hyqjax sweep --ci --impl c --out out/ci --baseline out/ci_base --junit out/ci.xml   # the CI gate (docs/ci.md)
+    hyqjax sweep spec.toml --expect "clean >= 0.85" --expect "completed >= 0.95 where height <= 0.21"
+
+CI gate (docs/ci.md): --expect checks an outcome rate (with the spec file's `expect` list) on its Wilson 95%
+interval: met, failed (interval wholly below) or inconclusive (straddling; --inconclusive says whether that
+fails). --baseline DIR compares the finished store with a baseline store of the same spec as `hyqjax compare`
+does. --junit / --markdown / --json write reports. Exit status 0 passed, 1 failed or regressed, 3 inconclusive.
+--ci runs the sweep shipped for CI (hyqjax/studies/sweep/specs/ci.toml, with its expectations).
 
 Example spec (TOML):
 
@@ -42,7 +50,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 NAME = "sweep"
 HELP = "robustness sweep of the step-down (grid / random over terrain, payload, gains, pushes, reflex parameters)"
@@ -60,6 +67,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     use_help_formatter(p)
     p.add_argument("spec", nargs="?", help="sweep spec file (.toml or .json); omit for the default or flags only")
+    p.add_argument("--ci", action="store_true", help="run the CI sweep shipped with hyqjax "
+                                                     "(hyqjax/studies/sweep/specs/ci.toml) instead of SPEC")
+    p.add_argument("--baseline", metavar="BASE_DIR", help="compare the finished store with this baseline store of the "
+                                                          "same spec (exit status 1 if regressed)")
     p.add_argument("--out", default="out/sweep", help="results directory (resumed if it holds the same sweep)")
     p.add_argument("--grid", action="append", default=[], metavar="AXIS=V1,V2,...", help="grid axis (repeatable)")
     p.add_argument("--random", action="append", default=[], metavar="AXIS=LO,HI",
@@ -87,6 +98,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "else paper); axes override its values")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_impl_argument(p)
+    from hyqjax.cli.gate_options import add_gate_arguments
+
+    add_gate_arguments(p)
+
+
+#: The CI sweep shipped with the package (``hyqjax sweep --ci``).
+CI_SPEC = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "studies", "sweep", "specs",
+                       "ci.toml")
 
 
 def _parse_value(s: str):
@@ -107,6 +126,8 @@ def _parse_kv(items, what):
         if "=" not in item or not item.split("=", 1)[0].strip():
             raise ValueError(f"--{what} expects AXIS=VALUES, got {item!r}")
         k, v = item.split("=", 1)
+        if k.strip() in out:
+            raise ValueError(f"--{what} names axis {k.strip()!r} twice; give it once")
         out[k.strip()] = [_parse_value(x) for x in v.split(",") if x.strip()]
         if not out[k.strip()]:
             raise ValueError(f"--{what} {k.strip()}= needs at least one value")
@@ -122,12 +143,24 @@ def build_spec_dict(args) -> dict:
 
     if args.spec:
         d = sweep.load_spec_dict(args.spec)
+        if "expect" in d:  # the CI gate's expectations: not part of the sweep (validate_gate parses them)
+            from hyqjax.studies.sweep.expect import split_spec_dict
+
+            d, args.spec_expect = split_spec_dict(d, f"SPEC {args.spec}")
     elif args.grid or args.random or args.fixed:
         d = {}
     else:
         d = json.loads(json.dumps(DEFAULT_SPEC))
-    for sec, items in (("grid", args.grid), ("random", args.random), ("fixed", args.fixed)):
-        for k, v in _parse_kv(items, sec).items():
+    flags = {sec: _parse_kv(items, sec) for sec, items in (("grid", args.grid), ("random", args.random),
+                                                            ("fixed", args.fixed))}
+    given: dict[str, str] = {}
+    for sec, axes in flags.items():  # an axis named by two of the flags: which one was meant is not ours to guess
+        for k in axes:
+            if k in given:
+                raise ValueError(f"--{given[k]} and --{sec} both name axis {k!r}; give it once")
+            given[k] = sec
+    for sec, axes in flags.items():
+        for k, v in axes.items():
             for other in ("grid", "random", "fixed"):
                 if isinstance(d.get(other), dict):
                     d[other].pop(k, None)
@@ -155,6 +188,10 @@ def validate(args) -> None:
     if args.max_chunks is not None:
         check_range("--max-chunks", args.max_chunks, 0, 10**9, integer=True)
     check_range("--max-retries", args.max_retries, 0, 100, integer=True)
+    if getattr(args, "ci", False):
+        if args.spec:
+            raise ValueError(f"--ci runs the shipped CI spec: give either --ci or SPEC {args.spec}, not both")
+        args.spec = CI_SPEC
     if args.executor != "ray":
         for opt, v in (("--address", args.address), ("--gpus-per-task", args.gpus_per_task)):
             if v is not None:
@@ -163,6 +200,7 @@ def validate(args) -> None:
         check_range("--gpus-per-task", args.gpus_per_task, 0, 8)
     args.spec_obj = sweep.SweepSpec.from_dict(build_spec_dict(args))
     args.duration_warning = check_spec_duration(args.spec_obj)
+    _validate_gate(args)
     check_out_free(args.out)
     if args.dry_run:
         return
@@ -180,6 +218,60 @@ def validate(args) -> None:
             raise ValueError("--executor ray needs Ray: pip install 'hyqjax[cluster]'") from None
     prepare_out(args.out)
     args.options_checked = True
+
+
+def _validate_gate(args) -> None:
+    """The CI gate's options (``hyqjax/cli/gate_options.py``): expectations parsed and checked against the spec, the
+    baseline store probed (read-only) for the same spec, the report paths."""
+    from hyqjax.cli.gate_options import validate_gate
+    from hyqjax.studies.sweep import expect
+
+    validate_gate(args, getattr(args, "spec_expect", ()))
+    expect.check_selects(args.expectations, args.spec_obj)
+    if args.baseline:
+        from hyqjax.studies.sweep.manifest import StoreCorrupt, read_manifest
+        from hyqjax.studies.sweep.verify import is_sweep_dir
+
+        if not os.path.isdir(args.baseline) or not is_sweep_dir(args.baseline):
+            raise ValueError(f"--baseline {args.baseline} holds no sweep (no manifest.json, no chunks/)")
+        if os.path.abspath(args.baseline) == os.path.abspath(args.out):
+            raise ValueError(f"--baseline {args.baseline} is the --out directory; give the baseline's own store")
+        try:
+            man = read_manifest(args.baseline)
+        except StoreCorrupt:
+            man = None  # named after the run, by the comparison's verification
+        if man and man.get("spec_hash") != args.spec_obj.spec_hash and not args.allow_change:
+            from hyqjax.studies.sweep.compare import spec_differences
+
+            diffs = spec_differences(man.get("spec") or {}, args.spec_obj.to_dict())
+            raise ValueError(f"--baseline {args.baseline} holds a different sweep (BASE vs this spec: "
+                             f"{'; '.join(diffs) or 'spec hash ' + str(man.get('spec_hash'))[:12]})")
+
+
+def _gate(args, store) -> int:
+    """Expectations on the finished store and the baseline comparison; reports; the exit status."""
+    from hyqjax.cli.gate_options import finish, gate_requested
+    from hyqjax.studies.sweep import expect
+    from hyqjax.studies.sweep.gate import Verdict
+
+    if not gate_requested(args):
+        return 0
+    notes = []
+    complete = len(store.done()) == store.n_chunks
+    checks = expect.evaluate(args.expectations, store.spec, store.load())
+    cmp = None
+    if args.baseline and complete:
+        from hyqjax.studies.sweep.compare import compare_stores
+
+        cmp = compare_stores(args.baseline, args.out, alpha=args.alpha, allow_change=args.allow_change)
+    elif args.baseline:
+        notes.append("the sweep is not complete: not compared with the baseline (run the same command again)")
+    if not complete:
+        notes.append(f"the sweep is not complete ({len(store.done())} of {store.n_chunks} chunks): the gate is "
+                     f"inconclusive")
+    verdict = Verdict(checks, cmp, args.inconclusive, title=f"hyqjax sweep {store.spec.spec_hash[:12]}", notes=notes)
+    status = finish(args, verdict)
+    return 3 if status == 0 and not complete else status
 
 
 def _done_chunks(out: str, spec) -> set:
@@ -248,33 +340,40 @@ def run(args) -> int:
                                        max_retries=args.max_retries, impl=args.impl)
         where = executor.describe()
     else:
-        import jax
 
         executor = sweep.LocalExecutor(impl=args.impl)
-        devs = jax.local_devices()
-        where = f"{len(devs)} x {devs[0].platform} device(s), simulator {executor.impl}"
+        devs = executor.devices
+        where = (f"{len(devs)} x {devs[0].platform} device(s) (ids {','.join(str(d.id) for d in devs)}), "
+                 f"simulator {executor.impl}")
     print(f"{size}, {where}", flush=True)
-    from hyqjax.cli.common import compile_status
+    from hyqjax.cli.common import compile_status, lap_batch_run
+    from hyqjax.io import phases
 
     before = _done_chunks(args.out, spec)
-    t0 = time.time()
+    clock = phases.current()
+    clock.lap("startup")
     with compile_status("sweep", disable=args.no_progress) as status:
         store = sweep.run_sweep(spec, args.out, args.chunk_size, args.max_chunks, progress=not args.no_progress,
                                 wait=args.wait, executor=executor)
-    wall = time.time() - t0
-    summary = sweep.write_outputs(store)
+    lap_batch_run(clock, status)  # chunks simulated and stored
+    summary = sweep.write_outputs(store, clock)
     summary["provenance"] = io.provenance(seed=spec.seed)
-    summary["wall_time_s_this_run"] = wall
     if status.timings:  # chunks simulated in this process (the local executor)
-        summary["timing_this_run"] = dict(compile_s=status.compile_s, simulate_s=status.simulate_s,
-                                          batches=status.timings)
+        summary["timing_this_run"] = dict(compile_s=status.xla_compile_s, kernel_build_s=status.kernel_s,
+                                          simulate_s=status.pure_simulate_s, batches=status.timings)
     summary["executor"] = args.executor
-    io.write_json(os.path.join(args.out, "summary.json"), summary)
     print(sweep.format_summary(summary))
+    clock.lap("summary")
+    summary["phases_this_run"] = clock.to_dict()
+    summary["wall_time_s_this_run"] = summary["phases_this_run"]["wall_s"]
+    io.write_json(os.path.join(args.out, "summary.json"), summary)  # the last write
     if status.timings:  # instances of the chunks finished now (the chunks' padding rows not counted)
         n_run = sum(store.chunk_range(c)[1] - store.chunk_range(c)[0] for c in store.done() - before)
         print(f"this run: {status.throughput_text(n_run, int(round(spec.duration / spec.control_dt)))}")
     left = store.n_chunks - len(store.done())
     print(f"wrote {args.out}/summary.json, instances.csv" + (", figures" if summary.get("figures") else "")
           + (f"; {left} chunk(s) left: run the same command again to resume" if left else ""))
-    return 0
+    clock.lap("summary")
+    rc = _gate(args, store)
+    print(clock.line(), flush=True)
+    return rc

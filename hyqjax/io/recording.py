@@ -7,7 +7,8 @@ A batched rollout records a decimated trace of every instance it is asked to (``
 
 File format
 -----------
-One ``numpy.savez_compressed`` archive. ``R`` is the number of recorded instances, ``N`` the
+One ``numpy.savez_compressed`` archive (by default of a few instances per configuration,
+``--record-instances few``: :func:`few_instances`). ``R`` is the number of recorded instances, ``N`` the
 number of samples per instance (one every ``record_every`` control ticks, the first after
 ``record_every`` ticks). Frames: ``W`` is the world (x forward, off the platform edge at
 ``x = 0``; z up, the lower ground at ``z = 0``), ``B`` the trunk frame (x forward, y left, z up).
@@ -154,20 +155,77 @@ def load(path: str) -> Recording:
 
 def save(path: str, trace: dict[str, np.ndarray], inputs: dict[str, np.ndarray], instances: np.ndarray,
          record_every: int, control_dt: float) -> None:
-    """Write the rows ``instances`` of ``trace`` (and of the per-instance ``inputs`` table) in the format above."""
+    """Write the rows ``instances`` of ``trace`` (and of the per-instance ``inputs`` table) in the format above
+    (to a temporary file renamed into place: a reader never sees half an archive)."""
     idx = np.asarray(instances, np.int64)
     arrays = {k: np.asarray(v)[idx] for k, v in trace.items()}
     arrays.update({f"input_{k}": np.asarray(v)[idx] for k, v in inputs.items()})
-    np.savez_compressed(path, **arrays, instance_index=idx, record_every=np.asarray(record_every),
-                        control_dt=np.asarray(control_dt))
+    tmp = f"{path}.{os.getpid()}.tmp.npz"
+    try:
+        np.savez_compressed(tmp, **arrays, instance_index=idx, record_every=np.asarray(record_every),
+                            control_dt=np.asarray(control_dt))
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
 
 
-def parse_instances(spec: str, n: int, option: str = "--record-instances") -> np.ndarray:
-    """Instance indices from ``"all"``, ``"none"`` or a comma list of indices and ranges (``"0,3,5-7"``).
+class BackgroundSave:
+    """:func:`save` in a background thread (zlib releases the GIL, so the archive is compressed while the command
+    summarises and draws); :meth:`join` waits for it, raises its error and returns the seconds it took."""
+
+    def __init__(self, *args, **kwargs):
+        import threading
+        import time
+
+        self.seconds = 0.0
+        self._error: BaseException | None = None
+
+        def work():
+            t0 = time.perf_counter()
+            try:
+                save(*args, **kwargs)
+            except BaseException as e:  # noqa: BLE001  (raised again by join)
+                self._error = e
+            self.seconds = time.perf_counter() - t0
+
+        self._thread = threading.Thread(target=work, name="hyqjax-traces")
+        self._thread.start()
+
+    def join(self) -> float:
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self.seconds
+
+
+#: ``--record-instances``' default: a few instances of each configuration (:func:`few_instances`).
+FEW = "few"
+#: Instances of each configuration that ``few`` records: the first ones, and as many failed ones.
+FEW_PER_GROUP = 3
+
+
+def few_instances(groups: np.ndarray, failed: np.ndarray, per_group: int = FEW_PER_GROUP) -> np.ndarray:
+    """The rows ``--record-instances few`` records: the first ``per_group`` instances of each configuration
+    (``groups``: one label per instance) and its first ``per_group`` failed ones (``failed``: one bool per
+    instance), so ``hyqjax render DIR --worst`` has a failure to show when there is one."""
+    groups, failed = np.asarray(groups), np.asarray(failed, bool)
+    keep: list[int] = []
+    for g in dict.fromkeys(groups.tolist()):
+        rows = np.nonzero(groups == g)[0]
+        keep += rows[:per_group].tolist() + rows[failed[rows]][:per_group].tolist()
+    return np.unique(np.asarray(keep, np.int64))
+
+
+def parse_instances(spec: str, n: int, option: str = "--record-instances") -> np.ndarray | None:
+    """Instance indices from ``"all"``, ``"none"`` or a comma list of indices and ranges (``"0,3,5-7"``); None
+    for ``"few"`` (chosen after the run, :func:`few_instances`).
 
     Raises ``ValueError`` naming ``option`` and the allowed range ``[0, n-1]`` on a bad entry.
     """
     s = spec.strip().lower()
+    if s == FEW:
+        return None
     if s == "all":
         return np.arange(n)
     if s == "none":
@@ -180,7 +238,8 @@ def parse_instances(spec: str, n: int, option: str = "--record-instances") -> np
             lo_i = int(lo)
             hi_i = int(hi) if hi is not None else lo_i
         except ValueError:
-            raise ValueError(f"{option}: cannot read {part!r}; use 'all', 'none' or indices like 0,3,5-7") from None
+            raise ValueError(f"{option}: cannot read {part!r}; use 'few', 'all', 'none' or indices like 0,3,5-7"
+                             ) from None
         if not (0 <= lo_i <= hi_i < n):
             raise ValueError(f"{option}: {part!r} is outside the instances [0, {n - 1}]")
         out.extend(range(lo_i, hi_i + 1))

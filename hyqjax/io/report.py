@@ -124,6 +124,12 @@ def provenance_html(res: dict) -> str:
         rows.append(["devices", esc(", ".join(map(str, p["devices"])))])
     if "wall_time_s" in res:
         rows.append(["wall time", f"{fmt(res['wall_time_s'], '{:.1f}')} s"])
+    clock = res.get("phases") or res.get("phases_this_run")
+    if isinstance(clock, dict) and isinstance(clock.get("phases"), dict):  # hyqjax.io.phases.Clock.to_dict
+        from hyqjax.io.phases import LABELS
+
+        parts = [f"{LABELS.get(k, k)} {fmt(v, '{:.1f}')} s" for k, v in clock["phases"].items()]
+        rows.append(["wall time by phase", esc(", ".join(parts))])
     if "env_steps_per_s" in res:
         rows.append(["env-steps/s", fmt(res["env_steps_per_s"], "{:,.0f}")])
     return cmd + table(["", "value"], rows, left=2)

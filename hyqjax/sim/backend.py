@@ -146,6 +146,15 @@ def get(impl: str):
     return _BACKENDS[impl]
 
 
+def devices_for(impl: str, selection=None) -> list:
+    """The devices a batch of a resolved ``impl`` is split over: :func:`hyqjax.sim.devices.resolve`'s for a simulator
+    that runs on JAX devices (MJX-JAX, MuJoCo Warp), ``[None]`` for one that runs on the host's cores (C MuJoCo
+    shards over threads, :class:`hyqjax.sim.cpu_backend.CBatchRunner`)."""
+    from hyqjax.sim import devices
+
+    return devices.resolve(selection) if get(impl).uses_jax_devices else [None]
+
+
 _WARP_MISSING = ("Failed to import warp: No module named 'warp'",
                  "Failed to import mujoco_warp: No module named 'warp'")
 

@@ -80,6 +80,20 @@ log = logging.getLogger(__name__)
 #: 12-15% off a tick of the controller, bitwise the same (benchmarks/RESULTS.md).
 COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_multi_thread_eigen": False}
 
+
+@functools.lru_cache(maxsize=None)
+def compiler_options() -> dict:
+    """The entries of :data:`COMPILER_OPTIONS` that this process's XLA knows: each tried once on a one-op program
+    (the XLA of jax 0.11 has no ``xla_cpu_use_fusion_emitters`` and refuses a program that names it)."""
+    known = {}
+    for k, v in COMPILER_OPTIONS.items():
+        try:
+            jax.jit(lambda x: x + 1, compiler_options={k: v}).lower(np.float32(0)).compile()
+        except Exception:  # noqa: BLE001 - XLA's error for an unknown option is a JaxRuntimeError or a ValueError
+            continue
+        known[k] = v
+    return known
+
 #: The fewest rows a shard of a batch has (a smaller batch runs as fewer shards, down to one).
 MIN_SHARD_ROWS = 8
 
@@ -110,8 +124,17 @@ def batch_models(m: mujoco.MjModel, ids: hmodel.ModelIds, terrain: hmodel.Instan
     return models
 
 
-@functools.partial(jax.jit, static_argnums=0, compiler_options=COMPILER_OPTIONS)
 def _instance_fields(ids: hmodel.ModelIds, model_fields: dict, terrain: hmodel.InstanceTerrain) -> dict:
+    """:func:`_instance_fields_fn` compiled once with :func:`compiler_options`."""
+    return _instance_fields_jit()(ids, model_fields, terrain)
+
+
+@functools.lru_cache(maxsize=None)
+def _instance_fields_jit():
+    return jax.jit(_instance_fields_fn, static_argnums=0, compiler_options=compiler_options())
+
+
+def _instance_fields_fn(ids: hmodel.ModelIds, model_fields: dict, terrain: hmodel.InstanceTerrain) -> dict:
     """:func:`hyqjax.sim.model.instance_model`'s fields of every instance (one compiled program, not one per op)."""
     return jax.vmap(lambda t: hmodel._instance_fields(types.SimpleNamespace(**model_fields), ids, t))(terrain)
 
@@ -169,8 +192,8 @@ class CBatchRunner(AheadOfTime):
         self.record = record if cfg.record_every else None
         self.params_axes, self.threads, self.buckets, self.shards = params_axes, threads, buckets, shards
         self.n_compiles, self._layout, self._width = 0, None, 0
-        self._init = jax.jit(self._init_fn, compiler_options=COMPILER_OPTIONS)
-        self._advance = jax.jit(self._advance_fn, static_argnums=3, compiler_options=COMPILER_OPTIONS)
+        self._init = jax.jit(self._init_fn, compiler_options=compiler_options())
+        self._advance = jax.jit(self._advance_fn, static_argnums=3, compiler_options=compiler_options())
         self._executables: dict = {}
         self._reset_compile_phase()
         self.last_timing: dict = {}
@@ -361,6 +384,8 @@ class CBackend:
 
     name = "c"
     supports_gradients = False
+    #: The physics runs on the host's cores, sharded over threads, not over JAX devices.
+    uses_jax_devices = False
     one_instance_error = "C MuJoCo steps whole batches outside JAX"
 
     def __repr__(self) -> str:

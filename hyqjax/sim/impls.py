@@ -80,6 +80,10 @@ def put_model(m, impl: str):
 
     if impl not in ("jax", "warp"):
         raise ValueError(f"put_model needs a resolved impl ('jax' or 'warp'), got {impl!r}; see hyqjax.sim.backend.resolve_impl")
+    if impl == "warp":  # its kernel build timed and announced (hyqjax.sim.warp_kernels), not taken for simulation
+        from hyqjax.sim import warp_kernels
+
+        warp_kernels.install()
     mx = mjx.put_model(m, impl=impl)
     if impl == "warp":  # keep the buffer-overflow warnings, drop the per-step iteration-limit printout
         mx = mx.replace(opt=mx.opt.replace(_impl=mx.opt._impl.replace(warn_overflow=_QUIET_OVERFLOW)))

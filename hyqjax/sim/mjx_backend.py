@@ -22,6 +22,8 @@ class MJXBackend:
             raise ValueError(f"MJXBackend needs impl in {_impls.MJX_IMPLS}, got {impl!r}")
         self.name = impl
         self.supports_gradients = _impls.supports_gradients(impl)
+        #: A batch is split over JAX devices (:func:`hyqjax.sim.devices.resolve_for`).
+        self.uses_jax_devices = True
         #: Warp shares one contact buffer over a batch: there is no per-instance ``mjx.Data`` outside a batch.
         self.one_instance_error = (None if impl == "jax" else "MuJoCo Warp keeps one contact buffer for a whole batch")
 

@@ -275,6 +275,139 @@ class BatchRunner(AheadOfTime):
         return rollout_result(carry, trace)
 
 
+def run_split(runners: list, parts: list, progress: Progress | None = None,
+              chunk_seconds: float | None = None) -> RolloutResult:
+    """One program per device: ``parts[i] = (mx_batched, d0, params, push)``, committed to device ``i``, runs on
+    ``runners[i]`` (a single-device :class:`BatchRunner` of the same static setup, one per device: each keeps the
+    programs compiled for its device). Every device's program is compiled first (device 0's by XLA; on a GPU the
+    persistent compilation cache then serves the others: its key leaves out the device), then the chunks of
+    simulated time are dispatched to every device in turn (asynchronously, so the devices run at once) and the
+    results concatenated along the batch axis on the host. ``progress`` as :class:`BatchRunner`'s (device 0's
+    chunks; the slices are of equal size). One ``done`` event reports the whole run (``devices``: how many)."""
+    if progress is not None and chunk_seconds is None:
+        chunk_seconds = 1.0
+    r0 = runners[0]
+    k = r0.chunk_ticks(chunk_seconds)
+    t_start = time.perf_counter()
+    states = []
+    compile_s = trace_s = 0.0
+    compiled = from_cache = 0
+    for r, (mb, d0, params, push) in zip(runners, parts):
+        b = int(d0.qpos.shape[0])
+        r._new_timing(BatchPlan(b, b, 1))
+        if r._init is None:
+            r._build(mb, d0, params, push)
+        init = r._executable("init", r._init, (mb, d0, params), batch=b)
+        carry = init(mb, d0, params)
+        advance = r._executable("advance", r._advance, (mb, carry, params, push), (k,), batch=b)
+        r._end_compile_phase(b)
+        t = r.last_timing
+        compile_s, trace_s = compile_s + t["compile_s"], trace_s + t["trace_s"]
+        compiled, from_cache = compiled + t["compiled"], from_cache + t["from_cache"]
+        states.append([advance, carry, []])
+    t0 = time.perf_counter()
+    cfg = r0.cfg
+    n, dt = cfg.n_ticks, cfg.control_dt
+    for done in range(0, n, k):
+        for st, (mb, _, params, push) in zip(states, parts):
+            st[1], tr = st[0](mb, st[1], params, push)
+            st[2].append(tr)
+        if progress is not None:
+            jax.block_until_ready(states[0][1].tick)
+            progress((done + k) * dt, n * dt)
+    jax.block_until_ready([st[1].tick for st in states])
+    simulate_s = time.perf_counter() - t0
+    outs = []
+    for r, st in zip(runners, states):
+        trace = None
+        if r.record is not None:
+            trace = st[2][0] if len(st[2]) == 1 else jax.tree_util.tree_map(
+                lambda *xs: jnp.concatenate(xs, axis=1), *st[2])
+        outs.append(jax.tree_util.tree_map(np.asarray, rollout_result(st[1], trace)))
+    sizes = [int(p[1].qpos.shape[0]) for p in parts]
+    total = sum(sizes)
+
+    def cat(*xs):  # batched leaves joined; a leaf without the batch axis (Warp's contact buffer) is device 0's
+        if all(np.ndim(x) >= 1 and x.shape[0] == b for x, b in zip(xs, sizes)):
+            return np.concatenate(xs, 0)
+        return xs[0]
+
+    out = jax.tree_util.tree_map(cat, *outs)
+    timing = dict(compile_s=compile_s, trace_s=trace_s, simulate_s=simulate_s, compiled=compiled,
+                  from_cache=from_cache, batch=total, passes=1, instances=total, devices=len(runners),
+                  wall_s=time.perf_counter() - t_start)
+    for r in runners:
+        r.last_timing = dict(r.last_timing, simulate_s=simulate_s)
+    notify("done", **timing)
+    return out
+
+
+def run_on(devices: list, n: int, inputs_of: Callable, runner_of: Callable, impl: str,
+           progress: Progress | None = None, chunk_seconds: float | None = None,
+           how: str | None = None) -> RolloutResult:
+    """Run a batch of ``n`` instances over ``devices`` in the layout of the resolved simulator ``impl``
+    (:func:`hyqjax.sim.devices.layout`): one device; MJX-JAX's ``mesh`` (one program sharded over
+    :func:`batch_mesh`); MuJoCo Warp's ``split`` (:func:`run_split`: equal contiguous slices, the last padded by
+    repeating instance ``n - 1``, one program per device).
+
+    ``inputs_of(idx)``: ``(mx_batched, d0, params, push)`` of the instances ``idx`` (a host integer array);
+    ``runner_of(where)``: the :class:`BatchRunner` for ``where``, None (one device), a mesh, or a device (one
+    runner per device, kept by the caller). ``how`` overrides the layout (``"split"`` under MJX-JAX, to compare
+    the layouts). Returns the :class:`RolloutResult` of the ``n`` instances in order."""
+    from hyqjax.sim import devices as hdevices
+
+    devices = list(devices)
+    how = how or hdevices.layout(impl, len(devices))
+    if how != "split":
+        runner = runner_of(None if how == "one" else batch_mesh(devices))
+        return runner(*inputs_of(np.arange(n)), progress=progress, chunk_seconds=chunk_seconds)
+    k = len(devices)
+    size = -(-n // k)
+    parts = []
+    for i, dev in enumerate(devices):
+        idx = np.minimum(np.arange(i * size, (i + 1) * size), n - 1)
+        parts.append(jax.device_put(inputs_of(idx), dev))
+    out = run_split([runner_of(dev) for dev in devices], parts, progress, chunk_seconds)
+    return jax.tree_util.tree_map(lambda x: x[:n] if np.ndim(x) >= 1 and x.shape[0] == k * size else x, out)
+
+
+class RunnersByPlace:
+    """The runners of ONE static setup, one per placement, built on first use by ``make(mesh)`` (a
+    :class:`BatchRunner` factory) and kept: ``runners(None)`` the one-device runner, ``runners(device)`` the runner
+    of that device's slice of a split batch (:func:`run_on`), ``runners(mesh)`` the runner sharded over ``mesh``."""
+
+    def __init__(self, make: Callable[[Mesh | None], Any]):
+        self.make, self._kept = make, {}
+
+    def __call__(self, where=None):
+        if where is None:
+            key, mesh = None, None
+        elif hasattr(where, "axis_names"):
+            key, mesh = ("mesh", tuple(d.id for d in where.devices.flat), where.axis_names), where
+        else:
+            key, mesh = ("device", where.id), None
+        if key not in self._kept:
+            self._kept[key] = self.make(mesh)
+        return self._kept[key]
+
+
+def run_tree_on(devices, runners: Callable, impl: str, tree: Any, inputs_of: Callable,
+                progress: Progress | None = None, chunk_seconds: float | None = None) -> RolloutResult:
+    """:func:`run_on` of a batch given as a PyTree ``tree`` whose every leaf has the leading batch axis (e.g.
+    ``(scenario, params)``): ``inputs_of(rows)`` makes ``(mx_batched, d0, params, push)`` of a PyTree of rows;
+    ``runners`` e.g. a :class:`RunnersByPlace`. Each row keeps its inputs whatever device computes it (a
+    population's common random numbers stay common)."""
+    n = int(jax.tree_util.tree_leaves(tree)[0].shape[0])
+    full = np.arange(n)
+
+    def rows(idx):
+        if len(idx) == n and np.array_equal(idx, full):
+            return inputs_of(tree)
+        return inputs_of(jax.tree_util.tree_map(lambda x: x[idx], tree))
+
+    return run_on(list(devices), n, rows, runners, impl, progress, chunk_seconds)
+
+
 def make_batch_runner(ids: hmodel.ModelIds, controller: Controller, cfg: SimConfig, metrics: Metrics = no_metrics(),
                       record=None, params_axes: Any = 0, mesh: Mesh | None = None, buckets: bool = True) -> BatchRunner:
     """The one jit + sharding runner of hyqjax (see :class:`BatchRunner`). Keep it: each new runner compiles anew.
@@ -325,4 +458,4 @@ def pad_batch(n: int, multiple: int) -> int:
 
 __all__ = ["BatchPlan", "BatchRunner", "CPU_PASS", "HOST_PHYSICS_MIN_BUCKET", "Progress", "batch_mesh", "batch_plan",
            "batch_rollout", "batch_rollout_fn", "bucket", "compile_listener", "host_physics_plan", "make_batch_runner",
-           "pad_batch"]
+           "pad_batch", "run_on", "run_split", "run_tree_on", "RunnersByPlace"]

@@ -32,6 +32,7 @@ import dataclasses
 from typing import Any, Callable, Protocol
 
 import jax
+import numpy as np
 
 from hyqjax.core.types import Controller, Metrics
 from hyqjax.sim import rollout as sim
@@ -133,18 +134,50 @@ class Rollout:
         return task.outcome(res), res.data
 
     def runner(self, mesh=None):
-        """The simulator's batch runner for ``mesh`` (None: one device), built once and kept."""
-        key = None if mesh is None else (tuple(mesh.devices.flat), mesh.axis_names)
+        """The simulator's batch runner for ``mesh`` (None: one device; a ``jax.Device``: the runner of that
+        device's slice of a split batch, :func:`hyqjax.sim.runner.run_on`), built once and kept."""
+        if mesh is None:
+            key = None
+        elif hasattr(mesh, "axis_names"):
+            key = (tuple(mesh.devices.flat), mesh.axis_names)
+        else:
+            key, mesh = ("device", mesh.id), None
         if key not in self._runners:
             self._runners[key] = self.setup.backend.make_runner(self.setup.ids, self.controller, self.sim_config,
                                                                 self.metrics, self.record, params_axes=0, mesh=mesh)
         return self._runners[key]
 
     def run(self, batch: Any, mesh=None, progress: Callable[[float, float], None] | None = None,
-            chunk_seconds: float | None = None) -> tuple[Any, sim.RolloutResult]:
+            chunk_seconds: float | None = None, devices=None) -> tuple[Any, sim.RolloutResult]:
         """Run a batch: the outcomes (leading batch axis) and the rollout result (final state, metrics, trace).
-        ``progress(done_s, total_s)`` is called between chunks of simulated time (every ``chunk_seconds``)."""
+        ``progress(done_s, total_s)`` is called between chunks of simulated time (every ``chunk_seconds``).
+
+        Devices: ``mesh`` runs the batch sharded over that mesh; otherwise over ``devices`` (a list of local
+        devices, a count or a list of ids; None: the process's selection, every local device unless the command
+        line's ``--devices`` chose, :func:`hyqjax.sim.devices.resolve`), in the simulator's layout
+        (:func:`hyqjax.sim.runner.run_on`: MJX-JAX one sharded program, MuJoCo Warp one program per device)."""
+        from hyqjax.sim import devices as hdevices
+        from hyqjax.sim import runner as srunner
+
         self.task.check_batch(batch)
-        mb, d0 = self.task.batch_inputs(self.setup, batch)
-        res = self.runner(mesh)(mb, d0, batch.params, batch.push, progress=progress, chunk_seconds=chunk_seconds)
+        if mesh is not None or self.setup.impl == "c":
+            mb, d0 = self.task.batch_inputs(self.setup, batch)
+            res = self.runner(mesh)(mb, d0, batch.params, batch.push, progress=progress, chunk_seconds=chunk_seconds)
+            return self._outcomes(res._replace(trace=None)), res
+        traced = any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(batch))
+        devs = hdevices.resolve(devices)[:1] if traced else hdevices.resolve(devices)  # under a transformation: one
+        n = int(jax.tree_util.tree_leaves(batch.push)[0].shape[0])
+
+        def inputs_of(idx):
+            sub = batch if len(idx) == n and np.array_equal(idx, np.arange(n)) else _take(batch, idx)
+            mb, d0 = self.task.batch_inputs(self.setup, sub)
+            return mb, d0, sub.params, sub.push
+
+        res = srunner.run_on(devs, n, inputs_of, self.runner, self.setup.impl, progress, chunk_seconds)
         return self._outcomes(res._replace(trace=None)), res
+
+
+def _take(batch: Any, idx) -> Any:
+    """Instances ``idx`` (host integers) of every leaf of a batch (each has the leading batch axis)."""
+    idx = np.asarray(idx)
+    return jax.tree_util.tree_map(lambda x: x[idx] if isinstance(x, np.ndarray) else jax.numpy.asarray(x)[idx], batch)

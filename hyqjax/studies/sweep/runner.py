@@ -17,6 +17,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.sim import backend
+from hyqjax.sim import devices as hdevices
 from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies.sweep.outcomes import count_outcomes
@@ -46,7 +47,8 @@ def _runner(cfg: stepdown.StepdownConfig, sensed: bool, max_delay: int, devices:
     ctrl = crawl.crawl_controller(cfg.control_dt)
     if sensed:
         ctrl = sensed_controller(ctrl, max_delay)
-    mesh = srunner.batch_mesh(list(devices)) if len(devices) > 1 else None
+    # MJX-JAX: one program sharded over the devices; MuJoCo Warp splits the batch, one runner per device (run_rows)
+    mesh = srunner.batch_mesh(list(devices)) if hdevices.layout(st.impl, len(devices)) == "mesh" else None
     # buckets=False: a chunk is the sweep's own fixed batch shape (its chunk size, part of the store's layout).
     run = st.backend.make_runner(st.ids, ctrl, cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), mesh=mesh,
                                  buckets=False)
@@ -61,16 +63,28 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
     The scan always runs in chunks of one simulated second (the batch runner's progress mode, bitwise equal to
     one scan), calling ``progress(done_s, total_s)`` between them when given, so every executor runs the
     same compiled programs."""
-    devices = tuple(jax.local_devices() if devices is None else devices)
+    devices = tuple(hdevices.resolve(devices))
     n = rows["index"].shape[0]
     pad_to = srunner.pad_batch(max(pad_to, n), len(devices))
     padded = {k: np.concatenate([v, np.repeat(v[-1:], pad_to - n, 0)], 0) for k, v in rows.items()}
     scenario, sensor = build_scenario(padded, spec)
     cfg = dataclasses.replace(spec.stepdown_config(), impl=impl)
     run, _, _, ids = _runner(cfg, spec.sensed, spec.max_delay, devices)
-    mb, d0 = stepdown.batch_inputs(stepdown.setup(cfg), scenario)
-    params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)
-    res = run(mb, d0, params, scenario.push, progress=progress or _no_progress, chunk_seconds=1.0)
+    st = stepdown.setup(cfg)
+    if hdevices.layout(st.impl, len(devices)) == "split":  # MuJoCo Warp: one program per device, equal slices
+
+        def inputs_of(idx):
+            sc, se = build_scenario({k: v[idx] for k, v in padded.items()}, spec)
+            mb, d0 = stepdown.batch_inputs(st, sc)
+            return mb, d0, (sc.params if se is None else SensedParams(sc.params, se)), sc.push
+
+        res = srunner.run_on(list(devices), pad_to, inputs_of,
+                             lambda dev: _runner(cfg, spec.sensed, spec.max_delay, (dev,))[0], st.impl,
+                             progress or _no_progress, 1.0)
+    else:
+        mb, d0 = stepdown.batch_inputs(st, scenario)
+        params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)
+        res = run(mb, d0, params, scenario.push, progress=progress or _no_progress, chunk_seconds=1.0)
     if sensor is not None:
         res = res._replace(ctrl_state=res.ctrl_state.inner)
     out = stepdown.summarize_instances(res, scenario, cfg, ids)
@@ -96,7 +110,7 @@ class LocalExecutor:
     name = "local"
 
     def __init__(self, devices=None, impl: str = "auto"):
-        self.devices = tuple(jax.local_devices() if devices is None else devices)
+        self.devices = tuple(hdevices.resolve(devices))
         self.impl = backend.resolve_impl(impl, stepdown.SUPPORTED_IMPLS)
 
     def layout(self) -> dict:

@@ -174,10 +174,11 @@ def summarize_sweep(spec: SweepSpec, rows: dict[str, np.ndarray]) -> dict[str, A
     return summary
 
 
-def write_outputs(store) -> dict[str, Any]:
+def write_outputs(store, clock=None) -> dict[str, Any]:
     """``instances.csv`` (one row per finished instance), ``summary.json`` and the figures of a
     :class:`hyqjax.studies.sweep.store.SweepStore`, from its verified chunks only; damaged chunks are named in
-    ``summary["damaged_chunks"]`` and a note."""
+    ``summary["damaged_chunks"]`` and a note. ``clock`` (:class:`hyqjax.io.phases.Clock`, optional): laps
+    ``summary`` before the figures and ``figures`` after them."""
     import csv
     import io
 
@@ -191,9 +192,13 @@ def write_outputs(store) -> dict[str, Any]:
         for i in range(rows["index"].shape[0]):
             w.writerow([rows[k][i].item() if hasattr(rows[k][i], "item") else rows[k][i] for k in cols])
         atomic_write(os.path.join(store.dir, "instances.csv"), lambda f: f.write(buf.getvalue().encode()))
+        if clock is not None:
+            clock.lap("summary")
         summary["figures"] = [p for p in (plot_maps(summary, os.path.join(store.dir, "success_maps.png")),
                                           plot_height_curves(summary, os.path.join(store.dir, "success_height.png")))
                               if p]
+        if clock is not None:
+            clock.lap("figures")
     summary["complete"] = len(store.done()) == store.n_chunks
     if store.problems:  # named, never silently dropped: these rows are in neither file
         summary["damaged_chunks"] = {str(c): why for c, why in sorted(store.problems.items())}

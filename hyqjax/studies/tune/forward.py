@@ -29,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.crawl import controller as crawl
+from hyqjax.sim import backend as hbackend
+from hyqjax.sim import runner as srunner
 from hyqjax.studies import stepdown
 from hyqjax.studies import stepdown_outcome as so
 from hyqjax.studies.tune.schedule import Parameterisation
@@ -78,14 +80,19 @@ class SuccessEvaluator:
     (e.g. the paper's crawl as a reference next to tuned sets)."""
 
     def __init__(self, param: Parameterisation, base: crawl.CrawlParams, duration: float = 24.0, impl: str = "auto",
-                 completed_weight: float = 0.1):
+                 completed_weight: float = 0.1, devices=None):
         self.param, self.base = param, base
         self.cfg = stepdown.StepdownConfig(duration=duration, impl=impl)
         self.setup = stepdown.setup(self.cfg)
         st = self.setup
         self.ticks = self.cfg.sim_config().n_ticks
-        self.runner = st.backend.make_runner(st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(),
-                                             stepdown.make_metrics(st.ids, self.cfg), None, params_axes=0)
+        #: where a generation runs (hyqjax.sim.devices.resolve; None: the process's selection, every local device):
+        #: its N x M rows split over the devices, one program per device (hyqjax.sim.runner.run_on)
+        self.devices = devices
+        self.runners = srunner.RunnersByPlace(lambda mesh: st.backend.make_runner(
+            st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(), stepdown.make_metrics(st.ids, self.cfg),
+            None, params_axes=0, mesh=mesh))
+        self.runner = self.runners(None)
         cfg = self.cfg
         self._outcome = jax.jit(jax.vmap(lambda r: so.outcome(r, st.ids, cfg.max_tilt, cfg.min_progress)))
         self.completed_weight = float(completed_weight)
@@ -118,9 +125,10 @@ class SuccessEvaluator:
         sp = Scheduled(base=base, table=jnp.repeat(table, m, axis=0), cond=jnp.repeat(cond, m, axis=0))
         sc = _tile(scenario, n)
         st = self.setup
-        mb, d0 = stepdown.batch_inputs(st, sc)
         t0 = time.perf_counter()
-        res = self.runner(mb, d0, sp, sc.push)
+        devs = hbackend.devices_for(st.impl, self.devices)
+        res = srunner.run_tree_on(devs, self.runners, st.impl, (sc, sp),
+                                  lambda rows: (*stepdown.batch_inputs(st, rows[0]), rows[1], rows[0].push))
         out = self._outcome(res._replace(trace=None))
         cols = so.to_columns(jax.block_until_ready(out))
         wall = time.perf_counter() - t0

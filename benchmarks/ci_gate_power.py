@@ -1,0 +1,267 @@
+"""False alarms and power of the CI gate (``hyqjax compare`` / ``hyqjax sweep --baseline``) over many seeds.
+
+For each seed ``s`` of ``--seeds`` (the CI spec, ``hyqjax/studies/sweep/specs/ci.toml``, with ``seed = s``,
+optionally cut down with ``--heights`` / ``--reflex`` / ``--samples`` / ``--duration``), sweeps are run into
+stores and compared as CI compares them (:func:`hyqjax.studies.sweep.compare.compare_stores`, Holm at
+``--alpha``):
+
+* ``base``: the controller as it is (Table I), on C MuJoCo (``--impl``, default ``c``);
+* arm ``planted``: a planted regression, ``--planted`` (default: Table I's reflex damping bounds doubled,
+  ``reflex_d_st_min/max`` 50/1000 -> 100/2000, ``reflex_d_sw_min/max`` 5/100 -> 10/200, set as [fixed] axes and
+  allowed to differ; halving them is no regression: measured, it raised clean success, and ``d_sw_min`` = 2.5 is
+  below the reflex's stability bound of 4 at dt = 2 ms), same simulator; the gate must flag it (power);
+* arm ``unchanged``: the same sweep run again (same simulator): the gate must not flag it (identical outcomes);
+* arm ``rounding``: the same controller on another simulator (``--rounding-impl``, default ``jax``: MJX-JAX), a
+  change of float rounding only: the gate should not flag it.
+
+Writes ``OUT/results_ARMS.json`` (per seed and arm: the verdict, the tests, the discordant pairs) and prints a table:
+per arm, how many seeds were flagged (regressed, improved), and per cell of the planted arm the effect measured on
+all seeds' instances together (the pooled paired difference with Newcombe's interval): the effect "at scale".
+
+CPU, cut down (one height, reflex on, 20 seeds; about 20 minutes on 2 shared cores):
+
+    python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --reflex on --arms planted,unchanged
+
+One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec, in three
+commands of a few minutes each (the second resumes the first's base stores, the third is the planted arm with 64
+instances per cell):
+
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted,unchanged
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
+    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.21,0.24 --reflex on --arms planted
+
+C arms run one seed after another (``--jobs 1``: one process already steps its batch on all cores);
+``--jobs N`` runs N seeds at once, each worker on the CPU (``JAX_PLATFORMS=cpu``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+sys.path.insert(0, os.path.dirname(HERE))
+
+DAMPING_DOUBLED = "reflex_d_st_min=100,reflex_d_st_max=2000,reflex_d_sw_min=10,reflex_d_sw_max=200"
+ARMS = ("planted", "unchanged", "rounding")
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", required=True, help="results directory (stores under OUT/stores)")
+    p.add_argument("--seeds", type=int, default=20, help="number of seeds (sweep seeds 0 .. N-1 from --seed0)")
+    p.add_argument("--seed0", type=int, default=0)
+    p.add_argument("--samples", type=int, default=None, help="instances per grid cell (default: the CI spec's)")
+    p.add_argument("--heights", default=None, help="comma-separated heights (default: the CI spec's)")
+    p.add_argument("--reflex", default=None, help="on, off or on,off (default: the CI spec's)")
+    p.add_argument("--duration", type=float, default=None, help="seconds per instance (default: the CI spec's)")
+    p.add_argument("--arms", default="planted,unchanged", help=f"comma-separated arms of {list(ARMS)}")
+    p.add_argument("--planted", default=DAMPING_DOUBLED, help="the planted change, AXIS=VALUE,... ([fixed] axes)")
+    p.add_argument("--impl", default="c", help="simulator of base, planted and unchanged")
+    p.add_argument("--rounding-impl", default="jax", help="simulator of the rounding arm")
+    p.add_argument("--alpha", type=float, default=0.05)
+    p.add_argument("--ci-family", type=int, default=18,
+                   help="tests in the full CI sweep's Holm family (8 cells x 2 levels + 2 pooled): a seed also counts "
+                        "as flagged 'at CI size' when its smallest p-value of a regression is below alpha / this")
+    p.add_argument("--jobs", type=int, default=1, help="processes over seeds for the --impl arms")
+    a = p.parse_args(argv)
+    arms = [x for x in a.arms.split(",") if x]
+    bad = [x for x in arms if x not in ARMS]
+    if bad or not arms:
+        p.error(f"--arms: unknown {bad}; allowed {list(ARMS)}")
+    if not 1 <= a.seeds <= 1000 or a.jobs < 1:
+        p.error("--seeds must be in [1, 1000], --jobs >= 1")
+    a.arm_list = arms
+    return a
+
+
+def base_spec(a, seed: int) -> dict:
+    import tomllib
+
+    from hyqjax.cli.sweep import CI_SPEC
+    from hyqjax.studies.sweep.expect import split_spec_dict
+
+    with open(CI_SPEC, "rb") as f:
+        d, _ = split_spec_dict(tomllib.load(f))
+    d["seed"] = seed
+    if a.samples:
+        d["samples"] = a.samples
+    if a.duration:
+        d["duration"] = a.duration
+    if a.heights:
+        d["grid"]["height"] = [float(x) for x in a.heights.split(",")]
+    if a.reflex:
+        d["grid"]["reflex"] = [x.strip() in ("on", "true") for x in a.reflex.split(",")]
+    return d
+
+
+def planted_changes(a) -> dict:
+    out = {}
+    for item in a.planted.split(","):
+        k, v = item.split("=")
+        out[k.strip()] = float(v)
+    return out
+
+
+def run_store(d: dict, path: str, impl: str, chunk_size: int | None = None) -> float:
+    from hyqjax.studies import sweep
+
+    spec = sweep.SweepSpec.from_dict(d)
+    t0 = time.time()
+    sweep.run_sweep(spec, path, chunk_size=chunk_size, progress=False, executor=sweep.LocalExecutor(impl=impl))
+    return time.time() - t0
+
+
+def seed_job(payload) -> dict:
+    """The --impl arms of one seed (a worker process): base, planted, unchanged; their comparisons."""
+    a, seed = payload
+    if a.jobs > 1:  # a worker process: C MuJoCo and its controller on the CPU, the GPU left to the main process
+        os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    from hyqjax.studies.sweep.compare import compare_stores
+
+    root = os.path.join(a.out, "stores", f"seed{seed:03d}")
+    d = base_spec(a, seed)
+    n = 1
+    for k in ("height", "reflex"):
+        n *= len(d["grid"][k])
+    chunk = n * d["samples"]  # one chunk per store: one compile per shape in this process
+    res = dict(seed=seed, wall_s={})
+    res["wall_s"]["base"] = run_store(d, os.path.join(root, "base"), a.impl, chunk)
+    if "planted" in a.arm_list:
+        dp = json.loads(json.dumps(d))
+        dp.setdefault("fixed", {}).update(planted_changes(a))
+        res["wall_s"]["planted"] = run_store(dp, os.path.join(root, "planted"), a.impl, chunk)
+        res["planted"] = compare_stores(os.path.join(root, "base"), os.path.join(root, "planted"), alpha=a.alpha,
+                                        allow_change=tuple(planted_changes(a))).to_dict()
+    if "unchanged" in a.arm_list:
+        res["wall_s"]["unchanged"] = run_store(d, os.path.join(root, "unchanged"), a.impl, chunk)
+        res["unchanged"] = compare_stores(os.path.join(root, "base"), os.path.join(root, "unchanged"),
+                                          alpha=a.alpha).to_dict()
+    return res
+
+
+def rounding_batch(a, seeds) -> dict:
+    """The rounding arm of every seed in one batch on ``--rounding-impl`` (one compile, the GPU filled), each seed's
+    rows then written to its own store (one chunk) and compared with its base store."""
+    import numpy as np
+
+    from hyqjax.studies import sweep
+    from hyqjax.studies.sweep.compare import compare_stores
+    from hyqjax.studies.sweep.runner import device_layout, run_rows
+
+    specs = [sweep.SweepSpec.from_dict(base_spec(a, s)) for s in seeds]
+    rows = [sp.instance_inputs(0, sp.n_instances) for sp in specs]
+    allrows = {k: np.concatenate([r[k] for r in rows]) for k in rows[0]}
+    total = len(allrows["index"])
+    t0 = time.time()
+    out = run_rows(allrows, specs[0], total, impl=a.rounding_impl)
+    wall = time.time() - t0
+    layout = dict(device_layout(impl=a.rounding_impl), batch=total)
+    res = {}
+    off = 0
+    for s, sp, r in zip(seeds, specs, rows):
+        n = len(r["index"])
+        chunk = {**r, **{k: np.asarray(v)[off:off + n] for k, v in out.items()}}
+        off += n
+        root = os.path.join(a.out, "stores", f"seed{s:03d}")
+        with sweep.SweepStore(os.path.join(root, "rounding"), sp, n, layout, writer=True) as st:
+            st.write_chunk(0, chunk, wall * n / total)
+        res[s] = compare_stores(os.path.join(root, "base"), os.path.join(root, "rounding"), alpha=a.alpha).to_dict()
+    return dict(wall_s=wall, results=res)
+
+
+def pooled_effect(results, arm: str) -> list[dict]:
+    """Per cell and level, the paired difference over every seed's instances together, Newcombe's interval."""
+    from hyqjax.studies.sweep.compare import mcnemar_exact, newcombe_interval
+
+    acc = {}
+    for r in results:
+        if arm not in r:
+            continue
+        for t in r[arm]["tests"]:
+            e = acc.setdefault((t["cell"], t["level"]), dict(kb=0, kn=0, n=0, b=0, c=0))
+            e["kb"] += t["k_base"]
+            e["kn"] += t["k_new"]
+            e["n"] += t["n_base"]
+            e["b"] += t["b"] or 0
+            e["c"] += t["c"] or 0
+    out = []
+    for (cell, level), e in acc.items():
+        lo, hi = newcombe_interval(e["kn"], e["n"], e["kb"], e["n"])
+        out.append(dict(cell=cell, level=level, n=e["n"], base_rate=e["kb"] / e["n"], new_rate=e["kn"] / e["n"],
+                        diff=(e["kn"] - e["kb"]) / e["n"], ci=[lo, hi], b=e["b"], c=e["c"],
+                        p_mcnemar=mcnemar_exact(e["b"], e["c"])))
+    return out
+
+
+def main(argv=None) -> int:
+    a = parse_args(argv)
+    os.makedirs(a.out, exist_ok=True)
+    import hyqjax
+    from hyqjax.io.cache import enable_compilation_cache
+
+    enable_compilation_cache()
+    seeds = list(range(a.seed0, a.seed0 + a.seeds))
+    t0 = time.time()
+    if a.jobs > 1:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
+            results = list(ex.map(seed_job, [(a, s) for s in seeds]))
+    else:
+        results = []
+        for s in seeds:
+            results.append(seed_job((a, s)))
+            print(f"seed {s}: " + ", ".join(f"{arm} {results[-1][arm]['verdict']}" for arm in ARMS
+                                            if arm in results[-1]), flush=True)
+    rounding_wall = None
+    if "rounding" in a.arm_list:
+        rb = rounding_batch(a, seeds)
+        rounding_wall = rb["wall_s"]
+        for r in results:
+            r["rounding"] = rb["results"][r["seed"]]
+            print(f"seed {r['seed']}: rounding {r['rounding']['verdict']}", flush=True)
+    wall = time.time() - t0
+    summary = dict(args={k: v for k, v in vars(a).items()}, hyqjax=hyqjax.__version__, wall_s=wall,
+                   load_avg=os.getloadavg(), cpu_count=os.cpu_count(), rounding_batch_wall_s=rounding_wall)
+    import jax
+    import mujoco
+
+    summary.update(jax=jax.__version__, mujoco=mujoco.__version__, devices=[str(d) for d in jax.devices()])
+    print(f"\n{len(seeds)} seeds, {wall:.0f} s (load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores)")
+    arms = {}
+    for arm in a.arm_list:
+        vs = [r[arm]["verdict"] for r in results if arm in r]
+        ident = sum(bool(r[arm]["identical"]) for r in results if arm in r)
+        thr = a.alpha / a.ci_family
+        at_ci = sum(any(t["p"] < thr and t["diff"] < 0 for t in r[arm]["tests"]) for r in results if arm in r)
+        arms[arm] = dict(seeds=len(vs), regressed=vs.count("regressed"), improved=vs.count("improved"),
+                         no_change=vs.count("no significant change"), identical=ident,
+                         regressed_at_ci_family=at_ci, ci_family=a.ci_family)
+        print(f"{arm:10s}: flagged regressed {vs.count('regressed')}/{len(vs)}, improved {vs.count('improved')}/"
+              f"{len(vs)}, identical outcomes {ident}/{len(vs)}; a regression with p < {a.alpha:g}/{a.ci_family} "
+              f"(the CI sweep's first Holm step) in {at_ci}/{len(vs)}")
+    summary["arms"] = arms
+    for arm in a.arm_list:
+        if arm == "unchanged":
+            continue
+        eff = pooled_effect(results, arm)
+        summary[f"effect_{arm}"] = eff
+        print(f"{arm}: effect over all seeds' instances (paired; NEW - BASE, Newcombe 95%)")
+        for e in eff:
+            print(f"  {e['cell']:28s} {e['level']:9s} n {e['n']:5d}: {e['base_rate']:.3f} -> {e['new_rate']:.3f}, "
+                  f"{e['diff']:+.3f} [{e['ci'][0]:+.3f}, {e['ci'][1]:+.3f}], discordant {e['b']} worse / {e['c']} "
+                  f"better, McNemar p {e['p_mcnemar']:.2g}")
+    summary["seeds"] = results
+    path = os.path.join(a.out, f"results_{'_'.join(a.arm_list)}.json")
+    with open(path, "w") as f:
+        json.dump(summary, f, indent=1, default=str)
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
