@@ -4,7 +4,7 @@ the guided-ES comparison (``--guided-comparison``) and the gradient study at equ
 
     python -m experiments.tune_study --out out/tune_study --impl warp --wall-minutes 0.25 0.5   # ~12 min, one H100
     python -m experiments.tune_study --out out/tune_study --impl warp --wall-minutes 1 3 10     # the full curves
-    python -m experiments.tune_study --guided-comparison --out out/guided --impl warp --wall-minutes 3 10 30 --seeds 0,1,2,3,4
+    python -m experiments.tune_study --guided-comparison --out out/guided --impl warp --wall-minutes 3 10 --seeds 0,1,2,3,4
     python -m experiments.tune_study --gradient-study --out out/tune_gradient --steps 20
 
 The equal-wall-clock study (:mod:`hyqjax.studies.tune.wallclock`) runs every method in ``--methods`` on every
