@@ -62,6 +62,24 @@ def run(args) -> int:
         if g.get("step_cost"):
             print(wallclock_results.step_cost_line(d, g["step_cost"], res["config"].get("grad_mode", "jacfwd")))
     for key, r in res["runs"].items():
+        if r["method"] == "guided_es" and r["log"]:
+            from hyqjax.studies.tune.study.guided import cosine_summary
+
+            c = cosine_summary(r["log"])
+            slope = [x["descent_slope"] for x in r["log"] if x.get("descent_slope") is not None]
+            line = (f"guided ES {key}: {c['generations']} generations; the population's slope along the surrogate's "
+                    f"descent direction: positive in {sum(v > 0 for v in slope)} of {len(slope)}")
+            if c["cos_search"] is not None:
+                line += (f"; cosine with the search direction: median {c['cos_search']['median']:+.3f} (first third "
+                         f"{c['cos_search']['first_third']:+.3f}, last third {c['cos_search']['last_third']:+.3f})")
+            print(line)
+        fin = r.get("final_reevaluation")
+        if fin:
+            row = fin["candidates"][fin["chosen"]]
+            print(f"final re-evaluation of {key}: {len(fin['candidates'])} candidates on {fin['instances']} further "
+                  f"scenarios ({fin['wall_s']:.0f} s after the budget); returned iteration {row['iteration']}, clean "
+                  f"{row['validation_clean']:.3f} on the validation batch, {row['final_clean']:.3f} on the further "
+                  f"one")
         sel = r.get("selection")
         if sel and sel["log"]:
             pt = r["points"][-1]
