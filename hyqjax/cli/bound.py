@@ -221,7 +221,11 @@ def run(args) -> int:
     print(f"hyqjax bound: {n_total} instances ({len(configs)} configuration(s) x {n}), {args.duration:g} s each, "
           f"{int(round(args.duration / 0.002))} ticks, simulator {rollout.setup.impl}", flush=True)
     clock.lap("startup")
-    with sim_progress(f"bound: {n_total} instances", args.duration) as progress:
+    from hyqjax.cli.common import import_during_batch_run
+    from hyqjax.sim.compile_phase import compile_listener
+
+    with compile_listener(import_during_batch_run("hyqjax.bounding.plots", not args.no_figures)), \
+            sim_progress(f"bound: {n_total} instances", args.duration) as progress:
         _, res = rollout.run(batch, progress=progress)
         trace = jax.tree_util.tree_map(np.asarray, res.trace)
     status = progress.status

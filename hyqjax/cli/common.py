@@ -423,3 +423,30 @@ INTERNAL_OPTIONS = ("options_checked", "run_command", "validate_command", "study
 def user_options(args) -> dict:
     """The options of a parsed command line as a user gave them (for ``results.json``)."""
     return {k: v for k, v in vars(args).items() if k not in INTERNAL_OPTIONS and not callable(v)}
+
+
+def import_during_batch_run(module: str, enabled: bool = True):
+    """A compile listener (:func:`hyqjax.sim.compile_phase.compile_listener`) that imports ``module`` (a figure
+    module: matplotlib takes 0.5-1.5 s) in a background thread while the batch runs, instead of after it: from the
+    moment XLA compiles the chunk program (a compile releases the GIL and uses about one core) or, when the program is
+    loaded from the cache, from the end of the compile phase (the simulation then runs on a GPU or in C, with the
+    GIL released). A failed import is left to the import after the run, which raises it."""
+    import importlib
+
+    started = []
+
+    def quietly() -> None:
+        try:
+            importlib.import_module(module)
+        except Exception:  # noqa: BLE001  (raised again by the import that needs the module)
+            pass
+
+    def listener(event: str, info: dict) -> None:
+        if not enabled or started:
+            return
+        if (event == "compile" and info.get("program") == "advance") or event == "end":
+            started.append(threading.Thread(target=quietly, daemon=True, name=f"hyqjax-import-{module}"))
+            started[0].start()
+
+    return listener
+

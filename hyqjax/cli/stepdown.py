@@ -26,10 +26,8 @@ Examples:
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 import sys
-import threading
 import time
 
 from hyqjax.studies import tasks
@@ -210,34 +208,11 @@ def _check_duration(args) -> str | None:
     return sdd.check_duration(args.duration, args.heights, timing, START_DISTANCE)
 
 
-def _import_figures_while_xla_compiles(figures: bool):
-    """A compile listener that imports the figure module (matplotlib: about 0.5-0.8 s of a 2-core machine) in a
-    background thread once XLA compiles the chunk program, on the core that XLA's compile (which releases the GIL)
-    leaves idle, instead of after the simulation. A failed import is left to the import after the simulation,
-    which raises it."""
-    started = []
-
-    def listener(event: str, info: dict) -> None:
-        if figures and not started and event == "compile" and info.get("program") == "advance":
-            started.append(threading.Thread(target=_import_quietly, args=("hyqjax.studies.stepdown_figures",),
-                                            daemon=True, name="hyqjax-import-figures"))
-            started[0].start()
-
-    return listener
-
-
-def _import_quietly(name: str) -> None:
-    try:
-        importlib.import_module(name)
-    except Exception:  # noqa: BLE001  (raised again by the import that needs the module)
-        pass
-
-
 def run(args) -> int:
     import jax
     import numpy as np
 
-    from hyqjax.cli.common import lap_batch_run, sim_progress, user_options
+    from hyqjax.cli.common import import_during_batch_run, lap_batch_run, sim_progress, user_options
     from hyqjax.io import atomic as io
     from hyqjax.io import phases, recording
     from hyqjax.sim.compile_phase import compile_listener
@@ -266,7 +241,7 @@ def run(args) -> int:
     clock = phases.current()
     clock.lap("startup")
     t0 = time.time()
-    with compile_listener(_import_figures_while_xla_compiles(bool(record_every))), \
+    with compile_listener(import_during_batch_run("hyqjax.studies.stepdown_figures", bool(record_every))), \
             sim_progress(f"stepdown: {n} instances", args.duration) as progress:
         outcome, res = rollout.run(scenario, progress=progress)
         out = stepdown_outcome.to_columns(outcome)

@@ -82,13 +82,26 @@ COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_cpu_multi_thread_
 
 
 @functools.lru_cache(maxsize=None)
+def host_sharding():
+    """The host CPU device as a sharding: the controller and metrics of this backend run there (its physics is a
+    host call registered for the CPU), also in a process whose default device is a GPU."""
+    return jax.sharding.SingleDeviceSharding(jax.devices("cpu")[0])
+
+
+def host_jit(fn, **kw):
+    """``jax.jit`` of ``fn`` on the host CPU (:func:`host_sharding`) with :func:`compiler_options`."""
+    return jax.jit(fn, in_shardings=host_sharding(), out_shardings=host_sharding(),
+                   compiler_options=compiler_options(), **kw)
+
+
+@functools.lru_cache(maxsize=None)
 def compiler_options() -> dict:
     """The entries of :data:`COMPILER_OPTIONS` that this process's XLA knows: each tried once on a one-op program
     (the XLA of jax 0.11 has no ``xla_cpu_use_fusion_emitters`` and refuses a program that names it)."""
     known = {}
     for k, v in COMPILER_OPTIONS.items():
         try:
-            jax.jit(lambda x: x + 1, compiler_options={k: v}).lower(np.float32(0)).compile()
+            jax.jit(lambda x: x + 1, compiler_options={k: v}).lower(jax.ShapeDtypeStruct((), np.float32, sharding=host_sharding())).compile()
         except Exception:  # noqa: BLE001 - XLA's error for an unknown option is a JaxRuntimeError or a ValueError
             continue
         known[k] = v
@@ -131,7 +144,7 @@ def _instance_fields(ids: hmodel.ModelIds, model_fields: dict, terrain: hmodel.I
 
 @functools.lru_cache(maxsize=None)
 def _instance_fields_jit():
-    return jax.jit(_instance_fields_fn, static_argnums=0, compiler_options=compiler_options())
+    return host_jit(_instance_fields_fn, static_argnums=0)
 
 
 def _instance_fields_fn(ids: hmodel.ModelIds, model_fields: dict, terrain: hmodel.InstanceTerrain) -> dict:
@@ -192,8 +205,8 @@ class CBatchRunner(AheadOfTime):
         self.record = record if cfg.record_every else None
         self.params_axes, self.threads, self.buckets, self.shards = params_axes, threads, buckets, shards
         self.n_compiles, self._layout, self._width = 0, None, 0
-        self._init = jax.jit(self._init_fn, compiler_options=compiler_options())
-        self._advance = jax.jit(self._advance_fn, static_argnums=3, compiler_options=compiler_options())
+        self._init = host_jit(self._init_fn)
+        self._advance = host_jit(self._advance_fn, static_argnums=3)
         self._executables: dict = {}
         self._reset_compile_phase()
         self.last_timing: dict = {}
