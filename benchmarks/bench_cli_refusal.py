@@ -28,7 +28,7 @@ CASES = [
     ("sweep --chunk-size 0", ["sweep", "--chunk-size", "0"]),
     ("sweep spec value out of range", ["sweep", "--grid", "height=0.6"]),
     ("sweep spec unknown axis", ["sweep", "--grid", "heigth=0.2"]),
-    ("tune --lr 0", ["tune", "--lr", "0"]),
+    ("tune --popsize 1", ["tune", "--popsize", "1"]),
     ("tune --groups k_base,spring", ["tune", "--groups", "k_base,spring"]),
     ("stepdown --heights 0.9", ["stepdown", "--heights", "0.9"]),
     ("bound --speed 9", ["bound", "--speed", "9"]),

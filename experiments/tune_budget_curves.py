@@ -19,7 +19,7 @@ import sys
 def merge(results: list[dict], names: list[str]) -> dict:
     """One results dict whose ``budget_curves`` are those of every run in ``results`` (checked comparable,
     module docstring), with the first run's held-out Table I and start point."""
-    from hyqjax.studies.tune import cells, repeats
+    from hyqjax.studies.tune.study import cells, repeats
 
     repeats.check_comparable(results, names, cells.FREE_SETTINGS)
     cells.check_one_device(results)
@@ -46,7 +46,8 @@ def main(argv=None) -> int:
     p.add_argument("--figure", required=True, help="PNG of the budget curves")
     args = p.parse_args(argv)
     from hyqjax.io.atomic import check_writable_dir
-    from hyqjax.studies.tune import figure, repeats
+    from hyqjax.studies.tune import figure
+    from hyqjax.studies.tune.study import repeats
 
     try:
         check_writable_dir(os.path.dirname(args.figure) or ".", "--figure")

@@ -1,5 +1,5 @@
 """The equal-wall-clock study as one grid of (method, parameterisation) cells at one budget
-(hyqjax.studies.tune.cells), gathered from the directories (or results files) of the runs that made it.
+(hyqjax.studies.tune.study.cells), gathered from the directories (or results files) of the runs that made it.
 
     python -m experiments.tune_cells docs/results/tune_cells_h200_10min/cma_es_per_leg docs/results/tune_cells_h200_10min/snes_per_leg --minutes 10 --figure out/tune_cells.png
 
@@ -27,7 +27,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from hyqjax.cli.common import check_range
     from hyqjax.io import atomic
-    from hyqjax.studies.tune import cells, repeats
+    from hyqjax.studies.tune.study import cells, repeats
 
     try:
         check_range("--minutes", args.minutes, 0.0, 600.0, "min", lo_open=True)

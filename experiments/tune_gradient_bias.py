@@ -1,5 +1,5 @@
 """The window objective's pathwise gradient, with and without contacts from distance, against the zero-order
-gradient of the smoothed objective (hyqjax.studies.tune.bias; docs/tuning.md).
+gradient of the smoothed objective (hyqjax.studies.tune.study.bias; docs/tuning.md).
 
     python -m experiments.tune_gradient_bias --out bias.json                       # CPU size: 4 windows of 150 ticks
     python -m experiments.tune_gradient_bias --train-per-height 2 --windows-per-scenario 2 --window-ticks 500 \\
@@ -49,7 +49,8 @@ def main(argv=None) -> int:
 
     from hyqjax.io import atomic
     from hyqjax.sim.contacts_from_distance import ContactsFromDistance
-    from hyqjax.studies.tune import bias, gradient_programs, objective, schedule, search, wallclock
+    from hyqjax.studies.tune import gradient_programs, objective, schedule, search, wallclock
+    from hyqjax.studies.tune.study import bias
 
     t0 = time.perf_counter()
     cfg = wallclock.WallClockConfig(methods=("gradient",), dims=("shared",), grad_train_per_height=a.train_per_height,

@@ -1,4 +1,4 @@
-"""Hand-set crawl presets on a tuning study's held-out set (hyqjax.studies.tune.handset).
+"""Hand-set crawl presets on a tuning study's held-out set (hyqjax.studies.tune.study.handset).
 
     python -m experiments.tune_handset DIR --presets start remedy remedy_fwd_0.10 adaptive remedy_all
 
@@ -26,7 +26,7 @@ def main(argv=None) -> int:
     p.add_argument("--presets", nargs="+", default=list(DEFAULT_PRESETS),
                    help=f"hand-set presets (hyqjax.crawl.presets): {', '.join(presets.HAND_SET)}")
     args = p.parse_args(argv)
-    from hyqjax.studies.tune import handset
+    from hyqjax.studies.tune.study import handset
 
     try:
         names = handset.check_names(args.presets)

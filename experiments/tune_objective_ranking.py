@@ -1,4 +1,4 @@
-"""How the gradient's window objective ranks the iterates of tuning study runs (hyqjax.studies.tune.ranking).
+"""How the gradient's window objective ranks the iterates of tuning study runs (hyqjax.studies.tune.study.ranking).
 
     python -m experiments.tune_objective_ranking DIR [DIR ...] --out ranking.json
 
@@ -22,7 +22,7 @@ def main(argv=None) -> int:
     p.add_argument("dirs", nargs="+", help="study directories with a held-out evaluation")
     p.add_argument("--out", default=None, help="JSON file for the result")
     args = p.parse_args(argv)
-    from hyqjax.studies.tune import handset
+    from hyqjax.studies.tune.study import handset
 
     results = []
     for d in args.dirs:
@@ -39,7 +39,7 @@ def main(argv=None) -> int:
             return 2
         results.append(res)
     from hyqjax.io import atomic
-    from hyqjax.studies.tune import ranking
+    from hyqjax.studies.tune.study import ranking
 
     out = ranking.rank_iterates(results, list(args.dirs))
     out["dirs"] = list(args.dirs)

@@ -1,4 +1,4 @@
-"""Repeated runs of the equal-wall-clock tuning study, compared over runs (hyqjax.studies.tune.repeats).
+"""Repeated runs of the equal-wall-clock tuning study, compared over runs (hyqjax.studies.tune.study.repeats).
 
     python -m experiments.tune_repeats out/tune_s0 out/tune_s1 out/tune_s2 --minutes 10 --out out/tune_repeats.json
 
@@ -24,7 +24,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     from hyqjax.cli.common import check_range
     from hyqjax.io import atomic
-    from hyqjax.studies.tune import repeats
+    from hyqjax.studies.tune.study import repeats
 
     try:
         check_range("--minutes", args.minutes, 0.0, 600.0, "min", lo_open=True)

@@ -149,35 +149,18 @@ CASES = [
     (["bound", "--params", "afile"], "--params"),
     # tune
     (["tune", "--seed", "-1"], "--seed"),
-    (["tune", "--steps", "-1"], "--steps"),
-    (["tune", "--lr", "0"], "--lr"),
-    (["tune", "--lr", "nan"], "--lr"),
     (["tune", "--groups", "k_base,foo"], "--groups"),
     (["tune", "--groups", ","], "--groups"),
-    (["tune", "--baselines", "grid_search"], "--baselines"),
     (["tune", "--objective", "fast"], "--objective"),
-    (["tune", "--checkpoint-every", "0"], "--checkpoint-every"),
-    (["tune", "--line-search", "0.5,-1"], "--line-search"),
-    (["tune", "--select-instances", "-2"], "--select-instances"),
-    (["tune", "--select-every", "0"], "--select-every"),
-    (["tune", "--train-heights", "0.1,0.9"], "--train-heights"),
-    (["tune", "--train-spread", "narrow"], "--train-spread"),
-    (["tune", "--contacts-from-distance", "-5"], "--contacts-from-distance"),
-    (["tune", "--grad-mode", "reverse", "--grad-directions", "2"], "--grad-directions"),
-    (["tune", "--train-heights", "0.24,0.26,0.28", "--select-instances", "64"], "--select-instances"),
-    (["tune", "--gradient-study", "--train-spread", "wide"], "--train-spread"),
-    (["tune", "--train-per-height", "0"], "--train-per-height"),
-    (["tune", "--windows-per-scenario", "9"], "--windows-per-scenario"),
-    (["tune", "--lead", "0"], "--lead"),
-    (["tune", "--window-ticks", "0"], "--window-ticks"),
-    (["tune", "--sigma", "0"], "--sigma"),
-    (["tune", "--success-duration", "0.5"], "--success-duration"),
+    (["tune", "--method", "pso"], "--method"),
+    (["tune", "--method", "guided_es", "--popsize", "5"], "--popsize"),
+    (["tune", "--dim", "huge"], "--dim"),
     (["tune", "--heldout", "-1"], "--heldout"),
-    (["tune", "--heldout-duration", "nan"], "--heldout-duration"),
+    (["tune", "--final-instances", "-4"], "--final-instances"),
     (["tune", "--out", "afile"], "--out"),
     (["tune", "--out", "afile/sub"], "--out"),
     (["tune", "--seed", "x"], "--seed"),
-    (["tune", "--prefixes", "0"], "--prefixes"),
+    (["tune", "--steps", "5"], "--steps"),  # a study option: not an option of the tuner
     # sweep
     (["sweep", "--max-chunks", "-1"], "--max-chunks"),
     (["sweep", "--chunk-size", "0"], "--chunk-size"),
@@ -236,6 +219,59 @@ CASES = [
     # no command, unknown command
     (["simulate"], "simulate"),
 ]
+
+
+# python -m experiments.tune_study: the study options that left ``hyqjax tune``, same contract
+STUDY_CASES = [
+    (["--steps", "-1", "--gradient-study"], "--steps"),
+    (["--lr", "0"], "--lr"),
+    (["--lr", "nan"], "--lr"),
+    (["--baselines", "grid_search", "--gradient-study"], "--baselines"),
+    (["--surrogate", "fast"], "--surrogate"),
+    (["--checkpoint-every", "0", "--gradient-study"], "--checkpoint-every"),
+    (["--line-search", "0.5,-1", "--gradient-study"], "--line-search"),
+    (["--select-instances", "-2"], "--select-instances"),
+    (["--select-every", "0"], "--select-every"),
+    (["--train-heights", "0.1,0.9"], "--train-heights"),
+    (["--train-spread", "narrow"], "--train-spread"),
+    (["--contacts-from-distance", "-5"], "--contacts-from-distance"),
+    (["--grad-mode", "reverse", "--grad-directions", "2"], "--grad-directions"),
+    (["--train-heights", "0.24,0.26,0.28", "--select-instances", "64"], "--select-instances"),
+    (["--gradient-study", "--train-spread", "wide"], "--train-spread"),
+    (["--train-per-height", "0"], "--train-per-height"),
+    (["--windows-per-scenario", "9"], "--windows-per-scenario"),
+    (["--lead", "0"], "--lead"),
+    (["--window-ticks", "0"], "--window-ticks"),
+    (["--sigma", "0"], "--sigma"),
+    (["--success-duration", "0.5", "--gradient-study"], "--success-duration"),
+    (["--heldout-duration", "nan"], "--heldout-duration"),
+    (["--prefixes", "0", "--gradient-study"], "--prefixes"),
+    (["--guided-alpha", "1.5"], "--guided-alpha"),
+    (["--guided-subspace", "0"], "--guided-subspace"),
+    (["--guided-comparison", "--seeds", "1,1"], "--seeds"),
+    (["--seeds", "1,2"], "--seeds"),
+    (["--quick"], "--quick"),
+    (["--train-instances", "6"], "--train-instances"),
+]
+
+
+@pytest.mark.parametrize("argv, name", STUDY_CASES, ids=[" ".join(a) for a, _ in STUDY_CASES])
+def test_tune_study_bad_option_is_one_line_exit_2_nothing_compiled_or_written(ws, capsys, argv, name):
+    from experiments import tune_study
+
+    before = _tree(ws)
+    n_compiles = len(COMPILES)
+    try:
+        code = tune_study.main(argv)
+    except SystemExit as e:
+        code = e.code
+    err = capsys.readouterr().err
+    assert code == 2, (code, err)
+    lines = [ln for ln in err.splitlines() if ln.strip() and "warp" not in ln]
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert name in lines[0] and lines[0].startswith("python -m experiments.tune_study"), lines[0]
+    assert len(COMPILES) == n_compiles, "compiled before refusing"
+    assert _tree(ws) == before, "wrote files for a refused command"
 
 
 @pytest.mark.parametrize("argv, name", CASES, ids=[" ".join(a) for a, _ in CASES])

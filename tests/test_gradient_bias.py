@@ -1,4 +1,4 @@
-"""The zero-order reference of the gradient-bias study (hyqjax.studies.tune.bias) on functions with known
+"""The zero-order reference of the gradient-bias study (hyqjax.studies.tune.study.bias) on functions with known
 gradients: it estimates the smoothed objective's gradient without bias, its halves agree as their noise allows,
 and a step-function objective (a contact event) has a smoothed gradient where the pathwise one is zero."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from hyqjax.studies.tune import bias
+from hyqjax.studies.tune.study import bias
 
 
 def test_smoothed_gradient_of_a_quadratic_is_its_gradient():

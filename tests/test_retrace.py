@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from hyqjax.crawl import controller as crawl
-from hyqjax.studies.tune import kinematic, optimize
+from hyqjax.studies.tune import optimize
+from hyqjax.studies.tune.study import kinematic
 from hyqjax.studies.tune import space as spmod
 
 COMPILES: list[str] = []

@@ -13,7 +13,8 @@ from mujoco import mjx
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.reflex import step as hreflex
-from hyqjax.studies.tune import baselines, kinematic, objective, optimize, study, windows
+from hyqjax.studies.tune import objective, optimize, windows
+from hyqjax.studies.tune.study import baselines, kinematic, gradient as study
 from hyqjax.studies.tune import space as spmod
 
 SMALL_KIN = kinematic.Objective(duration=0.5, t_lift=0.05, lift=0.02)
@@ -534,8 +535,8 @@ def test_second_tune_run_refused_in_one_line_before_mjx_is_imported(tmp_path):
         assert holder.stdout.readline().strip() == "held"
         p = run_python(f"""
             import sys
-            from hyqjax.cli.app import main
-            code = main(["tune", "--gradient-study", "--out", {d!r}, "--steps", "1"])
+            from experiments.tune_study import main
+            code = main(["--gradient-study", "--out", {d!r}, "--steps", "1"])
             print("mjx imported:", "mujoco.mjx" in sys.modules, "code:", code)
         """, timeout=120)
     finally:
@@ -552,22 +553,20 @@ def test_waiting_tune_run_then_refused_for_other_settings_before_any_compile(tmp
     import threading
     import time
 
-    from hyqjax.cli import app
+    from experiments import tune_study
     from hyqjax.io.fingerprint import check_or_record
     from hyqjax.io.lock import DirLock
 
     d = str(tmp_path / "t")
-    args = ["tune", "--gradient-study", "--out", d, "--no-progress", "--no-cache"]
-    cfg = app.build_parser().parse_args(args + ["--seed", "0"])
+    args = ["--gradient-study", "--out", d, "--no-progress", "--no-cache"]
+    cfg = tune_study.build_parser().parse_args(args + ["--seed", "0"])
     cfg.validate_command(cfg)
-    from hyqjax.cli import tune_gradient_study
-
-    check_or_record(d, study.fingerprint(tune_gradient_study.config(cfg)), "tuning study")
+    check_or_record(d, study.fingerprint(tune_study._gradient_study_config(cfg)), "tuning study")
     lock = DirLock(d).acquire()
     threading.Thread(target=lambda: (time.sleep(1.0), lock.release()), daemon=True).start()
     traced = len(TRACED)
     t0 = time.time()
-    code = app.main(args + ["--seed", "1", "--wait"])
+    code = tune_study.main(args + ["--seed", "1", "--wait"])
     io = capsys.readouterr()
     assert time.time() - t0 >= 0.9 and "waiting for" in io.out
     assert code == 2 and len(io.err.strip().splitlines()) == 1, io.err
@@ -973,7 +972,12 @@ def test_charges_count_compile_not_run_time():
                                        (dict(select_seed=7777), "select_seed must differ"),
                                        (dict(select_seed=1), "select_seed must differ"),
                                        (dict(grad_directions=-1), "grad_directions"),
-                                       (dict(cold_compile=1), "cold_compile")])
+                                       (dict(cold_compile=1), "cold_compile"),
+                                       (dict(final_instances=8, select_instances=0), "needs select_instances"),
+                                       (dict(final_instances=6), "final_instances must be a multiple of 4"),
+                                       (dict(final_instances=8, final_candidates=1), "final_candidates"),
+                                       (dict(guided_alpha=1.5), "guided_alpha"),
+                                       (dict(methods=("guided_es",), popsize=5), "popsize must be even")])
 def test_wallclock_config_validation(kw, match):
     from hyqjax.studies.tune import wallclock
 
@@ -981,30 +985,66 @@ def test_wallclock_config_validation(kw, match):
         wallclock.WallClockConfig(**kw)
 
 
-@pytest.mark.parametrize("argv, match", [(["--study", "--methods", "cma_es,pso"], "--methods must be"),
-                                         (["--dims", "per_leg,shared"], "take one name each"),
-                                         (["--study", "--wall-minutes", "0"], "--wall-minutes must be"),
-                                         (["--study", "--gradient-study"], "two different studies"),
-                                         (["--start-from", "/nonexistent.json"], "--start-from"),
+@pytest.mark.parametrize("argv, match", [(["--methods", "cma_es,pso"], "--methods must be"),
+                                         (["--wall-minutes", "0"], "--wall-minutes must be"),
+                                         (["--gradient-study", "--guided-comparison"], "two different studies"),
                                          (["--warm-start", "5"], "--warm-start belongs to --gradient-study"),
-                                         (["--study", "--methods", "open_es", "--popsize", "5"], "popsize must be even"),
-                                         (["--quick", "--study"], "--quick"),
-                                         (["--study", "--select-seed", "7777"], "select_seed must differ"),
-                                         (["--study", "--select-instances", "10"], "multiple of 4"),
-                                         (["--study", "--select-every", "0"], "--select-every"),
+                                         (["--methods", "open_es", "--popsize", "5"], "popsize must be even"),
+                                         (["--methods", "guided_es", "--popsize", "5"], "popsize must be even"),
+                                         (["--quick"], "--quick"),
+                                         (["--select-seed", "7777"], "select_seed must differ"),
+                                         (["--select-instances", "10"], "multiple of 4"),
+                                         (["--select-every", "0"], "--select-every"),
                                          (["--gradient-study", "--select-seed", "3"], "--select-seed belongs"),
                                          (["--gradient-study", "--cold-compile"], "--cold-compile belongs"),
-                                         (["--study", "--state-every-s", "-1"], "--state-every-s must be"),
-                                         (["--segment-minutes", "0"], "--segment-minutes must be"),
+                                         (["--gradient-study", "--guided-alpha", "0.2"], "--guided-alpha belongs"),
+                                         (["--gradient-study", "--objective", "reach"], "--objective belongs"),
+                                         (["--gradient-study", "--preset", "paper"], "--preset belongs"),
+                                         (["--state-every-s", "-1"], "--state-every-s must be"),
                                          (["--gradient-study", "--segment-minutes", "5"], "--segment-minutes belongs")])
-def test_tune_cli_refuses_bad_study_settings_in_one_line(argv, match, tmp_path, capsys):
-    from hyqjax.cli.app import main
+def test_tune_study_refuses_bad_settings_in_one_line(argv, match, tmp_path, capsys):
+    from experiments import tune_study
 
     out = tmp_path / "o"
-    assert main(["tune", "--out", str(out), *argv]) == 2
+    assert tune_study.main(["--out", str(out), *argv]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and match in lines[0] and "Traceback" not in lines[0], lines
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("argv, match", [(["--dims", "per_leg,shared"], "take one name each"),
+                                         (["--method", "guided_es", "--popsize", "7"], "popsize must be even"),
+                                         (["--start-from", "/nonexistent.json"], "--start-from"),
+                                         (["--segment-minutes", "0"], "--segment-minutes must be"),
+                                         (["--study"], "unrecognized arguments: --study"),
+                                         (["--preset", "nosuch"], "--preset"),
+                                         (["--preset", "paper", "--start-from", "r.json"], "two start points"),
+                                         (["--gradient-study"], "unrecognized arguments: --gradient-study")])
+def test_tune_cli_refuses_bad_settings_in_one_line(argv, match, tmp_path, capsys):
+    from hyqjax.cli.app import main
+
+    out = tmp_path / "o"
+    try:
+        code = main(["tune", "--out", str(out), *argv])
+    except SystemExit as e:
+        code = e.code
+    assert code == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0] and "Traceback" not in lines[0], lines
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_tune_help_has_at_most_twenty_options():
+    """``hyqjax tune`` is a user's command: its --help lists at most 20 options (the study's are in
+    ``python -m experiments.tune_study``, which takes every one of them too)."""
+    from hyqjax.cli.app import build_parser
+    from experiments import tune_study
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices["tune"]
+    opts = [a for a in sub._actions if a.option_strings]
+    assert len(opts) <= 20, [a.option_strings for a in opts]
+    study = {o for a in tune_study.build_parser()._actions for o in a.option_strings}
+    assert {o for a in opts for o in a.option_strings} <= study
 
 
 @pytest.fixture(scope="module")
@@ -1099,7 +1139,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
         wallclock.run_wallclock_study(dataclasses_replace(cfg, seed=5), str(tmp_path), log=lambda s: None)
     # Hand-set presets on the study's held-out set (experiments/tune_handset.py): the start point and the default
     # crawl (Table I) reproduce the study's own held-out results for those two members, instance for instance.
-    from hyqjax.studies.tune import handset
+    from hyqjax.studies.tune.study import handset
 
     hs = handset.evaluate_presets(again, ["start", "default"], log=lambda s: None)
     for preset, member in (("start", "start"), ("default", "table1")):
@@ -1199,7 +1239,7 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
     import json as _json
     from scipy import stats
 
-    from hyqjax.studies.tune import repeats
+    from hyqjax.studies.tune.study import repeats
 
     def study(seed, cma, rs):
         cfg = dict(seed=seed, methods=["cma_es", "random_search"], dims=["shared"], popsize=16)
@@ -1245,13 +1285,13 @@ def test_repeated_runs_are_compared_over_runs_and_only_like_with_like(tmp_path):
 
 
 def test_grid_of_cells_takes_one_value_per_cell_with_the_right_interval_and_refuses_mixtures():
-    """The study as a grid (:mod:`hyqjax.studies.tune.cells`): a cell of one run is its rate with its Wilson interval,
+    """The study as a grid (:mod:`hyqjax.studies.tune.study.cells`): a cell of one run is its rate with its Wilson interval,
     a cell of several seeds their mean with the 95% t-interval over runs; a gradient method in reverse mode is a
     cell of its own; each cell carries its not-completed and diverged counts; runs of another device, another
     setting, or the same run twice are refused naming it. The stored H200 studies make one grid."""
     from scipy import stats
 
-    from hyqjax.studies.tune import cells, repeats
+    from hyqjax.studies.tune.study import cells, repeats
 
     def study(seed, method, dim, clean, grad_mode="jacfwd", device="NVIDIA H200", diverged=0):
         cfg = dict(seed=seed, methods=[method], dims=[dim], grad_mode=grad_mode)
@@ -1294,7 +1334,7 @@ def test_budget_curves_of_several_runs_merge_the_stored_30_minute_runs(tmp_path)
     its checkpoints at 3, 10 and 30 minutes and the held-out numbers its own run stored; a run given twice and a
     run of another configuration are refused in one line (exit 2), nothing written."""
     from experiments import tune_budget_curves as tbc
-    from hyqjax.studies.tune import repeats
+    from hyqjax.studies.tune.study import repeats
 
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     stored = os.path.join(repo, "docs", "results", "tune_cells_h200_30min")
@@ -1323,7 +1363,7 @@ def test_objective_ranking_collects_every_evaluated_iterate_once(tmp_path):
     held-out clean rate; the stored 10-minute runs give 1 + 2 x 2 iterates."""
     import json as _json
 
-    from hyqjax.studies.tune import ranking
+    from hyqjax.studies.tune.study import ranking
 
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     d = os.path.join(repo, "docs", "results", "tune_repeats_h100_10min")
@@ -1363,3 +1403,70 @@ def test_training_draws_take_the_configured_heights_and_spread():
     np.testing.assert_allclose(np.unique(np.asarray(sel.terrain.platform_height)), hs, atol=1e-6)
     with pytest.raises(ValueError, match="train_spread"):
         wallclock.WallClockConfig(train_spread="narrow")
+
+
+@pytest.mark.parametrize("change", [["--guided-alpha", "0.3"], ["--objective", "reach"], ["--guided-subspace", "2"]])
+def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(change, tmp_path, capsys):
+    """A directory holding a study of one configuration: the same command with another guided-ES setting or
+    objective is refused in one line before anything is compiled, and the directory is left as it was."""
+    import json
+
+    from experiments import tune_study
+
+    out = tmp_path / "o"
+    base = ["--out", str(out), "--methods", "guided_es,cma_es", "--dims", "shared", "--impl", "c", "--no-cache"]
+    args = tune_study.build_parser().parse_args(base)
+    args.validate_command(args)
+    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=args.wallclock_config.to_dict(),
+                                                      runs={}, heldout={})))
+    before = sorted(p.name for p in out.iterdir())
+    traced = len(TRACED)
+    assert tune_study.main(base + change) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "another configuration" in lines[0] and "Traceback" not in lines[0], lines
+    assert len(TRACED) == traced and sorted(p.name for p in out.iterdir()) == before
+
+
+def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
+    """The default start of ``hyqjax tune`` (per_leg) is the preset ``tuned_per_leg``, the 30-minute per-leg CMA-ES
+    set: its start ``theta`` is the stored run's returned ``theta`` (float32 storage); a conditioned preset starts its
+    own parameterisation at its own ``theta``."""
+    import json
+
+    from hyqjax import presets
+    from hyqjax.cli.app import build_parser
+    from hyqjax.studies.tune import schedule, wallclock
+    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+    root = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_cells_h200_30min",
+                        "cma_es_per_leg_30min", "results.json")
+    with open(root) as f:
+        r = json.load(f)
+    p = schedule.make("per_leg", tuple(r["config"]["groups"]))
+    np.testing.assert_allclose(start_theta(p, presets.load("tuned_per_leg")), r["runs"]["cma_es/per_leg"]["theta"],
+                               atol=1e-4)
+    args = build_parser().parse_args(["tune", "--out", "o"])
+    from hyqjax.cli import tune as tune_cli
+
+    tune_cli._fill_hidden(args)
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "tuned_per_leg"
+    args.preset = "none"
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == ""
+    c = presets.get("tuned_per_leg_cond").values["conditioned"]
+    pc = schedule.make(c["parameterisation"], tuple(c["groups"]))
+    cfg = wallclock.WallClockConfig(dims=(pc.name,), methods=("cma_es",), start_preset="tuned_per_leg_cond")
+    np.testing.assert_allclose(start_theta(pc, start_point(cfg)), c["theta"], atol=1e-4)
+
+
+@pytest.mark.parametrize("argv, match", [(["--preset", "bound_robust"], "bound preset"),
+                                         (["--preset", "nosuch"], "tuned_per_leg"),
+                                         (["--preset", "tuned_per_leg", "--dim", "shared"], "per-leg set"),
+                                         (["--preset", "tuned_per_leg_cond", "--dim", "per_leg"], "conditioned set")])
+def test_tune_refuses_a_preset_it_cannot_start_from_in_one_line(argv, match, tmp_path, capsys):
+    from hyqjax.cli.app import main
+
+    out = tmp_path / "o"
+    assert main(["tune", "--out", str(out), *argv]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and match in lines[0] and lines[0].startswith("hyqjax tune: --preset"), lines
+    assert not out.exists() or not any(out.iterdir())

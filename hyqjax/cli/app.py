@@ -94,17 +94,21 @@ def _user_errors() -> tuple:
     return tuple(errs)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None = None) -> int:
+    """Parse ``argv``, check the options (``validate_command``) and run the command (``run_command``), with the
+    exit statuses of the module docstring. ``parser``: another program's parser with the same contract (its
+    ``--debug`` and ``--no-cache``, and ``run_command`` / ``validate_command`` defaults; e.g.
+    ``python -m experiments.tune_study``); default the ``hyqjax`` command line."""
     from hyqjax.io import phases
 
     # The command's clock (hyqjax.io.phases): from the process's start on the command line, from now in-process.
     phases.start(process=argv is None)
-    parser = build_parser()
+    parser = build_parser() if parser is None else parser
     args = parser.parse_args(argv)
     if not getattr(args, "run_command", None):
         parser.print_help()
         return USAGE_EXIT
-    prog = f"hyqjax {args.command}"
+    prog = f"hyqjax {args.command}" if getattr(args, "command", None) else parser.prog
     debug = args.debug or os.environ.get("HYQJAX_DEBUG") == "1"
     noise = None
     try:

@@ -1,8 +1,8 @@
-"""``hyqjax tune`` without ``--gradient-study`` (the default tuner, ``--quick``, ``--study``): its run and the summary
+"""The run of ``hyqjax tune`` and of the equal-wall-clock study (``python -m experiments.tune_study``) and the summary
 it prints (held-out success with Wilson intervals of the start point, Table I and what each run returned; the
 returned parameters against the start; gradient diagnostics; the selection's validations; the best run of a study).
 The options and their checks, which build the :class:`hyqjax.studies.tune.wallclock.WallClockConfig`, are
-:mod:`hyqjax.cli.tune`'s; the gradient study's run is :mod:`hyqjax.cli.tune_gradient_study`'s.
+:mod:`hyqjax.cli.tune`'s (the study's further options: ``experiments/tune_study.py``).
 """
 from __future__ import annotations
 
@@ -14,12 +14,12 @@ PAUSED = 75
 
 
 def run(args) -> int:
-    """Run the default tuner or ``--study`` (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
+    """Run the tuner or the equal-wall-clock study (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
     under the run directory's lock) and print its summary."""
     from hyqjax.studies.tune import figure, wallclock, wallclock_results
 
     cfg = args.wallclock_config
-    what = "equal-wall-clock study" if args.study else ("quick default tuner" if args.quick else "default tuner")
+    what = "equal-wall-clock study" if args.study else ("quick tuner" if args.quick else "tuner")
     print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
           f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
     res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True),
@@ -45,7 +45,9 @@ def run(args) -> int:
 
         m, d = cfg.methods[0], cfg.dims[0]
         par = schedule.make(d, cfg.groups)
-        start = par.describe(par.theta_of(wallclock.start_params(cfg)))
+        from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+        start = par.describe(start_theta(par, start_point(cfg)))
         got = res["runs"][f"{m}/{d}"]["params"]
         print("returned parameters (start in brackets): " + ", ".join(
             f"{k} {got[k]:.4g} ({start[k]:.4g})" for k in got if k in start))
@@ -60,6 +62,24 @@ def run(args) -> int:
         if g.get("step_cost"):
             print(wallclock_results.step_cost_line(d, g["step_cost"], res["config"].get("grad_mode", "jacfwd")))
     for key, r in res["runs"].items():
+        if r["method"] == "guided_es" and r["log"]:
+            from hyqjax.studies.tune.study.guided import cosine_summary
+
+            c = cosine_summary(r["log"])
+            slope = [x["descent_slope"] for x in r["log"] if x.get("descent_slope") is not None]
+            line = (f"guided ES {key}: {c['generations']} generations; the population's slope along the surrogate's "
+                    f"descent direction: positive in {sum(v > 0 for v in slope)} of {len(slope)}")
+            if c["cos_search"] is not None:
+                line += (f"; cosine with the search direction: median {c['cos_search']['median']:+.3f} (first third "
+                         f"{c['cos_search']['first_third']:+.3f}, last third {c['cos_search']['last_third']:+.3f})")
+            print(line)
+        fin = r.get("final_reevaluation")
+        if fin:
+            row = fin["candidates"][fin["chosen"]]
+            print(f"final re-evaluation of {key}: {len(fin['candidates'])} candidates on {fin['instances']} further "
+                  f"scenarios ({fin['wall_s']:.0f} s after the budget); returned iteration {row['iteration']}, clean "
+                  f"{row['validation_clean']:.3f} on the validation batch, {row['final_clean']:.3f} on the further "
+                  f"one")
         sel = r.get("selection")
         if sel and sel["log"]:
             pt = r["points"][-1]

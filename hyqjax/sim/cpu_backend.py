@@ -244,21 +244,10 @@ class CBatchRunner(AheadOfTime):
             return obs, cs_new, jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT), info
 
         def settle(v, v_new, cs, cs_new, ms, obs, info, tau, tau_prev, div, div_tick, k, term, term_tick):
-            # The divergence rule and the episode end of hyqjax.sim.rollout.rollout_advance, per instance.
-            ok = sim._finite_tree((v_new.qpos, v_new.qvel, tau)) & (jnp.max(jnp.abs(v_new.qvel)) < cfg.max_speed)
-            newly = (~div) & (~term) & (~ok)
-            div = div | newly
-            frozen = div | term
-            keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)  # noqa: E731
-            v_new = keep(v_new, v)
-            cs_new = keep(cs_new, cs)
-            tau = jnp.where(frozen, tau_prev, tau)
-            ms_new = keep(met.update(ms, v_new, obs, info), ms)
-            div_tick = jnp.where(newly, k, div_tick)
-            if met.terminal is not None:  # static: the episode ends at the failure tick
-                ended = (~frozen) & jnp.asarray(met.terminal(ms_new), bool)
-                term = term | ended
-                term_tick = jnp.where(ended, k, term_tick)
+            # The divergence rule and the episode end, per instance: hyqjax.sim.rollout.settle_tick.
+            v_new, cs_new, ms_new, tau, div, div_tick, term, term_tick = sim.settle_tick(
+                v_new, v, cs_new, cs, ms, lambda m, vv: met.update(m, vv, obs, info), tau, tau_prev, div, div_tick,
+                k, term, term_tick, max_speed=cfg.max_speed, terminal=met.terminal)
             out = rec(v_new, obs, info) if rec is not None else None
             return v_new, cs_new, ms_new, tau, div, div_tick, term, term_tick, out
 

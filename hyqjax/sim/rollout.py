@@ -121,10 +121,42 @@ def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, s
     return jax.lax.fori_loop(0, substeps, lambda _, dd: mjx.step(mx, dd), d)
 
 
-def _finite_tree(tree) -> jax.Array:
+def finite_tree(tree) -> jax.Array:
+    """True where every inexact leaf of ``tree`` is finite everywhere (a scalar)."""
     leaves = [jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)
               if jnp.issubdtype(x.dtype, jnp.inexact)]
     return jnp.all(jnp.stack(leaves)) if leaves else jnp.array(True)
+
+
+def settle_tick(state_new, state, ctrl_new, ctrl, metrics_state, update_metrics: Callable, tau, tau_prev, div,
+                div_tick, k, term, term_tick, *, max_speed: float, terminal: Callable | None = None,
+                freeze: Callable | None = None):
+    """The divergence and freeze rule of one control tick of one instance: the one home of the rule, for every
+    simulator (:func:`rollout_advance` on MJX, :mod:`hyqjax.sim.cpu_backend` on C MuJoCo).
+
+    The instance *diverges* at tick ``k`` when its new state (``qpos``, ``qvel``) or torque ``tau`` is not finite or
+    ``|qvel| >= max_speed``; a diverged or terminated (``term``) instance is *frozen*: its state (``freeze(new, old,
+    frozen)``, default every leaf of ``state``), controller state, torque and metrics stay at their last values (a
+    frozen instance's discarded step never counts as a divergence). Then the metrics are updated
+    (``update_metrics(metrics_state, state_new)``) and, with ``terminal``, an instance not frozen that meets
+    ``terminal(metrics)`` is terminated at this tick (frozen from the next one on).
+
+    Returns ``(state_new, ctrl_new, metrics_new, tau, div, div_tick, term, term_tick)``."""
+    ok = finite_tree((state_new.qpos, state_new.qvel, tau)) & (jnp.max(jnp.abs(state_new.qvel)) < max_speed)
+    newly = (~div) & (~term) & (~ok)
+    div = div | newly
+    frozen = div | term
+    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)  # noqa: E731
+    state_new = freeze(state_new, state, frozen) if freeze is not None else keep(state_new, state)
+    ctrl_new = keep(ctrl_new, ctrl)
+    tau = jnp.where(frozen, tau_prev, tau)
+    ms_new = keep(update_metrics(metrics_state, state_new), metrics_state)
+    div_tick = jnp.where(newly, k, div_tick)
+    if terminal is not None:  # static: the episode ends at the failure tick
+        ended = (~frozen) & jnp.asarray(terminal(ms_new), bool)
+        term = term | ended
+        term_tick = jnp.where(ended, k, term_tick)
+    return state_new, ctrl_new, ms_new, tau, div, div_tick, term, term_tick
 
 
 #: The ``mjx.Data`` fields a diverged instance keeps from its last finite tick: the state ``mjx.step`` reads
@@ -209,20 +241,9 @@ def rollout_advance(mx: mjx.Model, ids: hmodel.ModelIds, carry: RolloutCarry, co
         cs_new, tau, info = controller.step(params, cs, obs)
         tau = jnp.clip(tau, -robot.TORQUE_LIMIT, robot.TORQUE_LIMIT)
         d_new = _physics(mx, d, tau, ids, cfg.substeps, push)
-        ok = _finite_tree((d_new.qpos, d_new.qvel, tau)) & (jnp.max(jnp.abs(d_new.qvel)) < cfg.max_speed)
-        newly = (~div) & (~term) & (~ok)
-        div = div | newly
-        frozen = div | term
-        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(frozen, b, a), new, old)  # noqa: E731
-        d_new = freeze_diverged(d_new, d, frozen)
-        cs_new = keep(cs_new, cs)
-        tau = jnp.where(frozen, tau_prev, tau)
-        ms_new = keep(metrics.update(ms, d_new, obs, info), ms)
-        div_tick = jnp.where(newly, k, div_tick)
-        if metrics.terminal is not None:  # static: the episode ends at the failure tick
-            ended = (~frozen) & jnp.asarray(metrics.terminal(ms_new), bool)
-            term = term | ended
-            term_tick = jnp.where(ended, k, term_tick)
+        d_new, cs_new, ms_new, tau, div, div_tick, term, term_tick = settle_tick(
+            d_new, d, cs_new, cs, ms, lambda m, dd: metrics.update(m, dd, obs, info), tau, tau_prev, div, div_tick,
+            k, term, term_tick, max_speed=cfg.max_speed, terminal=metrics.terminal, freeze=freeze_diverged)
         out = record(d_new, obs, info) if record is not None else None
         return RolloutCarry(d_new, cs_new, ms_new, tau, div, div_tick, k + 1, term, term_tick), out
 

@@ -61,6 +61,7 @@ class GradientPrograms:
         self.fns: dict = {}
         self.exact_fns: dict = {}
         self.value_fns: dict = {}
+        self.step_costs: dict = {}
         self.charges = charges
         log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
             f"({charges.seconds['gradient_windows']:.1f} s incl. compile)")
@@ -142,6 +143,7 @@ class GradientPrograms:
             n_win = self.win.size
             step = objective.physics_steps(n_win, self.obj, k_dir) if k_dir else self.exact_physics_steps(param)
             cost = step + k * objective.physics_steps(n_win, self.obj)
+            self.step_costs[param.name] = step  # the tuning step alone (guided ES takes no line search)
             self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
                                     lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
         return self.fns[param.name]

@@ -7,13 +7,31 @@ from __future__ import annotations
 SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search")
 #: The pathwise gradient through closed-loop windows, and the hybrid (search, then gradient polish).
 GRADIENT_METHODS = ("gradient", "hybrid")
-METHODS = SEARCH_METHODS + GRADIENT_METHODS
+#: Guided evolution strategies (Maheswaranathan et al. 2019; evosax GuidedES): antithetic search whose samples
+#: lean into the subspace of recent surrogate gradients from MJX-JAX (:func:`hyqjax.studies.tune.search.run_guided`).
+GUIDED_METHODS = ("guided_es",)
+METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS
+#: Methods that build the gradient's programs (snapshot windows and the tuning step on MJX-JAX).
+USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
-#: The default tuner: the best held-out clean success at the longest budget of the equal-wall-clock study
-#: (docs/tuning.md): at 10 minutes on one GPU, every compile cold, over seven seeds, CMA-ES on the 14 shared
-#: coordinates returns 0.542 [0.516, 0.568] (95% interval over runs), random search 0.449 [0.401, 0.496], the best
-#: hand-set preset 0.406. No method on 56, 68 or 98 coordinates measured clear of it. Flip these names when a
-#: study with repeated runs says otherwise.
+#: The default tuner (``hyqjax tune`` with no method, parameterisation or budget given): CMA-ES on the 56 per-leg
+#: coordinates for 30 minutes (checkpoints 3, 10, 30), the best set measured. On the project's independent
+#: held-out set (2,400 step-downs at heights between the trained ones, another seed, the wide spread; one H200,
+#: 2026-11-29, issue 58) the 30-minute per-leg run returned 0.735 clean at 10 minutes and 0.841 [0.826, 0.855] at
+#: 30; the 30-minute run on the 14 shared coordinates 0.777 at 10 and 0.735 at 30; eight 10-minute shared runs
+#: 0.677 (0.645-0.714). So at 10 minutes the two parameterisations are not apart, and at 30 only the per-leg one
+#: still gains (on the study's own held-out set: per-leg 0.415 / 0.592 / 0.741 at 3 / 10 / 30 minutes, shared
+#: 0.381 / 0.623 / 0.621; docs/results/tune_cells_h200_30min). One run each at 30 minutes: the spread over runs
+#: of this default is not measured yet.
 DEFAULT_METHOD = "cma_es"
-DEFAULT_DIM = "shared"
+DEFAULT_DIM = "per_leg"
+DEFAULT_WALL_MINUTES = (3.0, 10.0, 30.0)
+#: The equal-wall-clock study's default checkpoints (``python -m experiments.tune_study``).
+STUDY_WALL_MINUTES = (1.0, 3.0, 10.0)
+#: The default start point of ``hyqjax tune`` per (objective, parameterisation): the best measured preset of
+#: :mod:`hyqjax.presets` that the parameterisation can start from (a per-leg set starts per-leg ones only); a
+#: pair not listed starts from Table I with the shin remedy. ``--preset none`` starts there too.
+DEFAULT_PRESETS = {("clean", "shared"): "tuned_shared", ("clean", "per_leg"): "tuned_per_leg",
+                   ("clean", "per_leg_cond"): "tuned_per_leg", ("clean", "per_leg_cond_all"): "tuned_per_leg",
+                   ("reach", "shared"): "reach"}

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable
@@ -37,7 +38,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.studies.tune.names import GRADIENT_METHODS, METHODS, SEARCH_METHODS  # noqa: E402,F401
+from hyqjax.studies.tune.names import (GRADIENT_METHODS, GUIDED_METHODS, METHODS, SEARCH_METHODS,  # noqa: F401
+                                       USES_GRADIENT)
 from hyqjax.studies.tune.resume import tree_like
 
 
@@ -132,10 +134,13 @@ class Selection:
     Score: (clean rate, completed rate) on the validation batch; an iterate replaces the selected one when its
     score is at least as high (ties go to the later iterate, the one with more optimisation behind it)."""
 
-    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0):
+    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0, keep: int = 1):
         if every <= 0 and every_s <= 0:
             raise ValueError("a selection needs every > 0 iterations or every_s > 0 seconds")
         self.evaluate, self.every, self.every_s = evaluate, int(every), float(every_s)
+        #: the ``keep`` best validated iterates, best first: ``[score, iteration, theta]`` (a final re-evaluation
+        #: of the top candidates chooses among them, :func:`final_choice`)
+        self.keep, self.top = int(keep), []
         self.log: list = []
         self.best: tuple | None = None  # (score, theta)
         self._since, self._t_last, self._theta_last = 0, -math.inf, None
@@ -157,6 +162,8 @@ class Selection:
         better = self.best is None or score >= self.best[0]
         if better:
             self.best = (score, theta)
+        self.top = sorted(self.top + [[list(score), int(iteration), theta]],
+                          key=lambda t: (t[0][0], t[0][1], t[1]), reverse=True)[:self.keep]
         self._since, self._t_last, self._theta_last = 0, clock.elapsed(), theta
         self.log.append(dict(iteration=int(iteration), wall_s=round(clock.elapsed(), 3),
                              physics_steps=int(clock.physics_steps), clean=score[0], completed=score[1],
@@ -166,9 +173,10 @@ class Selection:
 
     def state(self) -> dict:
         return dict(log=self.log, best=None if self.best is None else [list(self.best[0]), self.best[1]],
-                    since=self._since, t_last=self._t_last, theta_last=self._theta_last)
+                    since=self._since, t_last=self._t_last, theta_last=self._theta_last, top=self.top)
 
     def restore(self, s: dict) -> None:
+        self.top = [[list(t[0]), int(t[1]), np.asarray(t[2], np.float64)] for t in s.get("top", [])]
         self.log = list(s["log"])
         self.best = None if s["best"] is None else (tuple(s["best"][0]), np.asarray(s["best"][1], np.float64))
         self._since, self._t_last = int(s["since"]), float(s["t_last"])
@@ -264,6 +272,30 @@ class Trace:
             pt.update(self._last[1] or {})
             self.points.append(pt)
         return self.points
+
+
+def final_choice(top: list, validation_n: int, evaluate: Callable) -> dict:
+    """The final re-evaluation of the top candidates of a selection (``top``: ``[score, iteration, theta]``, best
+    first, ``score[0]`` the clean rate on ``validation_n`` validation runs): ``evaluate(thetas (K, P)) ->
+    dict(clean (K, F), completed (K, F), physics_steps)`` runs them all on ``F`` further scenarios, and the one with
+    the best clean rate pooled over both batches (``(n_v c_v + F c_f) / (n_v + F)``, completed breaking ties, then
+    the earlier rank) is chosen: a larger validation set than the selection's, so that the returned set is less
+    the luck of one batch. Returns ``chosen`` (its index in ``top``), ``theta``, per candidate the rates, and the
+    physics steps spent."""
+    thetas = np.stack([np.asarray(t[2], np.float64) for t in top])
+    r = evaluate(thetas)
+    f_clean = np.asarray(r["clean"], np.float64).mean(axis=1)
+    f_done = np.asarray(r["completed"], np.float64).mean(axis=1)
+    n_f = np.asarray(r["clean"]).shape[1]
+    rows = []
+    for i, t in enumerate(top):
+        pooled = (validation_n * t[0][0] + n_f * f_clean[i]) / (validation_n + n_f)
+        pooled_c = (validation_n * t[0][1] + n_f * f_done[i]) / (validation_n + n_f)
+        rows.append(dict(iteration=int(t[1]), validation_clean=float(t[0][0]), final_clean=float(f_clean[i]),
+                         final_completed=float(f_done[i]), pooled_clean=float(pooled), pooled_completed=float(pooled_c)))
+    chosen = max(range(len(rows)), key=lambda i: (rows[i]["pooled_clean"], rows[i]["pooled_completed"], -i))
+    return dict(chosen=int(chosen), theta=thetas[chosen], candidates=rows, instances=int(n_f),
+                physics_steps=int(r["physics_steps"]))
 
 
 def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float = 0.05):
@@ -395,3 +427,123 @@ def run_gradient(step_fn: Callable, evaluate: Callable, theta0, clock: Clock, tr
             checkpoint(lambda: dict(step=step, theta=theta, opt=jax.tree.leaves(state)))
     return np.asarray(theta, np.float64)
 
+
+
+def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspace) -> dict:
+    """How far the surrogate gradient ``g`` agrees with what the population itself measured, on the same
+    antithetic population (``pop`` (N, P), pairs ``i`` and ``i + N/2``; ``fitness_min`` (N,) the minimised
+    objective ``f``; ``g`` the gradient of the surrogate that is minimised):
+
+    * ``descent_slope``: how fast ``f`` falls along the surrogate's descent direction ``-g / |g|``, from the pairs'
+      differences ``(f_i+ - f_i-) ~ 2 u_i (g_hat . grad f)`` with ``u_i = z_i . g_hat`` (least squares): positive
+      when the surrogate points the right way; it equals ``|grad f| cos(g, grad f)``, so on a function with a
+      known gradient ``descent_slope / |grad f|`` is the cosine itself. The samples' large component along
+      ``g_hat`` makes it the well-measured one with a small population.
+    * ``cos_search``: cosine of ``g`` with ``sum_i (f_i+ - f_i-) z_i``, the direction guided ES's ``tell`` moves
+      the mean against (it leans towards ``g`` by design: near 1 when the surrogate is right, near 0 when it is
+      orthogonal to the true gradient);
+    * ``cos_zero_order``: cosine of ``g`` with the unbiased zero-order estimate ``Sigma^-1 sum_i (f_i+ - f_i-)
+      z_i`` (``Sigma = a^2 I + c^2 Q Q^T`` the sampling covariance, ``a^2 = sigma^2 alpha / P``, ``c^2 = sigma^2
+      (1 - alpha) / k``, ``Q`` an orthonormal basis of ``subspace`` (P, k)); unbiased but noisy unless the
+      population is large against ``P``. NaN when ``alpha`` is 0 or a vector is zero;
+    * ``pairs_differing``: the antithetic pairs whose two members scored differently. With none (a population all
+      of whose runs end alike, e.g. on a small training batch of a success rate) the population measured no
+      gradient: the slope is 0 and the cosines NaN."""
+    g = np.asarray(g, np.float64)
+    z = np.asarray(pop, np.float64) - np.asarray(mean, np.float64)[None]
+    n = z.shape[0] // 2
+    f = np.asarray(fitness_min, np.float64)
+    d = f[:n] - f[n:]
+    est = d @ z[:n]
+    p, k = z.shape[1], int(np.shape(subspace)[1])
+    q, _ = np.linalg.qr(np.asarray(subspace, np.float64))
+    a2, c2 = sigma**2 * alpha / p, sigma**2 * (1.0 - alpha) / k
+    par = q @ (q.T @ est)
+    white = (est - par) / a2 + par / (a2 + c2) if a2 > 0 else np.full_like(est, np.nan)
+    gn = np.linalg.norm(g)
+    u = z[:n] @ (g / gn) if gn > 0 else np.zeros(n)
+    slope = float(d @ u / (2.0 * (u @ u))) if gn > 0 and u @ u > 0 else float("nan")  # how fast f falls along -g
+
+    def cos(a, b):
+        na, nb = np.linalg.norm(a), np.linalg.norm(b)
+        return float(a @ b / (na * nb)) if na > 0 and nb > 0 and np.isfinite(na * nb) else float("nan")
+
+    return dict(descent_slope=slope, cos_search=cos(g, est), cos_zero_order=cos(g, white),
+                pairs_differing=int(np.sum(d != 0.0)))
+
+
+@functools.lru_cache(maxsize=16)
+def make_guided(size: int, popsize: int, sigma: float, alpha: float = 0.5, subspace: int = 1, lr: float = 0.05):
+    """evosax's ``GuidedES`` (antithetic; the mean moved by Adam at ``lr``; constant ``sigma``), its parameters and
+    its jitted ``ask`` and ``tell`` (one compile per setting in a process); ``alpha = 1`` is isotropic antithetic
+    ES on the same code path."""
+    import optax
+    from evosax.algorithms import GuidedES
+
+    es = GuidedES(population_size=popsize, solution=jnp.zeros(size, jnp.float32),
+                  subspace_dims=max(1, min(int(subspace), size - 1)), optimizer=optax.adam(lr),
+                  std_schedule=optax.constant_schedule(sigma))
+    return es, es.default_params.replace(alpha=float(alpha)), jax.jit(es.ask), jax.jit(es.tell)
+
+
+def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
+               seed: int = 0, alpha: float = 0.5, subspace: int = 1, lr: float = 0.05, grad_every: int = 1,
+               grad_cost: int = 0, progress: Callable | None = None, resume: dict | None = None,
+               checkpoint: Callable | None = None, generations: int | None = None):
+    """Guided evolution strategies (Maheswaranathan et al., ICML 2019; evosax ``GuidedES``): maximise
+    ``f_gen(thetas (N, P), generation) -> dict(fitness, clean, completed, physics_steps)`` (as :func:`run_search`)
+    with antithetic samples from ``sigma^2 (alpha / P I + (1 - alpha) / k Q Q^T)``, ``Q`` spanning the last ``k =
+    subspace`` surrogate gradients. ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
+    *minimised* (the window objective of :mod:`.objective` on MJX-JAX), evaluated at the mean every
+    ``grad_every`` generations (its wall time on ``clock``, ``grad_cost`` physics steps each) and handed to the
+    search with ``state.replace(grad=g)`` before each ``ask`` (the last one again between two). Only the subspace
+    of the gradients shapes the samples; the mean moves by the population's own antithetic estimate (Adam).
+
+    Every generation's log row holds :func:`guided_cosines`: the surrogate gradient against what the same
+    population measured (the slope along it, the cosines). Returns the final mean; ``checkpoint`` / ``resume`` as in
+    :func:`run_search`; ``generations``: also stop after that many (equal-evaluation comparisons)."""
+    theta0 = np.asarray(theta0, np.float64)
+    es, params, ask, tell = make_guided(int(theta0.size), int(popsize), float(sigma), float(alpha), int(subspace),
+                                        float(lr))
+    key = jax.random.key(seed)
+    key, k0 = jax.random.split(key)
+    state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
+    gen, g, loss = 0, None, float("nan")
+    if resume is not None:
+        key, state = jax.random.wrap_key_data(jnp.asarray(resume["key"])), tree_like(state, resume["state"])
+        gen, g, loss = int(resume["gen"]), np.asarray(resume["g"], np.float64), float(resume["loss"])
+        with clock.paused():  # compiled again in this process; the run paid for it once
+            pop, _ = ask(key, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
+            tell(key, pop, jnp.zeros(popsize, jnp.float32), state, params)
+    while not trace.done(clock) and (generations is None or gen < generations):
+        key, ka, kt = jax.random.split(key, 3)
+        mean = np.asarray(state.mean, np.float64)
+        fresh = g is None or gen % grad_every == 0
+        if fresh:
+            r = grad_fn(mean)
+            g, loss = np.asarray(r["grad"], np.float64), float(r["loss"])
+            clock.physics_steps += int(grad_cost)
+            if not np.all(np.isfinite(g)):
+                g = np.zeros_like(g)  # a non-finite surrogate guides nothing: isotropic this generation
+        pop, state = ask(ka, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
+        pop64 = np.asarray(pop, np.float64)
+        r = f_gen(np.concatenate([mean[None], pop64]), gen)
+        clock.physics_steps += r["physics_steps"]
+        fit = np.asarray(r["fitness"], np.float64)
+        cosines = guided_cosines(g, pop64, mean, -fit[1:], sigma, alpha, np.asarray(state.grad_subspace))
+        state, _ = tell(kt, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
+        new_mean = np.asarray(state.mean, np.float64)
+        if not np.all(np.isfinite(new_mean)):
+            raise FloatingPointError(f"guided_es: the search mean became non-finite at generation {gen}")
+        trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),
+                                            iterate_clean=float(np.mean(r["clean"][0])),
+                                            best_fitness=float(fit[1:].max()), mean_fitness=float(fit[1:].mean()),
+                                            surrogate_loss=loss, surrogate_grad_norm=float(np.linalg.norm(g)),
+                                            new_gradient=bool(fresh), **cosines))
+        gen += 1
+        if progress:
+            progress(clock, trace)
+        if checkpoint:
+            checkpoint(lambda: dict(gen=gen, key=jax.random.key_data(key), state=jax.tree.leaves(state), g=g,
+                                    loss=loss))
+    return np.asarray(state.mean, np.float64)

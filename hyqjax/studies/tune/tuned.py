@@ -2,9 +2,10 @@
 
 Both layouts ``hyqjax tune`` writes are read:
 
-* the default tuner and the equal-wall-clock study (``--study``): ``res["runs"]["<method>/<dim>"]["theta"]``, the
-  iterate the run returned at its last checkpoint (:mod:`.wallclock`);
-* the gradient study (``--gradient-study``): ``res["<method>"]["theta"]`` (:mod:`.study`).
+* the default tuner and the equal-wall-clock study (``python -m experiments.tune_study``):
+  ``res["runs"]["<method>/<dim>"]["theta"]``, the iterate the run returned at its last checkpoint (:mod:`.wallclock`);
+* the gradient study (``python -m experiments.tune_study --gradient-study``): ``res["<method>"]["theta"]``
+  (:mod:`.study.gradient`).
 
 A ``shared`` run (:class:`.space.ParamSpace` over the run's ``groups``) gives one ``CrawlParams``; a ``per_leg``
 run (:class:`.schedule.Parameterisation`: one row per swing leg) gives a per-leg set,

@@ -1,6 +1,6 @@
 """The equal-wall-clock tuning study: every method, every parameterisation, the same wall-clock budget on one GPU.
 
-:func:`run_wallclock_study` (``hyqjax tune --study``, ``python -m experiments.tune_study``):
+:func:`run_wallclock_study` (``hyqjax tune`` with one method, ``python -m experiments.tune_study``):
 
 1. **compile charges** (:class:`.search.Charges`): the forward success program (population ``N = popsize + 1``
    members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) compiles in the
@@ -55,7 +55,8 @@ from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
-from hyqjax.studies.tune.wallclock_config import WallClockConfig
+from hyqjax.studies.tune.wallclock_config import (WallClockConfig, is_per_leg, start_point,  # noqa: F401
+                                                   start_theta)
 from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, step_cost_line, summarize
 
 #: What ``hyqjax tune`` runs by default (declared in :mod:`hyqjax.studies.tune.names`, where the measurement behind
@@ -86,8 +87,9 @@ def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
 
 def _fingerprint(config: dict) -> dict:
     """The settings that must agree for runs to share one results file: all but ``methods`` (one process per
-    method composes into one study; each run is stored under its own method's key)."""
-    return {k: v for k, v in config.items() if k != "methods"}
+    method composes into one study; each run is stored under its own method's key). A setting a stored study
+    predates counts at its default."""
+    return {k: v for k, v in {**WallClockConfig.defaults(), **config}.items() if k != "methods"}
 
 
 def _methods_union(*lists) -> list:
@@ -135,7 +137,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         f"per generation, impl {res['impl']}; it compiles in the first search method's clock and is charged to the "
         f"others")
     grad = None
-    if any(m in search.GRADIENT_METHODS for m, _ in todo):
+    if any(m in search.USES_GRADIENT for m, _ in todo):
         log("snapshot windows for the gradient (MJX-JAX) ...")
         with heartbeat(log, lambda t0=time.perf_counter(): f"  snapshot windows: {time.perf_counter() - t0:.0f} s"):
             grad = GradientPrograms(cfg, base, charges, log)
@@ -223,7 +225,9 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
 def heldout_members(cfg: WallClockConfig, res: dict, params: dict, base) -> dict:
     """Name -> (parameterisation, theta, base CrawlParams) of every set the held-out evaluation runs."""
     p0 = params[cfg.dims[0]]
-    out = {"table1": (p0, p0.theta_of(base), crawl.CrawlParams.make()), "start": (p0, p0.theta_of(base), base)}
+    # Table I as every study ran it (the tuned coordinates of the default crawl's start, the paper's crawl around)
+    t1 = p0.theta_of(crawl.CrawlParams.make(shin_remedy=cfg.remedy))
+    out = {"table1": (p0, t1, crawl.CrawlParams.make()), "start": (p0, start_theta(p0, start_point(cfg)), base)}
     for key, r in res["runs"].items():
         for pt in r["points"]:
             out[member_key(r["method"], r["dim"], pt["seconds"])] = (params[r["dim"]], np.asarray(pt["theta"]), base)

@@ -83,6 +83,10 @@ class WallClockConfig:
     impl: str = "auto"
     #: warm starts: ``(("method/dim", theta), ...)``, the start of that method on that parameterisation
     start_from: tuple = ()
+    #: the start point of every run not in ``start_from``: a crawl preset of :mod:`hyqjax.presets` (its values
+    #: outside the tuned coordinates stay fixed; a per-leg set starts the per-leg parameterisations from its four
+    #: rows); "": Table I and the default crawl (with the shin remedy if ``remedy``)
+    start_preset: str = ""
     #: charge each method the compile of its programs (False: only what it runs; e.g. with a warm compile cache)
     charge_compile: bool = True
     #: compile every program cold: JAX's persistent compilation cache and Warp's kernel cache in fresh empty
@@ -97,6 +101,20 @@ class WallClockConfig:
     select_every: int = 5
     select_every_s: float = 0.0
     select_seed: int = 5555
+    #: the final re-evaluation (:func:`.search.final_choice`): after the budget, the ``final_candidates`` best
+    #: validated iterates run on ``final_instances`` further scenarios (drawn like the validation batch, from its
+    #: seed's next draw) and the best pooled over both batches is returned; 0: off (the selected iterate)
+    final_instances: int = 0
+    final_candidates: int = 3
+    # guided ES (:func:`.search.run_guided`)
+    #: share of the sampling variance in the full space (1: isotropic antithetic ES; 0: the gradient subspace only)
+    guided_alpha: float = 0.5
+    #: number of recent surrogate gradients that span the guiding subspace
+    guided_subspace: int = 1
+    #: Adam learning rate of the search mean
+    guided_lr: float = 0.05
+    #: a new surrogate gradient (the tuning step's, on MJX-JAX) every this many generations
+    guided_grad_every: int = 1
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -117,8 +135,27 @@ class WallClockConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        if "open_es" in self.methods and self.popsize % 2:
-            raise ValueError(f"popsize must be even with open_es (it samples antithetic pairs), got {self.popsize}")
+        for m in ("open_es", "guided_es"):
+            if m in self.methods and self.popsize % 2:
+                raise ValueError(f"popsize must be even with {m} (it samples antithetic pairs), got {self.popsize}")
+        if not 0.0 <= float(self.guided_alpha) <= 1.0:
+            raise ValueError(f"guided_alpha must be in [0, 1], got {self.guided_alpha}")
+        if not 0.0 < float(self.guided_lr) <= 1.0:
+            raise ValueError(f"guided_lr must be in (0, 1], got {self.guided_lr}")
+        for k, lo, hi in (("final_instances", 0, 10**6), ("final_candidates", 2, 16)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
+        if self.final_instances and not self.select_instances:
+            raise ValueError(f"final_instances ({self.final_instances}) re-evaluates the selection's best iterates: "
+                             f"it needs select_instances > 0")
+        if self.final_instances % len(tuple(self.train_heights)):
+            raise ValueError(f"final_instances must be a multiple of {len(tuple(self.train_heights))} (one share per "
+                             f"training height), got {self.final_instances}")
+        for k, lo, hi in (("guided_subspace", 1, 64), ("guided_grad_every", 1, 10**4)):
+            v = getattr(self, k)
+            if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+                raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
         for k in ("charge_compile", "cold_compile", "retake_windows"):
             if not isinstance(getattr(self, k), bool):
                 raise ValueError(f"{k} must be True or False, got {getattr(self, k)!r}")
@@ -175,6 +212,9 @@ class WallClockConfig:
             if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
                 raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
 
+        if not isinstance(self.start_preset, str):
+            raise ValueError(f"start_preset must be a preset name or '', got {self.start_preset!r}")
+
     @property
     def checkpoints_s(self) -> tuple:
         return tuple(60.0 * float(m) for m in self.wall_minutes)
@@ -196,3 +236,41 @@ class WallClockConfig:
         tup = lambda v: tuple(tup(x) for x in v) if isinstance(v, list) else v  # noqa: E731
         return cls(**{k: tup(v) for k, v in config.items() if k in names})
 
+
+
+def start_point(cfg: WallClockConfig):
+    """Where every run starts: the crawl preset ``cfg.start_preset`` (a ``CrawlParams`` or a per-leg set), else
+    Table I and the default crawl, with the shin-strike remedy if ``cfg.remedy``."""
+    if cfg.start_preset:
+        from hyqjax import presets
+
+        return presets.load(cfg.start_preset)
+    from hyqjax.crawl import controller as crawl
+
+    return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
+
+
+def is_per_leg(start) -> bool:
+    """Whether a start point is a scheduled set around a ``base`` (a per-leg set or a tuner's conditioned set)."""
+    return hasattr(start, "base") and (hasattr(start, "row") or hasattr(start, "parameterisation"))
+
+
+def start_theta(param: schedule.Parameterisation, start) -> np.ndarray:
+    """The ``theta`` of ``param`` that runs ``start``: a ``CrawlParams`` on every leg, a per-leg set's four rows
+    (per-leg parameterisations only; no conditioning), or a conditioned set's own ``theta`` (its
+    parameterisation only)."""
+    if hasattr(start, "parameterisation") and hasattr(start, "table"):
+        pz = start.parameterisation
+        if pz.name != param.name or pz.space != param.space:
+            raise ValueError(f"a start point conditioned as {pz.name} starts that parameterisation with its groups "
+                             f"only, not {param.name}")
+        table, cond = np.asarray(start.table, np.float64), np.asarray(start.cond, np.float64)
+        rows = table.reshape(-1) if param.per_leg else table[0]
+        idx = [param.space.names.index(c) for c in param.conditioned]
+        return np.concatenate([rows, cond[:, idx].reshape(-1) if idx else np.zeros(0)])
+    if not is_per_leg(start):
+        return param.theta_of(start)
+    if not param.per_leg:
+        raise ValueError(f"a per-leg start point needs a per-leg parameterisation, not {param.name}")
+    rows = [param.space.theta_of(start.row(i)) for i in range(4)]
+    return np.concatenate(rows + [np.zeros(param.size - 4 * param.space.size)])

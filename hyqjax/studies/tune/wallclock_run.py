@@ -11,7 +11,7 @@ import numpy as np
 
 from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.gradient_programs import GradientPrograms
-from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed
+from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed, start_point, start_theta
 
 
 @contextlib.contextmanager
@@ -42,8 +42,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     the run's state is stored as it goes and a stored state is resumed (:mod:`.resume`); at the end of a
     segment :class:`.resume.Paused` is raised."""
     theta0 = dict(cfg.start_from).get(run_key(method, param.name))
-    theta0 = param.theta_of(base) if theta0 is None else np.asarray(theta0, np.float64)
-    if method in search.GRADIENT_METHODS:  # compiled (and charged) before the clock starts
+    theta0 = start_theta(param, start_point(cfg)) if theta0 is None else np.asarray(theta0, np.float64)
+    if method in search.USES_GRADIENT:  # compiled (and charged) before the clock starts
         with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
             grad.programs(param)
@@ -56,7 +56,8 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
             with charges.track(selection_program(cfg)):  # compiles in this clock unless an earlier method did
                 return evaluator(thetas, sel_sc, param=param)
 
-        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s)
+        selection = search.Selection(f_select, cfg.select_every, cfg.select_every_s,
+                                     keep=cfg.final_candidates if cfg.final_instances else 1)
     trace = search.Trace(cfg.checkpoints_s, theta0, select=selection)
     gen_seed = generation_seed(cfg.seed, param.name)
 
@@ -106,16 +107,41 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     with beat:
         _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored, hook)
     points = trace.finish(clock)
+    final = None
+    if selection is not None and cfg.final_instances and len(selection.top) > 1:
+        t0, s0 = time.perf_counter(), clock.physics_steps
+        sc = forward.train_scenarios(cfg.final_instances, cfg.select_seed, 1, cfg.train_heights, cfg.train_spread)
+        log(f"  {run_key(method, param.name)}: final re-evaluation of the {len(selection.top)} best validated "
+            f"iterates on {cfg.final_instances} further scenarios (after the budget)")
+        with charges.track(f"forward/final_{len(selection.top)}x{cfg.final_instances}"):
+            final = search.final_choice(selection.top, cfg.select_instances,
+                                        lambda th: evaluator(th, sc, param=param))
+        final.update(wall_s=time.perf_counter() - t0, after_budget=True)
+        clock.physics_steps = s0 + final["physics_steps"]
+        row = final["candidates"][final["chosen"]]
+        points[-1].update(theta=np.asarray(final.pop("theta")).tolist(), selected_iteration=row["iteration"],
+                          validation_clean=row["pooled_clean"], validation_completed=row["pooled_completed"])
     return dict(method=method, dim=param.name, size=param.size, points=points, log=trace.log,
                 selection=None if selection is None else dict(
                     instances=cfg.select_instances, seed=cfg.select_seed, every=cfg.select_every,
                     every_s=cfg.select_every_s, log=selection.log,
                     physics_steps=int(sum(r["physics_steps_run"] for r in selection.log)),
                     wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
+                final_reevaluation=final,
                 charged_s=clock.charged, wall_s=wall_before + time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
                 segments=segment,
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
-                params=param.describe(np.asarray(points[-1]["theta"])))
+                params=describe(param, np.asarray(points[-1]["theta"])))
+
+
+def describe(param: schedule.Parameterisation, theta) -> dict:
+    """``param.describe(theta)``, or, for an iterate so far out that a mapped value rounds onto the edge of its
+    declared range (a search that drifted where every run scores alike), the reason it cannot be described; the
+    run's ``theta`` is kept either way."""
+    try:
+        return param.describe(theta)
+    except ValueError as e:
+        return {"not_describable": str(e)}
 
 
 def validation_scenarios(cfg: WallClockConfig):
@@ -133,7 +159,7 @@ def selection_program(cfg: WallClockConfig) -> str:
 
 def forward_programs(method: str, cfg: WallClockConfig) -> list:
     """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
-    out = ["forward"] if method in search.SEARCH_METHODS or method == "hybrid" else []
+    out = ["forward"] if method in search.SEARCH_METHODS + search.GUIDED_METHODS or method == "hybrid" else []
     if cfg.select_instances and selection_program(cfg) not in out:
         out.append(selection_program(cfg))
     return out
@@ -141,7 +167,7 @@ def forward_programs(method: str, cfg: WallClockConfig) -> list:
 
 def _warm_up(method, param, cfg, evaluator, charges, theta0, phase) -> None:
     """A resumed run's forward programs compiled again (their outputs dropped), before its clock goes on."""
-    if method in search.SEARCH_METHODS or phase["name"] == "search":
+    if method in search.SEARCH_METHODS + search.GUIDED_METHODS or phase["name"] == "search":
         with charges.track("forward"):
             evaluator(np.repeat(np.asarray(theta0, np.float64)[None], cfg.popsize + 1, 0),
                       forward.train_scenarios(cfg.train_instances, generation_seed(cfg.seed, param.name), 0,
@@ -165,6 +191,16 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
             if name in charges.seconds:
                 charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
         trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
+    if method in search.GUIDED_METHODS:
+        step_fn, _, _ = grad.programs(param)
+        if stored is None:
+            for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
+                charge(charges.seconds[name])
+        search.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                          alpha=cfg.guided_alpha, subspace=cfg.guided_subspace, lr=cfg.guided_lr,
+                          grad_every=cfg.guided_grad_every, grad_cost=grad.step_costs[param.name],
+                          progress=progress, resume=state, checkpoint=hook(phase))
+        return
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           progress=progress, resume=state, checkpoint=hook(phase))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from hyqjax.studies.tune import repeats
+from hyqjax.studies.tune.study import repeats
 from hyqjax.studies.tune.names import DIMS, METHODS
 from hyqjax.studies.tune.wallclock_results import member_key
 

@@ -48,7 +48,8 @@ import numpy as np
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
 from hyqjax.sim import backend
-from hyqjax.studies.tune import baselines, evaluate, kinematic, optimize, windows
+from hyqjax.studies.tune import evaluate, optimize, windows
+from hyqjax.studies.tune.study import baselines, kinematic
 from hyqjax.studies.tune import objective as clobj
 from hyqjax.studies.tune import space as spmod
 from hyqjax.studies.tune.gradient_stats import gradient_stats

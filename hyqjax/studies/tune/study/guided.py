@@ -1,0 +1,54 @@
+"""Guided ES against the gradient-free methods over seeds (``python -m experiments.tune_study --guided-comparison``):
+held-out clean success per method and parameterisation over runs (:mod:`.repeats`) and what the per-generation
+cosines of guided ES say about its surrogate gradient (:func:`hyqjax.studies.tune.search.guided_cosines`)."""
+from __future__ import annotations
+
+import numpy as np
+
+from hyqjax.studies.tune.study import repeats
+
+
+def cosine_summary(log: list) -> dict:
+    """Per guided-ES run: over its generations, the median, mean and share > 0 of ``cos_zero_order`` (surrogate
+    against the unbiased zero-order estimate on the same population) and ``cos_search``, and the mean of the first
+    and last third of generations (does the agreement fade as the search moves away from the windows' gait?)."""
+    out = dict(generations=len(log))
+    for k in ("cos_zero_order", "cos_search"):
+        v = np.asarray([r[k] for r in log if k in r], np.float64)
+        v = v[np.isfinite(v)]
+        if not v.size:
+            out[k] = None
+            continue
+        t = max(1, v.size // 3)
+        out[k] = dict(n=int(v.size), median=float(np.median(v)), mean=float(v.mean()),
+                      share_positive=float(np.mean(v > 0)), first_third=float(v[:t].mean()),
+                      last_third=float(v[-t:].mean()))
+    return out
+
+
+def compare(results: dict, minutes: float) -> dict:
+    """``results``: seed -> a study's results.json (same settings but the seed). Held-out clean per member over
+    the seeds with 95% t-intervals, Welch's differences, and guided ES's cosine summary per run."""
+    names = [f"seed{s}" for s in results]
+    summary = repeats.collect(list(results.values()), names, minutes)
+    cos = {}
+    for s, res in results.items():
+        for key, run in res.get("runs", {}).items():
+            if run["method"] == "guided_es":
+                cos.setdefault(key, {})[f"seed{s}"] = cosine_summary(run["log"])
+    return dict(minutes=float(minutes), seeds=[int(s) for s in results], summary=summary,
+                differences=repeats.differences(summary), cosines=cos)
+
+
+def markdown(comp: dict) -> str:
+    lines = [repeats.table(comp["summary"], comp["minutes"]), ""]
+    for key, runs in comp["cosines"].items():
+        for name, c in runs.items():
+            z, s = c["cos_zero_order"], c["cos_search"]
+            if z is None:
+                continue
+            lines.append(f"{key} {name}: {c['generations']} generations; cosine of the surrogate gradient with the "
+                         f"zero-order estimate on the same population: median {z['median']:+.3f}, share > 0 "
+                         f"{z['share_positive']:.2f} (first third {z['first_third']:+.3f}, last third "
+                         f"{z['last_third']:+.3f}); with the search's direction: median {s['median']:+.3f}")
+    return "\n".join(lines)
