@@ -196,6 +196,25 @@ def pooled_effect(results, arm: str) -> list[dict]:
     return out
 
 
+def projected_power(pb: float, pc: float, n: int, threshold: float) -> float:
+    """Probability that a paired cell of ``n`` instances is flagged as regressed (McNemar exact p below ``threshold``,
+    more instances worse than better) when each instance independently gets worse with probability ``pb`` and better
+    with ``pc`` (the discordant rates measured over all seeds): exact enumeration over the multinomial (b, c)."""
+    import numpy as np
+    from scipy.stats import binom, multinomial
+
+    b, c = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    ok = b + c <= n
+    m = b + c
+    p = np.minimum(1.0, 2.0 * binom.cdf(np.minimum(b, c), np.maximum(m, 1), 0.5))
+    p[m == 0] = 1.0
+    flagged = ok & (p < threshold) & (b > c)
+    if not flagged.any():
+        return 0.0
+    x = np.stack([b[flagged], c[flagged], n - b[flagged] - c[flagged]], 1)
+    return float(multinomial.pmf(x, n, [pb, pc, max(0.0, 1.0 - pb - pc)]).sum())
+
+
 def main(argv=None) -> int:
     a = parse_args(argv)
     os.makedirs(a.out, exist_ok=True)
@@ -255,6 +274,21 @@ def main(argv=None) -> int:
             print(f"  {e['cell']:28s} {e['level']:9s} n {e['n']:5d}: {e['base_rate']:.3f} -> {e['new_rate']:.3f}, "
                   f"{e['diff']:+.3f} [{e['ci'][0]:+.3f}, {e['ci'][1]:+.3f}], discordant {e['b']} worse / {e['c']} "
                   f"better, McNemar p {e['p_mcnemar']:.2g}")
+    if "planted" in a.arm_list:
+        thr = a.alpha / a.ci_family
+        proj = []
+        print(f"planted: projected power per cell (each instance worse / better with the rates measured over all seeds; "
+              f"flagged when McNemar p < {a.alpha:g}/{a.ci_family})")
+        for e in summary["effect_planted"]:
+            if e["cell"] == "all cells" or not e["n"]:
+                continue
+            pb, pc = e["b"] / e["n"], e["c"] / e["n"]
+            row = dict(cell=e["cell"], level=e["level"], p_worse=pb, p_better=pc,
+                       power={n: projected_power(pb, pc, n, thr) for n in (16, 32, 64, 128, 256)})
+            proj.append(row)
+            print(f"  {e['cell']:28s} {e['level']:9s} worse {pb:.3f} better {pc:.3f}: " +
+                  ", ".join(f"n={n} {v:.2f}" for n, v in row["power"].items()))
+        summary["projected_power_planted"] = proj
     summary["seeds"] = results
     path = os.path.join(a.out, f"results_{'_'.join(a.arm_list)}.json")
     with open(path, "w") as f:
