@@ -30,8 +30,8 @@ instances per cell):
     python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
     python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.21,0.24 --reflex on --arms planted
 
-C arms run one seed after another (``--jobs 1``: one process already steps its batch on all cores);
-``--jobs N`` runs N seeds at once, each worker on the CPU (``JAX_PLATFORMS=cpu``).
+The C arms run in ``--jobs`` worker processes on the CPU (``JAX_PLATFORMS=cpu``; default one, which already steps
+its batch on every core), the rounding arm in the main process (the GPU when there is one).
 """
 from __future__ import annotations
 
@@ -117,8 +117,10 @@ def run_store(d: dict, path: str, impl: str, chunk_size: int | None = None) -> f
 def seed_job(payload) -> dict:
     """The --impl arms of one seed (a worker process): base, planted, unchanged; their comparisons."""
     a, seed = payload
-    if a.jobs > 1:  # a worker process: C MuJoCo and its controller on the CPU, the GPU left to the main process
-        os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")  # a worker process (main): C MuJoCo's controller on the CPU
+    from hyqjax.io.cache import enable_compilation_cache
+
+    enable_compilation_cache()
     from hyqjax.studies.sweep.compare import compare_stores
 
     root = os.path.join(a.out, "stores", f"seed{seed:03d}")
@@ -224,18 +226,18 @@ def main(argv=None) -> int:
     enable_compilation_cache()
     seeds = list(range(a.seed0, a.seed0 + a.seeds))
     t0 = time.time()
-    if a.jobs > 1:
-        import concurrent.futures as cf
-        import multiprocessing as mp
+    # The --impl arms run in worker processes on the CPU (JAX_PLATFORMS=cpu: C MuJoCo's controller is a CPU program,
+    # and on a GPU machine the GPU stays free for the rounding arm of this process); one worker already steps its
+    # batch on every core.
+    import concurrent.futures as cf
+    import multiprocessing as mp
 
-        with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
-            results = list(ex.map(seed_job, [(a, s) for s in seeds]))
-    else:
-        results = []
-        for s in seeds:
-            results.append(seed_job((a, s)))
-            print(f"seed {s}: " + ", ".join(f"{arm} {results[-1][arm]['verdict']}" for arm in ARMS
-                                            if arm in results[-1]), flush=True)
+    results = []
+    with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
+        for r in ex.map(seed_job, [(a, s) for s in seeds]):
+            results.append(r)
+            print(f"seed {r['seed']}: " + ", ".join(f"{arm} {r[arm]['verdict']}" for arm in ARMS if arm in r),
+                  flush=True)
     rounding_wall = None
     if "rounding" in a.arm_list:
         rb = rounding_batch(a, seeds)
