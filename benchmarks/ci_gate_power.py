@@ -18,17 +18,19 @@ Writes ``OUT/results_ARMS.json`` (per seed and arm: the verdict, the tests, the 
 per arm, how many seeds were flagged (regressed, improved), and per cell of the planted arm the effect measured on
 all seeds' instances together (the pooled paired difference with Newcombe's interval): the effect "at scale".
 
-CPU, cut down (one height, reflex on, 20 seeds; about 20 minutes on 2 shared cores):
+CPU, cut down (one height, reflex on, 20 seeds; measured on the loaded 2-core VM: 18 + 8 minutes per process with
+the seeds split over two processes, `--seed0 0` and `--seed0 10`):
 
     python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --reflex on --arms planted,unchanged
 
-One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec, in three
-commands of a few minutes each (the second resumes the first's base stores, the third is the planted arm with 64
-instances per cell):
+One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec (8 cells x
+16 instances) over 20 seeds, in four commands of a few minutes each (the later ones resume the first one's base
+stores; the last is the planted arm with 64 instances in the 24 cm reflex-on cell):
 
-    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted,unchanged
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted --jobs 2
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms unchanged --jobs 2
     python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
-    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.21,0.24 --reflex on --arms planted
+    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.24 --reflex on --arms planted --jobs 2
 
 The C arms run in ``--jobs`` worker processes on the CPU (``JAX_PLATFORMS=cpu``; default one, which already steps
 its batch on every core), the rounding arm in the main process (the GPU when there is one).
