@@ -18,20 +18,22 @@ Writes ``OUT/results_ARMS.json`` (per seed and arm: the verdict, the tests, the 
 per arm, how many seeds were flagged (regressed, improved), and per cell of the planted arm the effect measured on
 all seeds' instances together (the pooled paired difference with Newcombe's interval): the effect "at scale".
 
-CPU, cut down (one height, reflex on, 20 seeds; about 20 minutes on 2 shared cores):
+CPU, cut down (one height, reflex on, 20 seeds; measured on the loaded 2-core VM: 18 + 8 minutes per process with
+the seeds split over two processes, `--seed0 0` and `--seed0 10`):
 
     python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --reflex on --arms planted,unchanged
 
-One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec, in three
-commands of a few minutes each (the second resumes the first's base stores, the third is the planted arm with 64
-instances per cell):
+One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec (8 cells x
+16 instances) over 20 seeds, in four commands of a few minutes each (the later ones resume the first one's base
+stores; the last is the planted arm with 64 instances in the 24 cm reflex-on cell):
 
-    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted,unchanged
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted --jobs 2
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms unchanged --jobs 2
     python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
-    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.21,0.24 --reflex on --arms planted
+    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.24 --reflex on --arms planted --jobs 2
 
-C arms run one seed after another (``--jobs 1``: one process already steps its batch on all cores);
-``--jobs N`` runs N seeds at once, each worker on the CPU (``JAX_PLATFORMS=cpu``).
+The C arms run in ``--jobs`` worker processes on the CPU (``JAX_PLATFORMS=cpu``; default one, which already steps
+its batch on every core), the rounding arm in the main process (the GPU when there is one).
 """
 from __future__ import annotations
 
@@ -117,8 +119,10 @@ def run_store(d: dict, path: str, impl: str, chunk_size: int | None = None) -> f
 def seed_job(payload) -> dict:
     """The --impl arms of one seed (a worker process): base, planted, unchanged; their comparisons."""
     a, seed = payload
-    if a.jobs > 1:  # a worker process: C MuJoCo and its controller on the CPU, the GPU left to the main process
-        os.environ.setdefault("JAX_PLATFORMS", "cpu")
+    os.environ.setdefault("JAX_PLATFORMS", "cpu")  # a worker process (main): C MuJoCo's controller on the CPU
+    from hyqjax.io.cache import enable_compilation_cache
+
+    enable_compilation_cache()
     from hyqjax.studies.sweep.compare import compare_stores
 
     root = os.path.join(a.out, "stores", f"seed{seed:03d}")
@@ -196,6 +200,25 @@ def pooled_effect(results, arm: str) -> list[dict]:
     return out
 
 
+def projected_power(pb: float, pc: float, n: int, threshold: float) -> float:
+    """Probability that a paired cell of ``n`` instances is flagged as regressed (McNemar exact p below ``threshold``,
+    more instances worse than better) when each instance independently gets worse with probability ``pb`` and better
+    with ``pc`` (the discordant rates measured over all seeds): exact enumeration over the multinomial (b, c)."""
+    import numpy as np
+    from scipy.stats import binom, multinomial
+
+    b, c = np.meshgrid(np.arange(n + 1), np.arange(n + 1), indexing="ij")
+    ok = b + c <= n
+    m = b + c
+    p = np.minimum(1.0, 2.0 * binom.cdf(np.minimum(b, c), np.maximum(m, 1), 0.5))
+    p[m == 0] = 1.0
+    flagged = ok & (p < threshold) & (b > c)
+    if not flagged.any():
+        return 0.0
+    x = np.stack([b[flagged], c[flagged], n - b[flagged] - c[flagged]], 1)
+    return float(multinomial.pmf(x, n, [pb, pc, max(0.0, 1.0 - pb - pc)]).sum())
+
+
 def main(argv=None) -> int:
     a = parse_args(argv)
     os.makedirs(a.out, exist_ok=True)
@@ -205,18 +228,18 @@ def main(argv=None) -> int:
     enable_compilation_cache()
     seeds = list(range(a.seed0, a.seed0 + a.seeds))
     t0 = time.time()
-    if a.jobs > 1:
-        import concurrent.futures as cf
-        import multiprocessing as mp
+    # The --impl arms run in worker processes on the CPU (JAX_PLATFORMS=cpu: C MuJoCo's controller is a CPU program,
+    # and on a GPU machine the GPU stays free for the rounding arm of this process); one worker already steps its
+    # batch on every core.
+    import concurrent.futures as cf
+    import multiprocessing as mp
 
-        with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
-            results = list(ex.map(seed_job, [(a, s) for s in seeds]))
-    else:
-        results = []
-        for s in seeds:
-            results.append(seed_job((a, s)))
-            print(f"seed {s}: " + ", ".join(f"{arm} {results[-1][arm]['verdict']}" for arm in ARMS
-                                            if arm in results[-1]), flush=True)
+    results = []
+    with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
+        for r in ex.map(seed_job, [(a, s) for s in seeds]):
+            results.append(r)
+            print(f"seed {r['seed']}: " + ", ".join(f"{arm} {r[arm]['verdict']}" for arm in ARMS if arm in r),
+                  flush=True)
     rounding_wall = None
     if "rounding" in a.arm_list:
         rb = rounding_batch(a, seeds)
@@ -255,6 +278,21 @@ def main(argv=None) -> int:
             print(f"  {e['cell']:28s} {e['level']:9s} n {e['n']:5d}: {e['base_rate']:.3f} -> {e['new_rate']:.3f}, "
                   f"{e['diff']:+.3f} [{e['ci'][0]:+.3f}, {e['ci'][1]:+.3f}], discordant {e['b']} worse / {e['c']} "
                   f"better, McNemar p {e['p_mcnemar']:.2g}")
+    if "planted" in a.arm_list:
+        thr = a.alpha / a.ci_family
+        proj = []
+        print(f"planted: projected power per cell (each instance worse / better with the rates measured over all seeds; "
+              f"flagged when McNemar p < {a.alpha:g}/{a.ci_family})")
+        for e in summary["effect_planted"]:
+            if e["cell"] == "all cells" or not e["n"]:
+                continue
+            pb, pc = e["b"] / e["n"], e["c"] / e["n"]
+            row = dict(cell=e["cell"], level=e["level"], p_worse=pb, p_better=pc,
+                       power={n: projected_power(pb, pc, n, thr) for n in (16, 32, 64, 128, 256)})
+            proj.append(row)
+            print(f"  {e['cell']:28s} {e['level']:9s} worse {pb:.3f} better {pc:.3f}: " +
+                  ", ".join(f"n={n} {v:.2f}" for n, v in row["power"].items()))
+        summary["projected_power_planted"] = proj
     summary["seeds"] = results
     path = os.path.join(a.out, f"results_{'_'.join(a.arm_list)}.json")
     with open(path, "w") as f:

@@ -330,3 +330,23 @@ def test_real_sweep_compared_with_itself(tmp_path, capsys):
     root = ET.parse(x).getroot()
     assert not [c for c in root.iter("testcase") if c.find("failure") is not None]
     assert rc == 0 and "gate: PASSED" in out
+
+
+def test_other_version_columns_refused(tmp_path):
+    spec = sweep.SweepSpec.from_dict(SPEC)
+    _store(tmp_path / "a", SPEC, _base_ok(spec))
+    rows = {**_rows(spec, _base_ok(spec)), "new_metric": np.zeros(spec.n_instances)}
+    with sweep.SweepStore(str(tmp_path / "b"), spec, spec.n_instances, LAYOUT, writer=True) as st:
+        st.write_chunk(0, rows, 0.0)
+    with pytest.raises(StoreMismatch, match=r"different outcome columns \(only in BASE: \[\], only in NEW: \['new_metric'\]"):
+        compare.compare_stores(tmp_path / "a", tmp_path / "b")
+
+
+def test_sweep_baseline_of_another_spec_refused_before_running(tmp_path, capsys):
+    spec = sweep.SweepSpec.from_dict(SPEC)
+    _store(tmp_path / "a", SPEC, _base_ok(spec))
+    out = tmp_path / "out"
+    assert main(["sweep", "--ci", "--out", str(out), "--baseline", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--baseline" in err and "holds a different sweep" in err and "samples: 20 vs 16" in err
+    assert len(err.splitlines()) == 1 and not out.exists()

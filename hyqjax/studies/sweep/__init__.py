@@ -16,7 +16,10 @@ The package, one concept per module:
   :mod:`~hyqjax.studies.sweep.legacy`: stores of the first format (read as they are);
   :mod:`~hyqjax.studies.sweep.convert`: their conversion to the current format, on request;
 * :mod:`~hyqjax.studies.sweep.outcomes`, :mod:`~hyqjax.studies.sweep.summary`,
-  :mod:`~hyqjax.studies.sweep.plots`: failures with reasons, Wilson maps, largest safe height, figures.
+  :mod:`~hyqjax.studies.sweep.plots`: failures with reasons, Wilson maps, largest safe height, figures;
+* the CI gate (docs/ci.md): :mod:`~hyqjax.studies.sweep.expect` (expectations on the rates, decided on Wilson
+  intervals), :mod:`~hyqjax.studies.sweep.compare` (two stores of one sweep: Newcombe, paired McNemar, Holm),
+  :mod:`~hyqjax.studies.sweep.gate` (the verdict, JUnit / Markdown / JSON reports).
 
 Names are imported on first use (``from hyqjax.studies import sweep`` loads neither JAX nor MuJoCo; the spec
 loads JAX's parameter declarations, the runner MJX).
@@ -38,10 +41,13 @@ _PUBLIC = {
     "default_chunk_size": "store", "open_store": "store",
     "CHECKSUM": "chunkfile", "ChunkDamaged": "chunkfile", "parquet_to_rows": "chunkfile", "rows_to_parquet": "chunkfile",
     "StoreCheck": "verify", "verify_store": "verify",
+    "Comparison": "compare", "compare_stores": "compare",
+    "Expectation": "expect", "parse_expectation": "expect",
+    "Verdict": "gate",
     "format_summary": "summary", "logistic_h95": "summary", "summarize_sweep": "summary", "write_outputs": "summary",
 }
-_MODULES = ("axes", "chunkfile", "cluster", "convert", "legacy", "manifest", "outcomes", "plots", "recovery", "runner",
-            "scenario", "spec", "store", "summary", "verify")
+_MODULES = ("axes", "chunkfile", "cluster", "compare", "convert", "expect", "gate", "legacy", "manifest", "outcomes",
+            "plots", "recovery", "runner", "scenario", "spec", "store", "summary", "verify")
 __all__ = sorted(_PUBLIC)
 
 

@@ -267,7 +267,7 @@ def _paired(spec, rb: dict, rn: dict, skip) -> tuple[bool, str]:
 def compare_stores(base: str, new: str, alpha: float = 0.05, allow_change=(), confidence: float = 0.95,
                    levels=("completed", "clean")) -> Comparison:
     """Compare the sweep stores ``base`` and ``new`` (module docstring)."""
-    from hyqjax.studies.sweep.expect import _cell_label
+    from hyqjax.studies.sweep.expect import cell_label
 
     sb, rb = _load(base, "BASE")
     sn, rn = _load(new, "NEW")
@@ -285,7 +285,7 @@ def compare_stores(base: str, new: str, alpha: float = 0.05, allow_change=(), co
     labels = {}
     for c in cells:
         rows, g = (rb, gb) if (gb == c).any() else (rn, gn)
-        labels[c] = _cell_label(sb.spec, rows, int(np.argmax(g == c)))
+        labels[c] = cell_label(sb.spec, rows, int(np.argmax(g == c)))
     tests = []
     identical = paired
     for lv in levels:

@@ -218,6 +218,10 @@ def parse(text: str, where: str = "--expect") -> Expectation:
     return Expectation(metric, op, value, tuple(conds), per_cell, text.strip())
 
 
+#: :func:`parse` under the name the package exports (``sweep.parse_expectation``).
+parse_expectation = parse
+
+
 def parse_all(texts, where: str = "--expect") -> list[Expectation]:
     return [parse(t, where) for t in texts]
 
@@ -248,7 +252,7 @@ def check_selects(exps, spec, limit: int = 1_000_000) -> None:
                             + "; ".join(f"{k} in {v}" for k, v in vals.items()) + ")")
 
 
-def _cell_label(spec, rows, i: int) -> str:
+def cell_label(spec, rows, i: int) -> str:
     parts = []
     for k, _ in spec.grid:
         v = rows[k][i]
@@ -287,7 +291,7 @@ def evaluate(exps, spec, rows: dict, confidence: float = 0.95) -> list[Check]:
             out.append(_one(e, rows, m, "", confidence))
         for c in cells:
             mc = m & (g == c)
-            out.append(_one(e, rows, mc, _cell_label(spec, rows, int(np.argmax(mc))), confidence))
+            out.append(_one(e, rows, mc, cell_label(spec, rows, int(np.argmax(mc))), confidence))
     return out
 
 
@@ -302,5 +306,5 @@ def exit_status(checks, inconclusive: str = "report") -> int:
     return 0
 
 
-__all__ = ["Check", "Condition", "Expectation", "METRICS", "check_selects", "evaluate", "exit_status", "parse",
-           "parse_all", "split_spec_dict"]
+__all__ = ["Check", "Condition", "Expectation", "METRICS", "cell_label", "check_selects", "evaluate", "exit_status",
+           "parse", "parse_all", "parse_expectation", "split_spec_dict"]
