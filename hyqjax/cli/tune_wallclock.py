@@ -22,13 +22,21 @@ def run(args) -> int:
     what = "equal-wall-clock study" if args.study else ("quick tuner" if args.quick else "tuner")
     print(f"hyqjax tune: {what}: methods {list(cfg.methods)}, parameterisations {list(cfg.dims)}, budget "
           f"{' '.join(f'{m:g}' for m in cfg.wall_minutes)} min each, out {args.out}", flush=True)
+    from hyqjax.io import phases
+
+    clock = phases.current()
+    clock.lap("startup")
     res = wallclock.run_wallclock_study(cfg, args.out, log=lambda s: print(s, flush=True),
                                         checkpoint_every_s=args.state_every_s, segment_minutes=args.segment_minutes)
     if res.get("paused"):
         print(f"paused at {res['paused']} after --segment-minutes {args.segment_minutes:g}; run the same command to "
               f"go on (state in {args.out})", flush=True)
+        clock.lap("tuning")
+        print(clock.line(), flush=True)
         return PAUSED
+    clock.lap("tuning")
     fig = figure.plot_wallclock(res, os.path.join(args.out, "tuning.png"))
+    clock.lap("figures")
     print(figure.wallclock_markdown(res))
     ho = res["heldout"]
     f = lambda h: (f"clean {h['clean']:.3f} [{h['clean_ci95'][0]:.3f}, {h['clean_ci95'][1]:.3f}], "  # noqa: E731
@@ -95,4 +103,6 @@ def run(args) -> int:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
               f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
+    clock.lap("summary")
+    print(clock.line(), flush=True)
     return 0

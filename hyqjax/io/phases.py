@@ -15,6 +15,8 @@ key            what it holds
 ``kernels``    kernel build (Warp): MuJoCo Warp building (or loading from ``~/.cache/warp``) its kernels
 ``compile``    XLA compile: tracing, lowering and compiling the programs, or loading them from the cache
 ``simulation`` simulating, after the compile and the kernel build
+``tuning``     ``hyqjax tune``'s search and held-out evaluation, whose compiles and simulations interleave
+               (the tuner's own clock, ``results.json``'s ``wall_s``, divides them by method)
 ``summary``    the outcome tables, ``results.json`` and the console summary
 ``traces``     what writing ``traces.npz`` held the command up (it is written in a background thread)
 ``figures``    the PNG figures
@@ -32,7 +34,8 @@ import time
 
 #: Phase keys and their labels, in the order they are printed.
 LABELS = {"startup": "imports and device start-up", "kernels": "kernel build (Warp)", "compile": "XLA compile",
-          "simulation": "simulation", "summary": "summary", "traces": "traces", "figures": "figures"}
+          "simulation": "simulation", "tuning": "tuning (search, compiles and held-out evaluation)",
+          "summary": "summary", "traces": "traces", "figures": "figures"}
 
 
 def process_age() -> float | None:
