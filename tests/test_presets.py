@@ -288,7 +288,8 @@ def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     assert res["config"]["preset"] == "tuned_per_leg" and len(res["instances"]) == 1
     assert res["preset"]["values"] == presets.get("tuned_per_leg").values  # what ran, in the results
     assert not res["instances"][0]["diverged"] and res["instances"][0]["progress"] > 0.1
-    assert out.rstrip().splitlines()[-1].startswith("reaches further: --preset reach (h90 27 cm")
+    lines = out.rstrip().splitlines()
+    assert lines[-1].startswith("wall ") and lines[-2].startswith("reaches further: --preset reach (h90 27 cm")
 
 
 def test_per_leg_and_conditioned_tuning_runs_are_read_as_scheduled_sets(tmp_path):
