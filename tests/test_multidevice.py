@@ -36,6 +36,7 @@ def test_devices_refused_before_any_compile(capsys):
                    "--devices", value])
         err = capsys.readouterr().err.strip().splitlines()
         assert rc == 2 and len(err) == 1 and expect in err[0], err
+        assert not os.path.exists("/tmp/x-never"), "a refused command leaves no output directory"
 
 
 CODE = r"""

@@ -33,7 +33,8 @@ from typing import NoReturn
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 import hyqjax  # noqa: E402
-from hyqjax.cli.common import USAGE_EXIT, UsageError, apply_devices, enable_compilation_cache  # noqa: E402
+from hyqjax.cli.common import (  # noqa: E402
+    USAGE_EXIT, UsageError, apply_devices, discard_created_out, enable_compilation_cache)
 from hyqjax.io.cache import StderrFilter  # noqa: E402
 
 
@@ -117,7 +118,11 @@ def main(argv: list[str] | None = None, parser: argparse.ArgumentParser | None =
                 args.validate_command(args)
             except ValueError as e:  # raised while checking options: the user's to fix
                 raise UsageError(str(e)) from e
-        apply_devices(args)  # --devices, where the command has it: checked before anything compiles
+        try:
+            apply_devices(args)  # --devices, where the command has it: checked before anything compiles
+        except UsageError:
+            discard_created_out()  # the command's checks created --out; a refused command leaves nothing
+            raise
         if not args.no_cache:
             enable_compilation_cache()
             # The command line itself (not main([...]) inside another program), not with Ray's processes.

@@ -56,14 +56,31 @@ def check_all(option: str, values, lo=None, hi=None, unit: str = "", **kw) -> No
         check_range(option, v, lo, hi, unit, **kw)
 
 
+#: Output directories :func:`prepare_out` created in this process (removed again, while empty, by
+#: :func:`discard_created_out` when a later check refuses the command).
+_CREATED_OUT: list[str] = []
+
+
 def prepare_out(path: str, option: str = "--out") -> str:
     """Create output directory ``path`` and check it is writable (:func:`hyqjax.io.atomic.check_writable_dir`)."""
     from hyqjax.io.atomic import check_writable_dir
 
+    new = not os.path.exists(path)
     try:
-        return check_writable_dir(path, option)
+        out = check_writable_dir(path, option)
     except ValueError as e:
         raise UsageError(str(e)) from None
+    if new:
+        _CREATED_OUT.append(os.path.abspath(path))
+    return out
+
+
+def discard_created_out() -> None:
+    """Remove the output directories :func:`prepare_out` created, where still empty: a refusal after the command's
+    own checks (``--devices`` against the host's devices) leaves nothing behind."""
+    while _CREATED_OUT:
+        with contextlib.suppress(OSError):
+            os.rmdir(_CREATED_OUT.pop())
 
 
 def check_out_free(path: str, option: str = "--out") -> None:
