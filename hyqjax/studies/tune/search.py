@@ -366,13 +366,8 @@ def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float,
         key, ka, kt = jax.random.split(key, 3)
         pop, state = ask(ka, state, params)
         mean = np.asarray(state.mean, np.float64)
-        r = f_gen(np.concatenate([mean[None], np.asarray(pop, np.float64)]), gen)
-        clock.physics_steps += r["physics_steps"]
-        fit = np.asarray(r["fitness"], np.float64)
-        state, _ = tell(kt, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
-        new_mean = np.asarray(state.mean, np.float64)
-        if not np.all(np.isfinite(new_mean)):
-            raise FloatingPointError(f"{method}: the search mean became non-finite at generation {gen}")
+        r, fit = _evaluate(f_gen, mean, pop, gen, clock)
+        state, new_mean = _tell(tell, kt, pop, fit, state, params, method, gen)
         # the returned iterate after this generation is the new mean (its fitness is measured next generation)
         trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),
                                             iterate_clean=float(np.mean(r["clean"][0])),
@@ -526,15 +521,10 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
             if not np.all(np.isfinite(g)):
                 g = np.zeros_like(g)  # a non-finite surrogate guides nothing: isotropic this generation
         pop, state = ask(ka, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
-        pop64 = np.asarray(pop, np.float64)
-        r = f_gen(np.concatenate([mean[None], pop64]), gen)
-        clock.physics_steps += r["physics_steps"]
-        fit = np.asarray(r["fitness"], np.float64)
-        cosines = guided_cosines(g, pop64, mean, -fit[1:], sigma, alpha, np.asarray(state.grad_subspace))
-        state, _ = tell(kt, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
-        new_mean = np.asarray(state.mean, np.float64)
-        if not np.all(np.isfinite(new_mean)):
-            raise FloatingPointError(f"guided_es: the search mean became non-finite at generation {gen}")
+        r, fit = _evaluate(f_gen, mean, pop, gen, clock)
+        cosines = guided_cosines(g, np.asarray(pop, np.float64), mean, -fit[1:], sigma, alpha,
+                                 np.asarray(state.grad_subspace))
+        state, new_mean = _tell(tell, kt, pop, fit, state, params, "guided_es", gen)
         trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),
                                             iterate_clean=float(np.mean(r["clean"][0])),
                                             best_fitness=float(fit[1:].max()), mean_fitness=float(fit[1:].mean()),
@@ -547,3 +537,21 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
             checkpoint(lambda: dict(gen=gen, key=jax.random.key_data(key), state=jax.tree.leaves(state), g=g,
                                     loss=loss))
     return np.asarray(state.mean, np.float64)
+
+
+def _evaluate(f_gen, mean: np.ndarray, pop, gen: int, clock) -> tuple[dict, np.ndarray]:
+    """One generation's closed-loop runs: the mean (row 0, the iterate the search returns) and the population, in
+    one batch; their physics charged to ``clock``. Returns ``f_gen``'s result and the fitness (maximised)."""
+    r = f_gen(np.concatenate([mean[None], np.asarray(pop, np.float64)]), gen)
+    clock.physics_steps += r["physics_steps"]
+    return r, np.asarray(r["fitness"], np.float64)
+
+
+def _tell(tell, key, pop, fit: np.ndarray, state, params, method: str, gen: int):
+    """evosax's ``tell`` with the population's fitness (negated: evosax minimises); the new state and its mean, a
+    ``FloatingPointError`` when the mean is no longer finite."""
+    state, _ = tell(key, pop, jnp.asarray(-fit[1:], jnp.float32), state, params)
+    new_mean = np.asarray(state.mean, np.float64)
+    if not np.all(np.isfinite(new_mean)):
+        raise FloatingPointError(f"{method}: the search mean became non-finite at generation {gen}")
+    return state, new_mean
