@@ -64,9 +64,10 @@ def parse_args(argv=None):
     p.add_argument("--impl", default="c", help="simulator of base, planted and unchanged")
     p.add_argument("--rounding-impl", default="jax", help="simulator of the rounding arm")
     p.add_argument("--alpha", type=float, default=0.05)
-    p.add_argument("--ci-family", type=int, default=18,
-                   help="tests in the full CI sweep's Holm family (8 cells x 2 levels + 2 pooled): a seed also counts "
-                        "as flagged 'at CI size' when its smallest p-value of a regression is below alpha / this")
+    p.add_argument("--ci-family", type=int, default=None,
+                   help="tests in the full CI sweep's Holm family (default: the shipped CI spec's, its cells x 2 levels + "
+                        "2 pooled): a seed also counts as flagged 'at CI size' when its smallest p-value of a "
+                        "regression is below alpha / this")
     p.add_argument("--jobs", type=int, default=1, help="processes over seeds for the --impl arms")
     a = p.parse_args(argv)
     arms = [x for x in a.arms.split(",") if x]
@@ -76,7 +77,23 @@ def parse_args(argv=None):
     if not 1 <= a.seeds <= 1000 or a.jobs < 1:
         p.error("--seeds must be in [1, 1000], --jobs >= 1")
     a.arm_list = arms
+    if a.ci_family is None:
+        a.ci_family = ci_family()
     return a
+
+
+def ci_family() -> int:
+    """The number of tests in the shipped CI sweep's Holm family: its grid cells x 2 levels + the 2 pooled tests."""
+    import tomllib
+
+    from hyqjax.cli.sweep import CI_SPEC
+
+    with open(CI_SPEC, "rb") as f:
+        grid = tomllib.load(f)["grid"]
+    cells = 1
+    for v in grid.values():
+        cells *= len(v)
+    return 2 * cells + (2 if cells > 1 else 0)
 
 
 def base_spec(a, seed: int) -> dict:
@@ -146,34 +163,48 @@ def seed_job(payload) -> dict:
     return res
 
 
-def rounding_batch(a, seeds) -> dict:
+def rounding_simulate(a, seeds) -> float:
     """The rounding arm of every seed in one batch on ``--rounding-impl`` (one compile, the GPU filled), each seed's
-    rows then written to its own store (one chunk) and compared with its base store."""
+    rows written to its own store (one chunk); returns the batch's wall time. Needs no base store, so it runs while
+    the worker processes compute those; a seed whose rounding store is complete is not simulated again."""
     import numpy as np
 
     from hyqjax.studies import sweep
-    from hyqjax.studies.sweep.compare import compare_stores
     from hyqjax.studies.sweep.runner import device_layout, run_rows
 
-    specs = [sweep.SweepSpec.from_dict(base_spec(a, s)) for s in seeds]
-    rows = [sp.instance_inputs(0, sp.n_instances) for sp in specs]
+    specs = {s: sweep.SweepSpec.from_dict(base_spec(a, s)) for s in seeds}
+    paths = {s: os.path.join(a.out, "stores", f"seed{s:03d}", "rounding") for s in seeds}
+    todo = [s for s in seeds if not os.path.exists(os.path.join(paths[s], "summary.json"))]
+    if not todo:
+        return 0.0
+    rows = [specs[s].instance_inputs(0, specs[s].n_instances) for s in todo]
     allrows = {k: np.concatenate([r[k] for r in rows]) for k in rows[0]}
     total = len(allrows["index"])
     t0 = time.time()
-    out = run_rows(allrows, specs[0], total, impl=a.rounding_impl)
+    out = run_rows(allrows, specs[todo[0]], total, impl=a.rounding_impl)
     wall = time.time() - t0
     layout = dict(device_layout(impl=a.rounding_impl), batch=total)
-    res = {}
     off = 0
-    for s, sp, r in zip(seeds, specs, rows):
+    for s, r in zip(todo, rows):
         n = len(r["index"])
         chunk = {**r, **{k: np.asarray(v)[off:off + n] for k, v in out.items()}}
         off += n
-        root = os.path.join(a.out, "stores", f"seed{s:03d}")
-        with sweep.SweepStore(os.path.join(root, "rounding"), sp, n, layout, writer=True) as st:
+        os.makedirs(os.path.dirname(paths[s]), exist_ok=True)
+        with sweep.SweepStore(paths[s], specs[s], n, layout, writer=True) as st:
             st.write_chunk(0, chunk, wall * n / total)
+    print(f"rounding arm: {total} instances of {len(todo)} seeds on {a.rounding_impl} in {wall:.0f} s", flush=True)
+    return wall
+
+
+def rounding_compare(a, seeds) -> dict:
+    """Each seed's rounding store compared with its base store."""
+    from hyqjax.studies.sweep.compare import compare_stores
+
+    res = {}
+    for s in seeds:
+        root = os.path.join(a.out, "stores", f"seed{s:03d}")
         res[s] = compare_stores(os.path.join(root, "base"), os.path.join(root, "rounding"), alpha=a.alpha).to_dict()
-    return dict(wall_s=wall, results=res)
+    return res
 
 
 def pooled_effect(results, arm: str) -> list[dict]:
@@ -235,17 +266,20 @@ def main(argv=None) -> int:
     import multiprocessing as mp
 
     results = []
+    rounding_wall = None
     with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
-        for r in ex.map(seed_job, [(a, s) for s in seeds]):
+        futures = [ex.submit(seed_job, (a, s)) for s in seeds]
+        if "rounding" in a.arm_list:  # meanwhile, this process simulates the rounding arm (the GPU, if any)
+            rounding_wall = rounding_simulate(a, seeds)
+        for fut in futures:
+            r = fut.result()
             results.append(r)
             print(f"seed {r['seed']}: " + ", ".join(f"{arm} {r[arm]['verdict']}" for arm in ARMS if arm in r),
                   flush=True)
-    rounding_wall = None
     if "rounding" in a.arm_list:
-        rb = rounding_batch(a, seeds)
-        rounding_wall = rb["wall_s"]
+        rc = rounding_compare(a, seeds)
         for r in results:
-            r["rounding"] = rb["results"][r["seed"]]
+            r["rounding"] = rc[r["seed"]]
             print(f"seed {r['seed']}: rounding {r['rounding']['verdict']}", flush=True)
     wall = time.time() - t0
     summary = dict(args={k: v for k, v in vars(a).items()}, hyqjax=hyqjax.__version__, wall_s=wall,
