@@ -348,5 +348,5 @@ def test_sweep_baseline_of_another_spec_refused_before_running(tmp_path, capsys)
     out = tmp_path / "out"
     assert main(["sweep", "--ci", "--out", str(out), "--baseline", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err.strip()
-    assert "--baseline" in err and "holds a different sweep" in err and "samples: 20 vs 16" in err
+    assert "--baseline" in err and "holds a different sweep" in err and "samples: 20 vs 64" in err
     assert len(err.splitlines()) == 1 and not out.exists()
