@@ -69,6 +69,9 @@ def parse_args(argv=None):
                         "2 pooled): a seed also counts as flagged 'at CI size' when its smallest p-value of a "
                         "regression is below alpha / this")
     p.add_argument("--jobs", type=int, default=1, help="processes over seeds for the --impl arms")
+    p.add_argument("--cores-per-job", type=int, default=0,
+                   help="pin each --jobs process to its own N cores (C MuJoCo steps a batch on the cores a process "
+                        "may use; 0: no pinning, every process on every core)")
     a = p.parse_args(argv)
     arms = [x for x in a.arms.split(",") if x]
     bad = [x for x in arms if x not in ARMS]
@@ -133,6 +136,15 @@ def run_store(d: dict, path: str, impl: str, chunk_size: int | None = None) -> f
     return time.time() - t0
 
 
+def pin_worker(counter, cores_per_job: int) -> None:
+    """Pool initializer: the i-th worker process runs on cores [i * n, (i + 1) * n) (wrapping round)."""
+    with counter.get_lock():
+        i = counter.value
+        counter.value += 1
+    ncpu = os.cpu_count() or 1
+    os.sched_setaffinity(0, {(i * cores_per_job + k) % ncpu for k in range(cores_per_job)})
+
+
 def seed_job(payload) -> dict:
     """The --impl arms of one seed (a worker process): base, planted, unchanged; their comparisons."""
     a, seed = payload
@@ -174,7 +186,13 @@ def rounding_simulate(a, seeds) -> float:
 
     specs = {s: sweep.SweepSpec.from_dict(base_spec(a, s)) for s in seeds}
     paths = {s: os.path.join(a.out, "stores", f"seed{s:03d}", "rounding") for s in seeds}
-    todo = [s for s in seeds if not os.path.exists(os.path.join(paths[s], "summary.json"))]
+    def finished(s):
+        if not os.path.exists(os.path.join(paths[s], "manifest.json")):
+            return False
+        with sweep.SweepStore(paths[s], specs[s], specs[s].n_instances) as st:
+            return not st.todo()
+
+    todo = [s for s in seeds if not finished(s)]
     if not todo:
         return 0.0
     rows = [specs[s].instance_inputs(0, specs[s].n_instances) for s in todo]
@@ -267,7 +285,9 @@ def main(argv=None) -> int:
 
     results = []
     rounding_wall = None
-    with cf.ProcessPoolExecutor(a.jobs, mp_context=mp.get_context("spawn")) as ex:
+    ctx = mp.get_context("spawn")
+    pin = dict(initializer=pin_worker, initargs=(ctx.Value("i", 0), a.cores_per_job)) if a.cores_per_job else {}
+    with cf.ProcessPoolExecutor(a.jobs, mp_context=ctx, **pin) as ex:
         futures = [ex.submit(seed_job, (a, s)) for s in seeds]
         if "rounding" in a.arm_list:  # meanwhile, this process simulates the rounding arm (the GPU, if any)
             rounding_wall = rounding_simulate(a, seeds)
