@@ -1,0 +1,449 @@
+"""Refine the default bounding gains at the fast corners of the command envelope: CMA-ES warm-started from a
+bounding preset on a training batch that weights the hard region, then the start and the refined sets compared on
+the same held-out instances. One command, one GPU, everything under ``--out``:
+
+    python -m experiments.bounding_refine --impl warp --out out/bounding_refine                  # one H200, ~7 min
+    python -m experiments.bounding_refine --impl c --popsize 4 --train-envelope 2 --train-corners 2 \\
+        --train-duration 0.8 --duration 0.8 --instances 2 --broad 4 --max-wall 20 --out /tmp/br   # CPU check
+
+1. ``training``: evosax CMA-ES (:func:`hyqjax.bounding.robust.cma_es`) on the robust study's coordinates
+   (:class:`hyqjax.bounding.robust.RobustSpace` around the paper's gains, the same scales and bounds), started at
+   ``theta0 = space.theta_of(values of --start-preset)`` with step ``--sigma``. Every candidate is judged by the mean
+   :func:`hyqjax.bounding.tracking.total_cost` (falls dominate) over ONE fixed training batch (seed ``--seed``), a
+   mixture of ``--train-envelope`` instances of the whole envelope (the robust study's training draw: speed
+   0-1.1 m/s, yaw rate +-0.9 rad/s, lateral +-0.2 m/s, friction 0.4-1.0, payload 0-12 kg) and ``--train-corners``
+   instances of the fast corners at low friction and high payload (speed ``--corner-speed``, yaw rate of magnitude
+   ``--corner-yaw-rate`` with both signs in equal numbers, friction ``--corner-friction``, payload
+   ``--corner-payload``, no lateral command), ``--train-duration`` s each. Stopped at ``--max-wall`` s (a generation
+   started before the limit finishes; the compile happens before, in the start's evaluation on the same batch).
+   Recorded per generation: best so far, the generation's best, mean and median, falls of its best candidate and of
+   the whole population, the mean cost on the envelope and on the corner part of the batch. The refined set is the best candidate on the training
+   batch (the start itself if none beats it); CMA-ES's final mean is kept as a second candidate.
+2. ``heldout``: the start preset, the refined set and CMA-ES's final mean on the same instances: (a) the six
+   conditions of :mod:`experiments.bounding_presets` (the nominal command at friction 0.7-1.0 and 0-5 kg; the nominal
+   command and the four corners (0 and 1.0 m/s x -0.8 and +0.8 rad/s) at friction ``--friction`` with ``--payload``
+   kg) at ``--instances`` each, seed ``--heldout-seed`` (default 2911: the start's rows reproduce
+   ``docs/results/bounding_presets_h200``); (b) the robust study's held-out envelope (``--broad`` instances of
+   ``--duration`` s, speed 0-1 m/s, yaw rate +-0.8 rad/s, friction 0.5-1.0, payload 0-10 kg, seed ``--broad-seed``,
+   default 7777). Falls with Wilson 95 % intervals and reasons, worst and 95th-percentile yaw error, runs above
+   4 deg, mean absolute speed error, mean cost.
+
+Sizing for one H200 under MuJoCo Warp (one call of at most 9 minutes): a generation is popsize 16 x 128 training
+instances = 2,048 rollouts of 8 s. The robust study's CMA-ES ran 4,096 such rollouts per generation in about 3.9 s on
+one H100 (``docs/results/bounding_robust_h100_8s``: 55 generations in 295 s, the first with its compile), so 2,048
+take about 2-3 s and ``--max-wall 280`` gives about 90-140 generations (the start's evaluation before it carries the
+compile). Held-out: 3 sets x (6 x 1,024 + 4,096) = 30,720 rollouts, 15 chunks of 2,048, about 40-75 s.
+
+Every simulator call runs in chunks of ``--chunk`` instances (default: popsize x training instances), so one
+compiled program serves the training and every held-out batch. The training seed must differ from both held-out
+seeds. Writes ``OUT/results.json`` (config, provenance, training history, held-out rows), ``OUT/refine.md`` (the
+tables), ``OUT/params_refined.json`` and ``OUT/params_refined_mean.json`` (:func:`hyqjax.bounding.robust.save_params`
+files with provenance: command, seeds, device, date, versions; ``hyqjax bound --params FILE`` runs them and
+``experiments/build_presets.py`` can read them as a preset's source). Bad options: one line, exit code 2, before
+anything compiles.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+import time
+
+import numpy as np
+
+#: The robust study's training draw (experiments/bounding_robust.py defaults): the whole envelope.
+ENVELOPE_TRAIN = dict(speed=(0.0, 1.1), yaw_rate=(-0.9, 0.9), lateral=(-0.2, 0.2), friction=(0.4, 1.0),
+                      payload=(0.0, 12.0))
+#: The robust study's held-out draw (experiments/bounding_robust.py defaults, seed 7777).
+BROAD_HELDOUT = dict(speed=(0.0, 1.0), yaw_rate=(-0.8, 0.8), lateral=(0.0, 0.0), friction=(0.5, 1.0),
+                     payload=(0.0, 10.0))
+PROG = "python -m experiments.bounding_refine"
+
+
+def log(msg):
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def parse(argv):
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/bounding_refine")
+    ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
+    ap.add_argument("--start-preset", default="bound_robust", metavar="NAME", help="bounding preset to start from")
+    ap.add_argument("--seed", type=int, default=4242, help="training instances and CMA-ES seed (not a held-out seed)")
+    # training
+    ap.add_argument("--popsize", type=int, default=16, help="CMA-ES population")
+    ap.add_argument("--sigma", type=float, default=0.15, help="CMA-ES initial step (theta units: a coordinate's scale)")
+    ap.add_argument("--max-wall", type=float, default=280.0, help="CMA-ES wall-clock limit (s; the compile comes before, in the start's evaluation)")
+    ap.add_argument("--max-generations", type=int, default=100000)
+    ap.add_argument("--train-envelope", type=int, default=64, help="training instances from the whole envelope")
+    ap.add_argument("--train-corners", type=int, default=64,
+                    help="training instances at the fast corners (an even number: half each yaw sign)")
+    ap.add_argument("--train-duration", type=float, default=8.0, help="training rollout (s), a multiple of 0.4")
+    ap.add_argument("--corner-speed", type=float, nargs=2, default=(0.85, 1.1), metavar=("LO", "HI"))
+    ap.add_argument("--corner-yaw-rate", type=float, nargs=2, default=(0.65, 0.9), metavar=("LO", "HI"),
+                    help="magnitude of the corners' yaw rate (both signs)")
+    ap.add_argument("--corner-friction", type=float, nargs=2, default=(0.4, 0.6), metavar=("LO", "HI"))
+    ap.add_argument("--corner-payload", type=float, nargs=2, default=(8.0, 12.0), metavar=("LO", "HI"))
+    # held-out
+    ap.add_argument("--instances", type=int, default=1024, help="held-out instances per condition and command")
+    ap.add_argument("--duration", type=float, default=8.0, help="held-out rollout (s), a multiple of 0.4")
+    ap.add_argument("--heldout-seed", type=int, default=2911, help="seed of the six conditions")
+    ap.add_argument("--friction", type=float, nargs=2, default=(0.5, 0.6), metavar=("LO", "HI"),
+                    help="friction of the low-friction conditions")
+    ap.add_argument("--payload", type=float, default=10.0, metavar="KG", help="payload of the low-friction conditions")
+    ap.add_argument("--corner-speeds", type=float, nargs="+", default=(0.0, 1.0), metavar="V")
+    ap.add_argument("--corner-yaw-rates", type=float, nargs="+", default=(-0.8, 0.8), metavar="W")
+    ap.add_argument("--broad", type=int, default=4096, help="instances of the broad held-out envelope")
+    ap.add_argument("--broad-seed", type=int, default=7777)
+    ap.add_argument("--chunk", type=int, default=0,
+                    help="instances per simulator call (default: popsize x training instances)")
+    return ap.parse_args(argv)
+
+
+class Refused(ValueError):
+    pass
+
+
+def _multiple(name, v):
+    if not (np.isfinite(v) and v > 0 and abs(v / 0.4 - round(v / 0.4)) < 1e-6):
+        raise Refused(f"--{name} must be a positive multiple of the gait period 0.4 s, got {v:g}")
+
+
+def check(args):
+    """Every option checked before anything compiles (:class:`Refused`, one line naming the option)."""
+    from hyqjax import presets
+    from hyqjax.bounding import batch as bbatch
+    from hyqjax.sim import backend
+    from hyqjax.studies import tasks
+
+    try:
+        backend.validate_impl(args.impl, tasks.get("bound").impls)
+    except ValueError as e:
+        raise Refused(f"--impl: {e}") from None
+    try:
+        presets.check_kind(args.start_preset, "bound", "--start-preset")
+    except ValueError as e:
+        raise Refused(str(e)) from None
+    for name, lo, hi in (("popsize", 4, 4096), ("max_generations", 1, 10**6), ("train_envelope", 0, 65536),
+                         ("train_corners", 0, 65536), ("instances", 1, 1 << 20), ("broad", 1, 1 << 20),
+                         ("chunk", 0, 1 << 20)):
+        v = getattr(args, name)
+        if not lo <= v <= hi:
+            raise Refused(f"--{name.replace('_', '-')} must be an int in [{lo}, {hi}], got {v}")
+    if args.train_envelope + args.train_corners < 1:
+        raise Refused("--train-envelope plus --train-corners must be at least 1")
+    if args.train_corners % 2:
+        raise Refused(f"--train-corners must be even (half each yaw sign), got {args.train_corners}")
+    for name, lo, hi in (("sigma", 1e-3, 10.0), ("max_wall", 1.0, 86400.0)):
+        v = getattr(args, name)
+        if not (np.isfinite(v) and lo <= v <= hi):
+            raise Refused(f"--{name.replace('_', '-')} must be in [{lo:g}, {hi:g}], got {v:g}")
+    _multiple("train-duration", args.train_duration)
+    _multiple("duration", args.duration)
+    if args.seed in (args.heldout_seed, args.broad_seed):
+        raise Refused(f"--seed must differ from --heldout-seed ({args.heldout_seed}) and --broad-seed "
+                      f"({args.broad_seed}), got {args.seed}")
+    if not 0.0 <= args.payload <= 100.0:
+        raise Refused(f"--payload must be in [0, 100] kg, got {args.payload:g}")
+    try:
+        for d in train_draws(args).values():
+            d.commands(1, 0)
+        heldout_specs(args)
+        draw_of(BROAD_HELDOUT)
+    except (ValueError, bbatch.SettingError) as e:
+        name = getattr(e, "name", "")
+        raise Refused(f"{name + ': ' if name else ''}{e}") from None
+
+
+def draw_of(d: dict):
+    from hyqjax.bounding import robust
+
+    return robust.Draw(**{k: tuple(v) for k, v in d.items()})
+
+
+def train_draws(args) -> dict:
+    """The training mixture's parts: ``envelope``, ``corners+`` and ``corners-`` (:class:`robust.Draw`)."""
+    lo, hi = args.corner_yaw_rate
+    if not 0.0 <= lo <= hi:
+        raise Refused(f"--corner-yaw-rate must be 0 <= LO <= HI (a magnitude), got {lo:g} {hi:g}")
+    c = dict(speed=tuple(args.corner_speed), lateral=(0.0, 0.0), friction=tuple(args.corner_friction),
+             payload=tuple(args.corner_payload))
+    return {"envelope": draw_of(ENVELOPE_TRAIN), "corners+": draw_of(dict(c, yaw_rate=(lo, hi))),
+            "corners-": draw_of(dict(c, yaw_rate=(-hi, -lo)))}
+
+
+def concat_batches(batches):
+    """One :class:`hyqjax.bounding.batch.Batch` of the instances of ``batches`` in order."""
+    import jax
+    import jax.numpy as jnp
+
+    return jax.tree_util.tree_map(
+        lambda *xs: np.concatenate(xs) if all(isinstance(x, np.ndarray) for x in xs)
+        else jnp.concatenate([jnp.asarray(x) for x in xs]), *batches)
+
+
+def training_batch(args, base=None):
+    """The fixed training batch (envelope part first, then the corners, + then - yaw) and each instance's part
+    (``"envelope"`` or ``"corners"``). Each part has its own seed derived from ``--seed``."""
+    draws = train_draws(args)
+    half = args.train_corners // 2
+    sizes = {"envelope": args.train_envelope, "corners+": half, "corners-": half}
+    parts, labels = [], []
+    for i, (k, d) in enumerate(draws.items()):
+        if sizes[k]:
+            parts.append(d.batch(sizes[k], seed=args.seed * 10 + i, base=base))
+            labels += ["envelope" if k == "envelope" else "corners"] * sizes[k]
+    return concat_batches(parts), np.array(labels)
+
+
+def heldout_specs(args):
+    """The six conditions of experiments.bounding_presets (name, EnvelopeSpec) at ``--heldout-seed``."""
+    from experiments import bounding_presets as bp
+
+    ns = argparse.Namespace(friction=args.friction, payload=args.payload, corner_speeds=args.corner_speeds,
+                            corner_yaw_rates=args.corner_yaw_rates, instances=args.instances, duration=args.duration,
+                            seed=args.heldout_seed)
+    return bp.specs(ns)
+
+
+def run_sets(batches: dict, duration: float, impl: str, chunk: int, progress=None) -> dict:
+    """Run every batch of ``batches`` (key -> Batch) in one call, in chunks of exactly ``chunk`` instances (the
+    concatenation is padded with copies of its first instance to a multiple of ``chunk``, so the training's compiled
+    program serves it), and split the columns by key (with the command, friction and payload of each instance)."""
+    from hyqjax.bounding import tracking
+
+    keys = list(batches)
+    sizes = [int(np.shape(batches[k].apex0)[0]) for k in keys]
+    n = sum(sizes)
+    allb = concat_batches([batches[k] for k in keys])
+    pad = -n % chunk
+    if pad:
+        allb = tracking.take(allb, np.concatenate([np.arange(n), np.zeros(pad, int)]))
+    cols = tracking.run_batch(allb, duration, impl, max_batch=chunk, progress=progress)
+    out, start = {}, 0
+    for key, k in zip(keys, sizes):
+        b = batches[key]
+        c = {name: v[start:start + k] for name, v in cols.items()}
+        cmd = np.asarray(b.params.command.velocity, np.float64)
+        c.update(speed_cmd=cmd[:, 0], lateral_cmd=cmd[:, 1],
+                 yaw_rate_cmd=np.asarray(b.params.command.yaw_rate, np.float64),
+                 friction=np.asarray(b.terrain.friction, np.float64),
+                 payload=np.asarray(b.terrain.payload_mass, np.float64))
+        out[key] = c
+        start += k
+    return out
+
+
+def broad_table(rows: list[dict]) -> str:
+    out = [("| set | runs | falls [95 %] | fall reasons | worst yaw (deg) | yaw p95 (deg) | runs >= 4 deg | "
+            "mean abs speed error (m/s) | mean cost |"), "|---|---:|---:|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        ci = r["fall_rate_ci95"]
+        f = lambda x, d=2: "-" if x is None else f"{x:.{d}f}"  # noqa: E731
+        reasons = ", ".join(f"{k.replace('fell_', '')} {v}" for k, v in r["reasons"].items()) or "-"
+        out.append(f"| `{r['set']}` | {r['n']} | {r['failures']} [{100 * ci[0]:.2f}-{100 * ci[1]:.2f} %] | {reasons} | "
+                   f"{f(r['yaw_error_worst_deg'])} | {f(r['yaw_error_p95_deg'])} | {r['yaw_over_4deg']} | "
+                   f"{f(r.get('speed_error_mean_abs'), 3)} | {r['cost_mean']:.4f} |")
+    return "\n".join(out)
+
+
+def _deg(x) -> str:
+    return "-" if x is None else f"{x:.2f}"
+
+
+def target_of(rows: list[dict], name: str) -> dict:
+    """Issue 57's target for set ``name``: no fall and worst yaw < 4 deg at every low-friction, payload row."""
+    from hyqjax.bounding import envelope
+
+    low = [r for r in rows if r["set"] == name and r["condition"] != "nominal"]
+    falls = int(sum(r["failures"] for r in low))
+    worst = max((r["yaw_error_worst_deg"] for r in low if r["yaw_error_worst_deg"] is not None), default=None)
+    return dict(falls=falls, runs=int(sum(r["n"] for r in low)), per_command=[r["failures"] for r in low],
+                worst_yaw_deg=worst, met=bool(falls == 0 and worst is not None and worst < envelope.YAW_LIMIT_DEG))
+
+
+def main(argv=None) -> int:
+    args = parse(argv)
+    try:
+        check(args)
+    except Refused as e:
+        print(f"bounding_refine: {e}", file=sys.stderr)
+        return 2
+    from hyqjax.sim import backend
+    from hyqjax.studies import tasks
+
+    args.impl = backend.resolve_impl(args.impl, tasks.get("bound").impls)
+    args.chunk = args.chunk or args.popsize * (args.train_envelope + args.train_corners)
+    os.makedirs(args.out, exist_ok=True)
+    command = " ".join([PROG, *(sys.argv[1:] if argv is None else argv)])
+    run(args, command)
+    return 0
+
+
+def run(args, command: str) -> dict:
+    import jax
+
+    from hyqjax import presets
+    from hyqjax.bounding import envelope, robust
+    from hyqjax.bounding.params import params_of_values
+    from hyqjax.io import atomic
+
+    t_start = time.time()
+    out = args.out
+    path = os.path.join(out, "results.json")
+    cfg = {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(args).items() if k != "out"}
+    prov = dict(atomic.provenance(seed=args.seed), command=command)
+    device = str(jax.devices()[0].device_kind)
+    res = dict(config=cfg, provenance=prov, device=device, impl=args.impl)
+
+    def save():
+        atomic.write_json(path, res)
+
+    # ---- 1. training
+    space = robust.RobustSpace.make()
+    start_values = robust.load_params(args.start_preset)  # the names it sets; the others stay the paper's
+    start_params = presets.load(args.start_preset)
+    theta0 = space.theta_of(start_values)
+    back = space.describe(theta0)
+    res["space"] = dict(names=list(space.names), start=list(space.start),
+                        scale=[c[1] for c in robust.COORDS if c[0] in space.names],
+                        start_preset=args.start_preset, theta0=theta0.tolist(),
+                        theta0_roundtrip_max_abs=max(abs(back[k] - robust.value_of(start_params, k)) for k in back))
+    train, labels = training_batch(args)
+    n_train = len(labels)
+    corner = labels == "corners"
+    res["training"] = dict(instances=n_train, envelope=int((~corner).sum()), corners=int(corner.sum()),
+                           duration=args.train_duration, seed=args.seed, envelope_draw=ENVELOPE_TRAIN,
+                           corner_draw=dataclasses.asdict(train_draws(args)["corners+"]),
+                           corner_yaw_rate_magnitude=list(args.corner_yaw_rate), popsize=args.popsize,
+                           sigma=args.sigma, max_wall_s=args.max_wall, chunk=args.chunk)
+    save()
+    gens: list[dict] = []
+    t_cma = [None]
+
+    def f_pop(xs):
+        vals, cols = robust.population_cost(space, xs, train, args.train_duration, args.impl, max_batch=args.chunk)
+        c = xs.shape[0]
+        fell = ~np.asarray(cols["success"], bool).reshape(c, n_train)
+        cost = np.asarray(cols["cost"], np.float64).reshape(c, n_train)
+        i = int(np.argmin(np.where(np.isfinite(vals), vals, np.inf)))
+        fin = vals[np.isfinite(vals)]
+        gens.append(dict(wall_s=round(time.time() - t_cma[0], 3) if t_cma[0] else None,
+                         generation_best=float(vals[i]), generation_mean=float(np.mean(fin)) if fin.size else None,
+                         generation_median=float(np.median(fin)) if fin.size else None,
+                         best_falls=int(fell[i].sum()), best_falls_corners=int(fell[i][corner].sum()),
+                         population_falls=int(fell.sum()),
+                         best_cost_envelope=float(cost[i][~corner].mean()) if (~corner).any() else None,
+                         best_cost_corners=float(cost[i][corner].mean()) if corner.any() else None,
+                         diverged=int(np.sum(cols["diverged"]))))
+        return vals
+
+    # the start on the training batch (the population's shape: one compiled program; its compile is here)
+    t0 = time.time()
+    log(f"start {args.start_preset} on the training batch ({n_train} instances: {int((~corner).sum())} envelope, "
+        f"{int(corner.sum())} corners; x {args.popsize} copies, chunk {args.chunk}, impl {args.impl})")
+    f_pop(np.tile(theta0, (args.popsize, 1)))
+    start_rec = gens.pop()
+    start_rec.update(value=start_rec.pop("generation_best"), wall_s=round(time.time() - t0, 3))
+    for k in ("generation_mean", "generation_median", "population_falls"):
+        start_rec.pop(k)
+    res["training"]["start"] = start_rec
+    log(f"start: training cost {start_rec['value']:.4f}, falls {start_rec['best_falls']} of {n_train} "
+        f"({start_rec['best_falls_corners']} at the corners), {start_rec['wall_s']:.0f} s (compile included)")
+    save()
+
+    t_cma[0] = time.time()
+    out_c = robust.cma_es(f_pop, theta0, args.max_wall, args.popsize, args.sigma, args.seed,
+                          max_generations=args.max_generations,
+                          cost_per_candidate=robust.physics_steps(n_train, args.train_duration), log=log)
+    hist = []
+    for h, g in zip(out_c["history"], gens):
+        hist.append(dict(generation=h["generation"], wall_s=h["wall_s"], best=h["best"], **{
+            k: v for k, v in g.items() if k != "wall_s"}))
+    improved = out_c["value"] < start_rec["value"]
+    theta_ref = np.asarray(out_c["theta"]) if improved else theta0
+    theta_mean = np.asarray(out_c["mean"])
+    res["training"].update(generations=out_c["generations"], wall_s=out_c["wall_s"],
+                           physics_steps=out_c["budget_spent"], best_value=out_c["value"], improved=bool(improved),
+                           theta=theta_ref.tolist(), params=space.describe(theta_ref),
+                           mean_theta=theta_mean.tolist(), mean_params=space.describe(theta_mean), history=hist)
+    log(f"cma-es: {out_c['generations']} generations in {out_c['wall_s']:.0f} s, best {out_c['value']:.4f} "
+        f"(start {start_rec['value']:.4f}{'' if improved else ': no candidate beat the start, kept'})")
+    save()
+    for fname, th, what in (("params_refined.json", theta_ref, "best candidate on the training batch"),
+                            ("params_refined_mean.json", theta_mean, "CMA-ES's final mean")):
+        robust.save_params(os.path.join(out, fname), space.describe(th), dict(
+            method=f"CMA-ES (evosax) warm-started from preset {args.start_preset}, sigma {args.sigma:g}, popsize "
+                   f"{args.popsize}, impl {args.impl}: {what}",
+            command=command, seed=args.seed, heldout_seeds=[args.heldout_seed, args.broad_seed], device=device,
+            date=prov["date"], hyqjax=prov["hyqjax"], jax=prov["jax"], mujoco=prov["mujoco"],
+            mujoco_mjx=prov["mujoco_mjx"], generations=out_c["generations"], wall_s=round(out_c["wall_s"], 1),
+            training=dict(instances=n_train, envelope=int((~corner).sum()), corners=int(corner.sum()),
+                          duration=args.train_duration, corner_draw=res["training"]["corner_draw"],
+                          corner_yaw_rate_magnitude=list(args.corner_yaw_rate), envelope_draw=ENVELOPE_TRAIN),
+            results="results.json"))
+
+    # ---- 2. held-out, the same instances for every set
+    sets = {args.start_preset: start_params,
+            "refined": params_of_values(space.describe(theta_ref)),
+            "refined_mean": params_of_values(space.describe(theta_mean))}
+    t0 = time.time()
+    specs = heldout_specs(args)
+    bd = draw_of(BROAD_HELDOUT)
+    batches = {}
+    for i, (cond, spec) in enumerate(specs):
+        batches.update({(i, n): spec.batch(b) for n, b in sets.items()})
+    batches.update({("broad", n): bd.batch(args.broad, seed=args.broad_seed, base=b) for n, b in sets.items()})
+    total = sum(int(np.shape(b.apex0)[0]) for b in batches.values())
+    log(f"held-out: {len(sets)} sets x ({', '.join(str(s.size) for _, s in specs)} + {args.broad}) = {total} runs of "
+        f"{args.duration:g} s, chunks of {args.chunk}")
+    cols = run_sets(batches, args.duration, args.impl, args.chunk,
+                    progress=lambda d, t: log(f"held-out: {min(d, total)} of {total} runs done"))
+    rows = []
+    for i, (cond, spec) in enumerate(specs):
+        for n in sets:
+            for c in envelope.summarise(spec, cols[(i, n)]):
+                rows.append(dict(set=n, preset=n, condition=cond, friction=list(spec.friction),
+                                 payload=list(spec.payload), **c))
+    broad = []
+    for n in sets:
+        s = envelope.group_summary(cols[("broad", n)])
+        s.update(set=n, cost_mean=float(np.mean(cols[("broad", n)]["cost"])))
+        broad.append(s)
+    log(f"held-out: {total} runs in {time.time() - t0:.0f} s")
+    res["heldout"] = dict(
+        conditions=dict(seed=args.heldout_seed, instances=args.instances, duration=args.duration, rows=rows,
+                        specs=[dict(name=n, **s.to_dict()) for n, s in specs]),
+        broad=dict(seed=args.broad_seed, instances=args.broad, duration=args.duration, draw=BROAD_HELDOUT,
+                   sets=broad),
+        target={n: target_of(rows, n) for n in sets}, wall_s=time.time() - t0)
+    res["wall_s"] = time.time() - t_start
+    save()
+
+    from experiments import bounding_presets as bp
+
+    tg = res["heldout"]["target"]
+    lines = [f"# Bounding refinement at the fast corners ({device}, impl {args.impl}, {prov['date']})", "",
+             f"`{command}`", "",
+             (f"CMA-ES from `{args.start_preset}` (sigma {args.sigma:g}, popsize {args.popsize}): "
+              f"{out_c['generations']} generations in {out_c['wall_s']:.0f} s on {n_train} training instances "
+              f"({int((~corner).sum())} envelope, {int(corner.sum())} fast corners) x {args.train_duration:g} s, seed "
+              f"{args.seed}; training cost {start_rec['value']:.4f} -> {min(out_c['value'], start_rec['value']):.4f}."),
+             "", f"## Six conditions, seed {args.heldout_seed}, {args.instances} runs x {args.duration:g} s each", "",
+             bp.table(rows), "",
+             "Target (no fall and worst yaw < 4 deg at every low-friction, payload command): " + "; ".join(
+                 f"`{n}` {'met' if t['met'] else 'not met'} ({t['falls']} falls in {t['runs']}, worst yaw "
+                 f"{_deg(t['worst_yaw_deg'])} deg)"
+                 for n, t in tg.items()), "",
+             f"## Broad held-out envelope, seed {args.broad_seed}, {args.broad} runs x {args.duration:g} s", "",
+             broad_table(broad), "", f"Total wall-clock {res['wall_s']:.0f} s.", ""]
+    with open(os.path.join(out, "refine.md"), "w") as f:
+        f.write("\n".join(lines))
+    print("\n".join(lines))
+    log(f"done: {path}")
+    return res
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
