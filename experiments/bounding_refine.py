@@ -69,7 +69,7 @@ def parse(argv):
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/bounding_refine")
     ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
-    ap.add_argument("--start-preset", default="bound_robust", metavar="NAME", help="bounding preset to start from")
+    ap.add_argument("--start-preset", default="bound_robust_8s", metavar="NAME", help="bounding preset to start from")
     ap.add_argument("--seed", type=int, default=4242, help="training instances and CMA-ES seed (not a held-out seed)")
     # training
     ap.add_argument("--popsize", type=int, default=16, help="CMA-ES population")

@@ -212,6 +212,46 @@ def bound_presets_figs(preset: str) -> list[dict]:
                  unit="m/s", interval=None, **common)]
 
 
+BOUND_REFINE = f"{R}/bounding_refine_h200/results.json"
+
+
+def bound_refine_figs(set_name: str) -> list[dict]:
+    """Figures of ``set_name`` (``refined`` or the start preset) from the refinement run at the fast corners
+    (``experiments/bounding_refine.py``, stored in :data:`BOUND_REFINE`): falls and worst yaw error at friction
+    0.5-0.6 with 10 kg (the nominal command and the four corners of the command box, 1,024 runs each, seed 2911: the
+    instances of ``experiments.bounding_presets``), the speed error at the nominal command, and falls and worst yaw
+    on the broad held-out envelope (4,096 runs, seed 7777)."""
+    d = read(BOUND_REFINE)
+    h = d["heldout"]
+    prov = d["provenance"]
+    cmd = prov["command"].replace("/root/out/", "out/")
+    base = dict(command=cmd, device=f"{d['device']}, MuJoCo Warp", date=prov["date"][:10], source=BOUND_REFINE)
+    rows = [r for r in h["conditions"]["rows"] if r["set"] == set_name]
+    low = [r for r in rows if r["condition"] != "nominal"]
+    nom = next(r for r in rows if r["condition"] == "nominal")
+    cond = dict(base, heldout=(f"seed {h['conditions']['seed']}: the nominal command (0.5 m/s, 0.3 rad/s) and the "
+                               "corners of the command box (0 and 1.0 m/s x -0.8 and +0.8 rad/s) at friction 0.5-0.6 "
+                               f"with a 10 kg payload, {nom['n']:,} runs x {h['conditions']['duration']:g} s each"))
+    b = next(x for x in h["broad"]["sets"] if x["set"] == set_name)
+    dr = h["broad"]["draw"]
+    broad = dict(base, heldout=(f"{b['n']:,} runs x {h['broad']['duration']:g} s, seed {h['broad']['seed']}: speed "
+                                f"{dr['speed'][0]:g}-{dr['speed'][1]:g} m/s, yaw rate +-{dr['yaw_rate'][1]:g} rad/s, "
+                                f"friction {dr['friction'][0]:g}-{dr['friction'][1]:g}, payload "
+                                f"{dr['payload'][0]:g}-{dr['payload'][1]:g} kg"))
+    per = ", ".join(f"{r['failures']}" for r in low)
+    return [dict(what="runs that fall at friction 0.5-0.6, 10 kg (nominal command, then the four corners)",
+                 value=sum(r["failures"] for r in low), unit=f"of {sum(r['n'] for r in low):,} ({per})",
+                 interval=None, **cond),
+            dict(what="worst yaw error there", value=round(max(r["yaw_error_worst_deg"] for r in low), 2), unit="deg",
+                 interval=None, **cond),
+            dict(what="mean absolute speed error at the nominal command", value=round(nom["speed_error_mean_abs"], 3),
+                 unit="m/s", interval=None, **cond),
+            dict(what="falls, held-out bounding runs", value=b["failures"], unit=f"of {b['n']:,}", interval=None,
+                 **broad),
+            dict(what="worst yaw error, held-out bounding runs", value=round(b["yaw_error_worst_deg"], 2), unit="deg",
+                 interval=None, **broad)]
+
+
 def build() -> dict[str, dict]:
     import hyqjax
 
@@ -269,10 +309,15 @@ def build() -> dict[str, dict]:
                      "hyqjax/bounding/default_cycle.json, hand-set gains DEFAULT_GAINS)", seed=None,
              device=None, date=None, source="hyqjax/bounding/default_cycle.json, hyqjax/bounding/params.py"),
         bound_heldout_fig("default") + bound_presets_figs("bound_paper"))
+    refined = f"{R}/bounding_refine_h200/params_refined.json"
+    amp, gains, pr = bound_file(refined)
+    add("bound_robust", "bound", "bound_robust_8s refined by CMA-ES at the fast corners of the command box with low "
+        "friction and a payload; the default of `hyqjax bound`", dict(amplitudes=amp, gains=gains),
+        prov_of(read(BOUND_REFINE), refined, method=pr.get("method")), bound_refine_figs("refined"))
     amp, gains, p8 = bound_file(f"{R}/bounding_robust_h100_8s/params_cma_es.json")
     res8 = read(f"{R}/bounding_robust_h100_8s/results.json")
-    add("bound_robust", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
-        "the default of `hyqjax bound`", dict(amplitudes=amp, gains=gains),
+    add("bound_robust_8s", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
+        "bound_robust's start", dict(amplitudes=amp, gains=gains),
         prov_of(res8, f"{R}/bounding_robust_h100_8s/params_cma_es.json", method=p8.get("method")),
         bound_heldout_fig("cma_es") + bound_presets_figs("bound_robust"),
         aliases=("--params robust_8s",))

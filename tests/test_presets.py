@@ -2,7 +2,7 @@
 
 Fast lane: every preset loads into its parameter object; the files are what the stored results give
 (experiments/build_presets.py --check); every figure names its held-out set and its command; the presets the
-old spellings named are the same parameters (reach = the SNES run + the probe; robust_8s = bound_robust; --remedy
+old spellings named are the same parameters (reach = the SNES run + the probe; robust_8s = bound_robust_8s; --remedy
 = remedy; hyqjax bound's default = bound_robust); unknown, wrong-kind and out-of-range presets are refused in one
 line with exit status 2 and nothing written. Slow: a per-leg set with four equal rows runs bit for bit as its
 CrawlParams on C MuJoCo; every crawl preset runs a CPU batch; `hyqjax stepdown --preset tuned_per_leg` runs.
@@ -25,7 +25,7 @@ from hyqjax.crawl.scheduled import LEGS, PerLegCrawlParams, at_tick, common_stru
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NAMES = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "tuned_per_leg_cond", "bound_paper",
-         "bound_robust", "bound_robust_grad")
+         "bound_robust", "bound_robust_8s", "bound_robust_grad")
 N_CRAWL = 6
 
 
@@ -92,7 +92,11 @@ def test_every_figure_names_its_heldout_set_device_date_and_command():
     assert presets.get("reach").figures[0]["value"] == round(100 * h90["snes_reach_probe_deep"]) == 27
     assert presets.get("paper").figures[0]["value"] == round(100 * h90["default"])
     res = json.load(open(os.path.join(ROOT, "docs/results/bounding_robust_h100_8s/results.json")))
-    assert presets.get("bound_robust").figures[0]["value"] == res["heldout"]["methods"]["cma_es"]["failures"] == 0
+    assert presets.get("bound_robust_8s").figures[0]["value"] == res["heldout"]["methods"]["cma_es"]["failures"] == 0
+    ref = json.load(open(os.path.join(ROOT, "docs/results/bounding_refine_h200/results.json")))
+    assert ref["heldout"]["target"]["refined"]["met"]
+    assert presets.get("bound_robust").figures[0]["value"] == ref["heldout"]["target"]["refined"]["falls"] == 0
+    assert presets.get("bound_robust").figures[1]["value"] == round(ref["heldout"]["target"]["refined"]["worst_yaw_deg"], 2) < 4
     assert presets.get("bound_paper").figures[0]["value"] == res["heldout"]["methods"]["default"]["failures"]
 
 
@@ -125,7 +129,7 @@ def test_old_spellings_are_the_same_parameters():
             obj = row.reflex if hasattr(row.reflex, name) and not hasattr(row, name) else row
             assert float(np.asarray(getattr(obj, name))) == pytest.approx(want, rel=1e-5), key
     # bounding: robust_8s / robust are the presets; default_params is bound_robust; paper_params is bound_paper
-    for old, new in (("robust_8s", "bound_robust"), ("robust", "bound_robust_grad")):
+    for old, new in (("robust_8s", "bound_robust_8s"), ("robust", "bound_robust_grad")):
         assert _leaves_equal(rb.preset_params(old, speed=0.5), presets.load(new, speed=0.5))
     assert _leaves_equal(bp.default_params(speed=0.5, yaw_rate=0.3), presets.load("bound_robust", speed=0.5,
                                                                                    yaw_rate=0.3))
@@ -139,7 +143,7 @@ def test_bound_command_defaults_to_bound_robust_and_aliases_the_old_names(tmp_pa
 
     parser = cli.build_parser()
     for argv, want_preset in ((["bound"], "bound_robust"), (["bound", "--preset", "bound_paper"], "bound_paper"),
-                              (["bound", "--params", "robust_8s"], "bound_robust"),
+                              (["bound", "--params", "robust_8s"], "bound_robust_8s"),
                               (["bound", "--params", "robust"], "bound_robust_grad")):
         args = parser.parse_args(argv + ["--out", str(tmp_path / "b")])
         bound.check_options(args)
@@ -176,7 +180,7 @@ def test_per_leg_rows_and_tick_selection():
     (["stepdown", "--preset", "bound_robust"], "bound preset"),
     (["stepdown", "--remedy", "--preset", "reach"], "--remedy"),
     (["bound", "--preset", "reach"], "crawl preset"),
-    (["bound", "--preset", "fastest"], "bound_paper, bound_robust, bound_robust_grad"),
+    (["bound", "--preset", "fastest"], "bound_paper, bound_robust, bound_robust_8s, bound_robust_grad"),
     (["bound", "--params", "robust", "--preset", "bound_paper"], "bound_robust_grad"),
     (["sweep", "--preset", "bound_paper", "--dry-run"], "bound preset"),
     (["sweep", "--preset", "tuned_per_leg", "--grid", "reflex_k_base=1000,2000", "--dry-run"], "per leg"),

@@ -330,7 +330,8 @@ def default_params(speed=0.0, yaw_rate=0.0, lateral_speed=0.0, ramp_time=1.0, ki
                    centrifugal=True, apex_feedback=True, stance_feedback=True, gait: GaitParams | None = None,
                    cycle_amplitudes=None, cycle_apex=None, reference=None, **gain_overrides) -> BoundingParams:
     """The default bound: the preset :data:`DEFAULT_PRESET` (``bound_robust``: CMA-ES's impulse amplitudes and
-    gains optimised over commands, friction and payload, ``hyqjax presets bound_robust``) on the stored limit
+    gains optimised over commands, friction and payload, then refined at the fast corners of the command box with
+    low friction and a payload; ``hyqjax presets bound_robust``) on the stored limit
     cycle, and the command. Arguments as for :func:`paper_params`, whose gains are the paper's
     (``hyqjax.presets.load("bound_paper")``); ``cycle_amplitudes`` and gain keywords override the preset's."""
     from hyqjax.presets import registry

@@ -30,7 +30,8 @@ The optimised parameters are stored as JSON (:func:`save_params`, :func:`load_pa
 shipped with the package: ``"robust"`` is the gradient's result of the study on one H100 recorded in
 ``docs/bounding.md`` (``preset_params("robust", speed=0.8, yaw_rate=0.5)``; preset ``bound_robust_grad``),
 ``"robust_8s"`` CMA-ES's result of the study trained on 8 s rollouts, the one with no held-out fall (preset
-``bound_robust``, which :func:`hyqjax.bounding.params.default_params` runs); the study starts from and compares
+``bound_robust_8s``; refined at the fast corners of the command box by ``experiments.bounding_refine`` it is
+preset ``bound_robust``, which :func:`hyqjax.bounding.params.default_params` runs); the study starts from and compares
 with the paper's reference cycle and hand-set gains (:func:`hyqjax.bounding.params.paper_params`, preset
 ``bound_paper``).
 """
@@ -53,6 +54,7 @@ from hyqjax.bounding.params import BoundingGains, BoundingParams, paper_params, 
 from hyqjax.core.batching import vmap_unless_one
 from hyqjax.core.params import param_ranges
 from hyqjax.io import atomic
+from hyqjax.presets.registry import BOUND_ALIASES
 
 #: ``(name, scale s_i, lo, hi)``: the four amplitudes (N per leg) and the gains (units of
 #: :class:`hyqjax.bounding.params.BoundingGains`). ``lo, hi`` lie inside the declared ranges.
@@ -77,7 +79,7 @@ FORMAT = "hyqjax.bounding.robust/1"
 #: instances against 692 with the paper's gains. ``robust_8s``: CMA-ES's parameters of the same study trained on
 #: 8 s rollouts (2026-11-26; ``docs/results/bounding_robust_h100_8s/params_cma_es.json``): 0 falls in the same
 #: 4,096 held-out instances (the paper's gains: 708), worst yaw error 3.24 deg.
-PRESETS = {"robust": "bound_robust_grad", "robust_8s": "bound_robust"}
+PRESETS = BOUND_ALIASES
 
 
 @dataclasses.dataclass(frozen=True)

@@ -85,9 +85,13 @@ def names(kind: str | None = None) -> list[str]:
     return [n for n in order if kind is None or reg[n].kind == kind]
 
 
+#: The old names of the shipped bounding sets (``--params robust_8s``, ``hyqjax.bounding.robust.load_params("robust")``):
+#: aliases of bounding presets.
+BOUND_ALIASES = {"robust": "bound_robust_grad", "robust_8s": "bound_robust_8s"}
+
 #: Listing order: the paper's sets, then what beats them.
 ORDER = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "tuned_per_leg_cond", "bound_paper",
-         "bound_robust", "bound_robust_grad")
+         "bound_robust", "bound_robust_8s", "bound_robust_grad")
 
 
 def get(name: str, option: str = "preset") -> Preset:
