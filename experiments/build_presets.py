@@ -313,7 +313,10 @@ def build() -> dict[str, dict]:
     amp, gains, pr = bound_file(refined)
     add("bound_robust", "bound", "bound_robust_8s refined by CMA-ES at the fast corners of the command box with low "
         "friction and a payload; the default of `hyqjax bound`", dict(amplitudes=amp, gains=gains),
-        prov_of(read(BOUND_REFINE), refined, method=pr.get("method")), bound_refine_figs("refined"))
+        dict(prov_of(read(BOUND_REFINE), refined, method=pr.get("method"),
+                     start="bound_robust_8s (the preset's name was bound_robust until this run replaced it)"),
+             command=read(BOUND_REFINE)["provenance"]["command"].replace("/root/out/", "out/")),
+        bound_refine_figs("refined"))
     amp, gains, p8 = bound_file(f"{R}/bounding_robust_h100_8s/params_cma_es.json")
     res8 = read(f"{R}/bounding_robust_h100_8s/results.json")
     add("bound_robust_8s", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
