@@ -18,22 +18,19 @@ Writes ``OUT/results_ARMS.json`` (per seed and arm: the verdict, the tests, the 
 per arm, how many seeds were flagged (regressed, improved), and per cell of the planted arm the effect measured on
 all seeds' instances together (the pooled paired difference with Newcombe's interval): the effect "at scale".
 
-CPU, cut down (one height, reflex on, 20 seeds; measured on the loaded 2-core VM: 18 + 8 minutes per process with
-the seeds split over two processes, `--seed0 0` and `--seed0 10`):
+One H200 host (16 CPU cores; the GPU for MJX-JAX), the shipped CI spec (2 cells x 64 instances) over 20 seeds, every
+arm, in 7 minutes (2026-11-29; docs/ci.md has the table):
 
-    python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --reflex on --arms planted,unchanged
+    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted,unchanged,rounding --jobs 8 --cores-per-job 2
 
-One H200 (16 CPU cores: C MuJoCo steps a batch on every core; the GPU for MJX-JAX), the full CI spec (8 cells x
-16 instances) over 20 seeds, in four commands of a few minutes each (the later ones resume the first one's base
-stores; the last is the planted arm with 64 instances in the 24 cm reflex-on cell):
+CPU, cut down (one cell, 20 seeds; the 2-core VM: 8-18 minutes per 10 seeds):
 
-    python benchmarks/ci_gate_power.py --out out/ci_power --arms planted --jobs 2
-    python benchmarks/ci_gate_power.py --out out/ci_power --arms unchanged --jobs 2
-    python benchmarks/ci_gate_power.py --out out/ci_power --arms rounding
-    python benchmarks/ci_gate_power.py --out out/ci_power64 --samples 64 --heights 0.24 --reflex on --arms planted --jobs 2
+    python benchmarks/ci_gate_power.py --out out/ci_power --heights 0.24 --samples 16 --arms planted,unchanged
 
-The C arms run in ``--jobs`` worker processes on the CPU (``JAX_PLATFORMS=cpu``; default one, which already steps
-its batch on every core), the rounding arm in the main process (the GPU when there is one).
+The C arms run in ``--jobs`` worker processes on the CPU (``JAX_PLATFORMS=cpu``; a worker steps its batch on every
+core it may use: ``--cores-per-job`` gives each its own), the rounding arm in the main process (the GPU when there
+is one) while they run; its comparisons wait for their base stores. A rerun on the same ``--out`` resumes: complete
+stores are not simulated again.
 """
 from __future__ import annotations
 
