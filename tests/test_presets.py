@@ -285,7 +285,7 @@ def test_every_crawl_preset_runs_a_cpu_batch():
 @pytest.mark.slow
 def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     rc = cli.main(["stepdown", "--preset", "tuned_per_leg", "--instances", "1", "--impl", "c", "--heights", "0.16",
-                   "--reflex", "on", "--duration", "10", "--no-figures", "--out", str(tmp_path / "sd")])
+                   "--reflex", "on", "--duration", "10", "--out", str(tmp_path / "sd")])
     out = capsys.readouterr().out
     assert rc == 0
     res = json.load(open(tmp_path / "sd" / "results.json"))
@@ -294,6 +294,14 @@ def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     assert not res["instances"][0]["diverged"] and res["instances"][0]["progress"] > 0.1
     lines = out.rstrip().splitlines()
     assert lines[-1].startswith("wall ") and lines[-2].startswith("reaches further: --preset reach (h90 27 cm")
+    # ... and its recording renders as any other: one frame per 100 recorded samples of the 10 s run
+    from PIL import Image
+
+    gif = str(tmp_path / "sd.gif")
+    rc = cli.main(["render", str(tmp_path / "sd"), "--width", "48", "--height", "32", "--stride", "100", "--out", gif])
+    assert rc == 0, capsys.readouterr().err
+    with Image.open(gif) as im:
+        assert im.n_frames == 5 and im.size[0] == 48
 
 
 def test_per_leg_and_conditioned_tuning_runs_are_read_as_scheduled_sets(tmp_path):
