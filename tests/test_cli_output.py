@@ -10,7 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from hyqjax.cli import app, common
+from hyqjax.cli import app
+from hyqjax.cli import progress as cli_progress
 from hyqjax.sim import compile_phase
 from hyqjax.sim import runner as rn
 from hyqjax.studies import stepdown_duration as sdd
@@ -176,7 +177,7 @@ def test_progress_bar_ends_at_its_total_for_any_duration(capsys):
     """bound --duration 2.4 reported 0.8 s chunks whose float sum passes 2.4: no clamping warning, no overshoot."""
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        with common.sim_progress("bound: 2 instances", 2.4) as progress:
+        with cli_progress.sim_progress("bound: 2 instances", 2.4) as progress:
             done = 0.0
             for _ in range(3):
                 done += 0.8
@@ -187,7 +188,7 @@ def test_progress_bar_ends_at_its_total_for_any_duration(capsys):
 
 
 def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsys):
-    with common.compile_status("stepdown") as status:
+    with cli_progress.compile_status("stepdown") as status:
         for listener in list(compile_phase._LISTENERS):
             listener("start", dict(batch=8))
             listener("compile", dict(program="init"))
@@ -207,7 +208,7 @@ def test_compile_phase_is_announced_with_its_time_and_kept_out_of_the_rate(capsy
 def test_a_program_from_the_persistent_cache_is_not_called_a_compile(capsys):
     """A compile phase whose programs all came from the persistent compilation cache (the runner's "compiled" events
     say ``from_cache``) never shows the compiling label; its one line says the program was loaded."""
-    with common.compile_status("stepdown") as status:
+    with cli_progress.compile_status("stepdown") as status:
         for listener in list(compile_phase._LISTENERS):
             listener("start", dict(batch=32))
             for program in ("init", "advance"):
@@ -216,7 +217,7 @@ def test_a_program_from_the_persistent_cache_is_not_called_a_compile(capsys):
             listener("end", dict(batch=32, seconds=1.5, from_cache=True))
     err = capsys.readouterr().err
     assert compile_phase.COMPILE_LABEL not in err and "compiled in" not in err
-    assert "stepdown: " + common.PREPARE_LABEL in err
+    assert "stepdown: " + cli_progress.PREPARE_LABEL in err
     assert "stepdown: compiled program loaded from the cache in 1.5 s" in err
     assert status.compile_s == 1.5 and not status.compiling
 
@@ -226,11 +227,11 @@ def test_a_slow_compile_request_is_shown_as_compiling(capsys):
     to the compiling label while it runs."""
     import time
 
-    with common.compile_status("sweep") as status:
+    with cli_progress.compile_status("sweep") as status:
         listener = status
         listener("start", dict(batch=8))
         listener("compile", dict(program="advance"))
-        deadline = time.time() + 10 * common.COMPILE_AFTER_S
+        deadline = time.time() + 10 * cli_progress.COMPILE_AFTER_S
         while not status.compiling and time.time() < deadline:
             time.sleep(0.05)
         assert status.compiling

@@ -46,7 +46,7 @@ def test_the_process_clock_starts_before_this_module_was_imported():
 
 
 def test_compile_status_keeps_the_warp_kernel_build_out_of_compile_and_simulation(monkeypatch):
-    from hyqjax.cli.common import CompileStatus
+    from hyqjax.cli.progress import CompileStatus
 
     s = CompileStatus(disable=True)
     s("start", dict(batch=8))
@@ -61,7 +61,7 @@ def test_compile_status_keeps_the_warp_kernel_build_out_of_compile_and_simulatio
     text = s.throughput_text(8, 100)
     assert "simulating 6.5 s" in text and "compile 3.0 s, Warp kernel build 5.5 s" in text
     assert f"{8 * 100 / 6.5:,.0f} env-steps/s" in text
-    from hyqjax.cli.common import lap_batch_run
+    from hyqjax.cli.progress import lap_batch_run
     from hyqjax.sim import warp_kernels
 
     clock = phases.Clock(time.perf_counter() - 20.0)  # a 20 s lap: 5.5 kernels + 3 compile + 11.5 simulation

@@ -215,7 +215,7 @@ def run(args) -> int:
     rand = bbatch.Randomisation(friction=tuple(args.friction), payload=(0.0, args.payload))
     batch = bbatch.make_batch(params, seed=args.seed, rand=rand, push_force=args.push, push_time=args.push_time,
                               push_duration=args.push_duration, n_unique=n)
-    from hyqjax.cli.common import lap_batch_run, sim_progress
+    from hyqjax.cli.progress import lap_batch_run, sim_progress
     from hyqjax.io import phases, recording
 
     clock = phases.current()

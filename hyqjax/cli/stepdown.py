@@ -212,7 +212,8 @@ def run(args) -> int:
     import jax
     import numpy as np
 
-    from hyqjax.cli.common import import_during_batch_run, lap_batch_run, sim_progress, user_options
+    from hyqjax.cli.common import import_during_batch_run, user_options
+    from hyqjax.cli.progress import lap_batch_run, sim_progress
     from hyqjax.io import atomic as io
     from hyqjax.io import phases, recording
     from hyqjax.sim.compile_phase import compile_listener

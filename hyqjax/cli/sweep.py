@@ -346,7 +346,7 @@ def run(args) -> int:
         where = (f"{len(devs)} x {devs[0].platform} device(s) (ids {','.join(str(d.id) for d in devs)}), "
                  f"simulator {executor.impl}")
     print(f"{size}, {where}", flush=True)
-    from hyqjax.cli.common import compile_status, lap_batch_run
+    from hyqjax.cli.progress import compile_status, lap_batch_run
     from hyqjax.io import phases
 
     before = _done_chunks(args.out, spec)
