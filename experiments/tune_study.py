@@ -33,7 +33,7 @@ GRADIENT_STUDY_ONLY = dict(surrogate="closed_loop", steps=20, line_search=(0.125
 #: Options of the wall-clock modes that the gradient study refuses.
 WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
                   "train_spread", "contacts_from_distance", "state_every_s", "segment_minutes", "guided_alpha",
-                  "guided_subspace", "guided_lr", "guided_grad_every")
+                  "guided_subspace", "guided_lr", "guided_grad_every", "blend_gamma", "blend_lr")
 #: ``--guided-comparison``: the methods and parameterisations compared (each may be narrowed by --methods / --dims).
 GUIDED_COMPARISON = dict(methods=("guided_es", "cma_es", "snes"), dims=("per_leg", "per_leg_cond"))
 
@@ -122,6 +122,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--guided-lr", type=float, default=H["guided_lr"], help="guided ES: Adam learning rate of the mean")
     g.add_argument("--guided-grad-every", type=int, default=H["guided_grad_every"],
                    help="guided ES: a new surrogate gradient every N generations")
+    g.add_argument("--blend-gamma", type=float, default=H["blend_gamma"],
+                   help="blend: the bias the alpha-order blend may take, relative to the zero-order estimate's norm "
+                        "(Suh et al.'s gamma)")
+    g.add_argument("--blend-lr", type=float, default=H["blend_lr"], help="blend: Adam learning rate of the iterate")
     s = p.add_argument_group("the gradient study at equal physics budget (--gradient-study)")
     d = GRADIENT_STUDY_ONLY
     s.add_argument("--surrogate", default=d["surrogate"], choices=["closed_loop", "kinematic"],

@@ -115,6 +115,12 @@ class WallClockConfig:
     guided_lr: float = 0.05
     #: a new surrogate gradient (the tuning step's, on MJX-JAX) every this many generations
     guided_grad_every: int = 1
+    # the alpha-order blend (:func:`.blend.run_blend`)
+    #: the bias the blend may take, relative to the norm of the population's zero-order estimate (Suh et al.'s
+    #: gamma; the first-order samples are scaled to that norm)
+    blend_gamma: float = 2.0
+    #: Adam learning rate of the blend's iterate
+    blend_lr: float = 0.05
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -135,13 +141,21 @@ class WallClockConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        for m in ("open_es", "guided_es"):
+        for m in search.ANTITHETIC:
             if m in self.methods and self.popsize % 2:
                 raise ValueError(f"popsize must be even with {m} (it samples antithetic pairs), got {self.popsize}")
         if not 0.0 <= float(self.guided_alpha) <= 1.0:
             raise ValueError(f"guided_alpha must be in [0, 1], got {self.guided_alpha}")
         if not 0.0 < float(self.guided_lr) <= 1.0:
             raise ValueError(f"guided_lr must be in (0, 1], got {self.guided_lr}")
+        if not 0.0 < float(self.blend_gamma) <= 100.0:
+            raise ValueError(f"blend_gamma must be in (0, 100], got {self.blend_gamma}")
+        if not 0.0 < float(self.blend_lr) <= 1.0:
+            raise ValueError(f"blend_lr must be in (0, 1], got {self.blend_lr}")
+        restarting = [m for m in self.methods if m in search.RESTART_METHODS]
+        if restarting and not self.select_instances:
+            raise ValueError(f"select_instances must be > 0 with {restarting[0]}: its runs are compared on the "
+                             f"validation batch (the selection spans the restarts), got 0")
         for k, lo, hi in (("final_instances", 0, 10**6), ("final_candidates", 2, 16)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
