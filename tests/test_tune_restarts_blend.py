@@ -245,6 +245,11 @@ def test_restart_controller_follows_ipop_and_bipop():
     c = restarts.Controller("ipop", 10, 8, 0.5)
     reasons = [c.observe(np.arange(8.0) + (i % 2), 1.0, 1.0, 1.0, True, 1.0) for i in range(159)]
     assert reasons[-1] == "stagnation" and set(reasons[:-1]) == {None}
+    # the tuner's shorter stagnation length (and h capped by it)
+    c = restarts.Controller("ipop", 10, 8, 0.5, stall_generations=5)
+    assert c.lengths() == (5, 5)
+    reasons = [c.observe(np.arange(8.0) + (i % 2), 1.0, 1.0, 1.0, True, 1.0) for i in range(6)]
+    assert reasons == [None] * 5 + ["stagnation"]
 
 
 def test_a_larger_population_runs_in_chunks_of_the_first_batch_shape():
@@ -331,3 +336,85 @@ def test_a_resume_with_other_settings_is_refused(tmp_path, capsys):
         assert tune_study.main(base + change) == 2
         lines = capsys.readouterr().err.strip().splitlines()
         assert len(lines) == 1 and "another configuration" in lines[0], lines
+
+
+# ------------------------------------------------------------------ tiny closed-loop runs (CPU, slow)
+
+TINY = ["--impl", "c", "--dims", "shared", "--popsize", "4", "--train-instances", "4", "--heldout", "4",
+        "--heldout-chunk", "1", "--train-duration", "0.5", "--heldout-duration", "1", "--window-ticks", "20",
+        "--train-per-height", "1", "--lead", "4", "--select-instances", "12", "--select-every", "1",
+        "--no-compile-charge", "--state-every-s", "0"]
+
+
+@pytest.mark.slow
+def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
+    """IPOP-CMA-ES through the tuner's study command on the CPU (C MuJoCo, 0.5 s runs), its process killed
+    (SIGKILL) in the middle of its budget once its state is stored: the same command goes on from the stored state
+    (generations continuing without a gap or a repeat, its clock from the stored seconds, every row with its run,
+    regime and population) and completes with the held-out evaluation."""
+    import os
+    import time
+
+    from conftest import start_python
+    from experiments import tune_study
+
+    out = tmp_path / "k"
+    argv = ["--out", str(out), "--methods", "ipop_cma_es", "--wall-minutes", "0.4"] + TINY
+    proc = start_python(f"from experiments import tune_study; tune_study.main({argv!r})")
+    part = out / "partial" / "ipop_cma_es__shared.json"
+    t0 = time.time()
+    try:
+        while time.time() - t0 < 240 and proc.poll() is None:
+            if part.exists() and time.time() - os.path.getmtime(part) < 5 and part.stat().st_size > 0:
+                state = json.loads(json.loads(part.read_text())["payload"])
+                if len(state["state"]["trace"]["log"]) >= 3:
+                    break
+            time.sleep(0.2)
+        assert proc.poll() is None, proc.communicate()[1][-2000:]
+    finally:
+        proc.kill()
+        proc.communicate()
+    assert part.exists()
+    if (out / "results.json").exists():
+        assert "ipop_cma_es/shared" not in json.loads((out / "results.json").read_text()).get("runs", {})
+    stored = resume.unpack(json.loads(json.loads(part.read_text())["payload"])["state"])
+    n_before, t_stop = len(stored["trace"]["log"]), stored["clock"]["elapsed"]
+    assert stored["method"]["ctl"]["s"]["popsize"] == 4 and 0 < t_stop < 24.0
+    assert tune_study.main(argv) == 0
+    assert "resuming at" in capsys.readouterr().out
+    res = json.loads((out / "results.json").read_text())
+    run = res["runs"]["ipop_cma_es/shared"]
+    assert res["complete"] and run["segments"] == 2 and not part.exists()
+    log = run["log"]
+    assert [r["generation"] for r in log] == list(range(len(log))) and len(log) > n_before
+    assert log[:n_before] == json.loads(json.dumps(stored["trace"]["log"])) and log[n_before]["wall_s"] >= t_stop
+    assert all(r["run"] == 0 and r["regime"] == "first" and r["popsize"] == 4 for r in log)
+    assert restarts.summary(log)["runs"][0]["generations"] == len(log)
+    from hyqjax.studies.tune.wallclock_results import member_key
+
+    assert res["heldout"][member_key("ipop_cma_es", "shared", 24.0)]["n"] == 4
+
+
+@pytest.mark.slow
+def test_blend_on_the_step_down_logs_alpha_variances_and_cosine(tmp_path):
+    """The blend through the tuner's study command on the CPU (C MuJoCo forward runs, the window gradient by jacfwd
+    through MJX-JAX): every step's row carries the surrogate's windows and either the alpha-order diagnostics
+    (alpha in [0, 1], finite variances, a cosine in [-1, 1]) or, where every antithetic pair tied (a population
+    that measured no gradient, frequent at this size), alpha undefined and no step; the run is held out like any
+    other method. (Slow: the MJX-JAX gradient programs compile for about a minute on a CPU.)"""
+    from experiments import tune_study
+
+    out = tmp_path / "b"
+    assert tune_study.main(["--out", str(out), "--methods", "blend", "--wall-minutes", "0.3"] + TINY) == 0
+    res = json.loads((out / "results.json").read_text())
+    run = res["runs"]["blend/shared"]
+    rows = run["log"]
+    assert rows and all(r["windows"] >= 1 for r in rows)
+    for r in rows:
+        if r["pairs_differing"]:
+            assert 0.0 <= r["alpha"] <= 1.0 and r["var0"] >= 0 and r["var1"] >= 0 and -1.0 <= r["cos"] <= 1.0
+        else:
+            assert r["alpha"] is None and r["var0"] == 0.0  # NaN, stored as null
+    from hyqjax.studies.tune.wallclock_results import member_key
+
+    assert run["physics_steps"] > 0 and res["heldout"][member_key("blend", "shared", 18.0)]["n"] == 4

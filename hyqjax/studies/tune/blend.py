@@ -137,7 +137,11 @@ def run_blend(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: f
             n0 = float(np.linalg.norm(g0_mean))
             scale = n0 / n1 if n1 > 0 else 0.0
             gam = float(gamma) * n0
-        if g1s.shape[0]:
+        if relative and not np.any(g0_mean):  # every pair tied: the population measured no gradient, and the
+            # surrogate's scale and the guard are undefined; no step (alpha recorded as undefined)
+            b = dict(grad=np.zeros_like(g0_mean), alpha=float("nan"), alpha_var=float("nan"), var1=float("nan"),
+                     var0=0.0, eps=0.0, bias=float("nan"), cos=float("nan"), guard=False)
+        elif g1s.shape[0]:
             b = alpha_order(scale * g1s, g0s, gam)
         else:  # no valid window: the zeroth-order estimate alone
             _, v0 = _mean_var(g0s)

@@ -18,6 +18,9 @@ GUIDED_METHODS = ("guided_es",)
 #: zeroth-order estimate, Adam on the blend (:func:`hyqjax.studies.tune.blend.run_blend`).
 BLEND_METHODS = ("blend",)
 METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
+#: The methods of the equal-wall-clock study when none are named (``python -m experiments.tune_study``): those
+#: every stored study ran; the restart rules and the blend run when named (``--methods``).
+STUDY_METHODS = ("cma_es", "snes", "open_es", "random_search") + GRADIENT_METHODS + GUIDED_METHODS
 #: Methods that build the gradient's programs (snapshot windows and the tuning step on MJX-JAX).
 USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
 #: Methods that sample antithetic pairs (an even --popsize).

@@ -20,6 +20,12 @@ ceil(30 P / lambda)``, Hansen's stagnation length):
   fitness (an analytic objective);
 * ``non_finite``: the mean or the covariance left the floats (a numerical breakdown ends the run, not the search).
 
+``stall_generations`` replaces ``G`` (and caps ``h``): the papers' lengths are made for cheap functions, and on the
+closed-loop tuner they exceed its whole budget (56 coordinates, population 16: ``h = 115``, ``G = 225`` generations,
+while CMA-ES ran 51 generations in 10 minutes on one H200, ``docs/results/tune_cells_h200_10min/cma_es_per_leg``), so
+with them the restart methods would be CMA-ES itself. The tuner's default is 25 generations (five validations
+without a better validated score, at one validation every 5 generations); ``0`` takes the papers' lengths.
+
 **What the next run is.** IPOP: the population doubles at every restart (``lambda_0 2^k``, at most
 ``max_popsize``), ``sigma_0`` as at the start. BIPOP: after the first run (default population), each restart runs
 in the regime that has spent less of the budget so far, the first restart in the large one: the *large* regime
@@ -79,12 +85,14 @@ class Controller:
     run stops and why, and draws the next run's population size and step size (:meth:`next_run`)."""
 
     def __init__(self, kind: str, size: int, popsize: int, sigma: float, seed: int = 0, tol_fun: float = 1e-12,
-                 tol_x: float = 1e-12, max_condition: float = 1e14, max_popsize: int = 4096):
+                 tol_x: float = 1e-12, max_condition: float = 1e14, max_popsize: int = 4096, stall_generations: int = 0):
         if kind not in KINDS:
             raise ValueError(f"kind must be one of {list(KINDS)}, got {kind!r}")
         self.kind, self.size, self.popsize0, self.sigma0 = kind, int(size), int(popsize), float(sigma)
         self.tol_fun, self.tol_x, self.max_condition = float(tol_fun), float(tol_x), float(max_condition)
         self.max_popsize = int(max(max_popsize, popsize))
+        #: generations without improvement that end a run (0: the papers' ``G``; ``h`` is then at most this too)
+        self.stall_generations = int(stall_generations)
         self.rng = np.random.default_rng([int(seed), 0x1905])
         self.s = dict(run=0, popsize=int(popsize), sigma=float(sigma), regime="first", large_runs=0,
                       last_large=int(popsize), budget=dict(large=0.0, small=0.0), run_cost=0.0, gens=0,
@@ -113,12 +121,12 @@ class Controller:
         s["gens"] += 1
         s["run_cost"] += float(cost)
         fit = np.asarray(fitness, np.float64)
-        s["best_hist"] = (s["best_hist"] + [float(np.max(fit))])[-history(self.size, self.popsize):]
+        h, g = self.lengths()
+        s["best_hist"] = (s["best_hist"] + [float(np.max(fit))])[-h:]
         if s["best"] is None or score > s["best"]:
             s["best"], s["since"] = float(score), 0
         else:
             s["since"] += 1
-        h = history(self.size, self.popsize)
         if not finite:
             return "non_finite"
         if len(s["best_hist"]) >= h and (max(max(s["best_hist"]), fit.max()) - min(min(s["best_hist"]), fit.min())
@@ -128,9 +136,18 @@ class Controller:
             return "tol_x"
         if condition > self.max_condition:
             return "condition"
-        if s["since"] >= stall(self.size, self.popsize):
+        if s["since"] >= g:
             return "stagnation"
         return None
+
+    def lengths(self) -> tuple[int, int]:
+        """``(h, G)`` of the current run: the papers' lengths, or with ``stall_generations`` that many for ``G`` and
+        at most that many for ``h``."""
+        h, g = history(self.size, self.popsize), stall(self.size, self.popsize)
+        if self.stall_generations:
+            g = self.stall_generations
+            h = min(h, g)
+        return h, g
 
     def next_run(self, reason: str) -> tuple[int, float]:
         """End the current run (``reason``) and start the next: its population size and step size."""

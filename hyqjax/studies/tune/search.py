@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hyqjax.studies.tune.names import (ANTITHETIC, BLEND_METHODS, GRADIENT_METHODS, GUIDED_METHODS, METHODS,  # noqa: F401
-                                       RESTART_METHODS, SEARCH_METHODS, USES_GRADIENT)
+                                       RESTART_METHODS, SEARCH_METHODS, STUDY_METHODS, USES_GRADIENT)
 from hyqjax.studies.tune.resume import tree_like
 
 
@@ -323,16 +323,18 @@ def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float 
 
 def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
                seed: int = 0, generation0: int = 0, progress: Callable | None = None, stop_at: float | None = None,
-               resume: dict | None = None, checkpoint: Callable | None = None):
+               resume: dict | None = None, checkpoint: Callable | None = None, restart_stall: int = 0):
     """Maximise ``f_gen(thetas (N, P), generation) -> dict(fitness (N,), clean, completed, physics_steps)`` with
     ``method`` until ``clock`` passes ``stop_at`` (default the last checkpoint). Returns the final iterate.
     ``checkpoint(state_fn)`` is called after every generation; ``state_fn()`` is the method's state then, which
-    ``resume`` takes back (:mod:`.resume`; the clock and trace are the caller's)."""
+    ``resume`` takes back (:mod:`.resume`; the clock and trace are the caller's). ``restart_stall``: the restart
+    methods' stagnation length (:class:`.restarts.Controller`'s ``stall_generations``)."""
     if method in RESTART_METHODS:
         from hyqjax.studies.tune import restarts
 
         return restarts.run_restarts(method, f_gen, theta0, popsize, sigma, clock, trace, seed=seed,
-                                     progress=progress, stop_at=stop_at, resume=resume, checkpoint=checkpoint)
+                                     progress=progress, stop_at=stop_at, resume=resume, checkpoint=checkpoint,
+                                     stall_generations=restart_stall)
     theta0 = np.asarray(theta0, np.float64)
     stop_at = trace.checkpoints[-1] if stop_at is None else stop_at
     key = jax.random.key(seed)

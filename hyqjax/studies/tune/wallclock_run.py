@@ -215,7 +215,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
         return
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                          progress=progress, resume=state, checkpoint=hook(phase))
+                          progress=progress, resume=state, checkpoint=hook(phase), restart_stall=cfg.restart_stall)
         return
     theta_start = theta0
     if method == "hybrid" and phase["name"] == "search":
