@@ -8,35 +8,13 @@ import math
 
 import numpy as np
 import pytest
-from scipy.stats import norm
 
 from hyqjax.studies.tune import blend, restarts, resume, search
+from hyqjax.studies.tune.study import analytic
 
 
-class _EvalClock:
-    """A method's clock that advances by one per evaluated row (equal evaluations = equal budget)."""
-
-    def __init__(self):
-        self.now, self.charged, self.physics_steps = 0.0, 0.0, 0
-
-    def elapsed(self):
-        return self.now + self.charged
-
-    def state(self):
-        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=self.physics_steps)
-
-    def restore(self, st):
-        self.now, self.charged, self.physics_steps = st["elapsed"] - st["charged"], st["charged"], st["physics_steps"]
-
-    def paused(self):
-        import contextlib
-
-        return contextlib.nullcontext()
-
-
-def _rows(th, f):
-    z = np.zeros((th.shape[0], 1))
-    return dict(fitness=-f, clean=z, completed=z, physics_steps=th.shape[0])
+_EvalClock, _rows, _rastrigin = analytic.EvalClock, analytic.rows, analytic.rastrigin
+P, SIG = analytic.P, analytic.SIG
 
 
 # ------------------------------------------------------------------ the alpha-order estimator
@@ -63,69 +41,20 @@ def test_alpha_order_weights_by_inverse_variance_and_guards_the_bias():
     assert blend.alpha_order(g1s, g0s, gamma=0.5 * b["eps"])["alpha"] == 0.0
 
 
-P, SIG, A = 5, 0.2, 0.5
-
-
-def _problem(step: float, smooth: bool):
-    """``f(x) = |x - a|^2 / 2 (+ 0.3 sum sin 3x) + step 1[x_0 > 0]``: its pathwise gradient does not see the step."""
-    def f(x):
-        x = np.atleast_2d(x)
-        v = 0.5 * np.sum((x - A) ** 2, -1) + (0.3 * np.sum(np.sin(3 * x), -1) if smooth else 0.0)
-        return v + step * (x[:, 0] > 0)
-
-    def df(x):
-        return (x - A) + (0.9 * np.cos(3 * x) if smooth else 0.0)
-
-    return f, df
-
-
-def _blend_run(step, smooth, x0, steps=60, seed=0, **kw):
-    f, df = _problem(step, smooth)
-    rng = np.random.default_rng(seed + 1)
-    clk = _EvalClock()
-
-    def f_gen(th, g):
-        clk.now += th.shape[0]
-        return _rows(th, f(th))
-
-    def grad_fn(th):  # Suh's first-order samples: the pathwise gradient at theta + w_i
-        return dict(per_window_grad=df(th[None] + SIG * rng.standard_normal((16, P))), ok=np.ones(16, bool), loss=0.0)
-
-    tr = search.Trace((1e12,), x0)
-    th = blend.run_blend(f_gen, grad_fn, x0, 1024, SIG, clk, tr, seed=seed, lr=0.05, gamma=3.0, relative=False,
-                         generations=steps, **kw)
-    return th, tr, grad_fn
-
-
-def _smoothed(step, x):
-    """``F(x) = E f(x + w)``, ``w ~ N(0, SIG^2 I)``, of the non-smooth problem, exactly."""
-    return 0.5 * np.sum((x - A) ** 2) + 0.5 * P * SIG**2 + step * norm.cdf(x[0] / SIG)
-
-
 def test_blend_alpha_falls_at_a_hidden_step_and_beats_the_first_order_gradient():
     """A step of height 10 at ``x_0 = 0`` in a quadratic whose minimum (``x_0 = 0.5``) lies past it: the pathwise
     gradient does not see the step and leads over it; the zeroth-order estimate of the smoothed objective does.
     At the step the bias guard drives alpha to 0 (the first-order mean is far outside the zeroth-order confidence
     radius), and the blend ends on the step's low side with a smoothed objective far below the first-order
     gradient's (Adam, same learning rate and steps, same first-order samples)."""
-    import optax
-
     x0 = np.full(P, 0.1)
-    th, tr, _ = _blend_run(10.0, False, x0)
-    alphas = [r["alpha"] for r in tr.log]
-    assert max(alphas[:5]) < 0.05 and all(r["guard"] for r in tr.log[:5])
-    assert all(r["bias"] > 3 * r["eps"] for r in tr.log[:5])
-    # the first-order gradient alone
-    _, df = _problem(10.0, False)
-    rng = np.random.default_rng(1)
-    opt = optax.adam(0.05)
-    x, st = x0.copy(), opt.init(x0)
-    for _ in range(60):
-        g = df(x[None] + SIG * rng.standard_normal((16, P))).mean(0)
-        u, st = opt.update(g, st)
-        x = x + np.asarray(u)
+    th, log = analytic.blend_run(10.0, False, x0)
+    alphas = [r["alpha"] for r in log]
+    assert max(alphas[:5]) < 0.05 and all(r["guard"] for r in log[:5])
+    assert all(r["bias"] > 3 * r["eps"] for r in log[:5])
+    x = analytic.first_order_run(10.0, False, x0)  # the first-order gradient alone
     assert x[0] > 0.3 and th[0] < -0.2
-    assert _smoothed(10.0, th) < _smoothed(10.0, x) - 5.0
+    assert analytic.smoothed_step(10.0, th) < analytic.smoothed_step(10.0, x) - 5.0
 
 
 def test_blend_alpha_goes_towards_one_on_a_smooth_function():
@@ -133,12 +62,12 @@ def test_blend_alpha_goes_towards_one_on_a_smooth_function():
     zeroth-order noise), and the pathwise samples are the less noisy ones: alpha follows the variances, near 1 while
     the gradient is large (far from the minimum; near it the antithetic pairs of a nearly quadratic function become
     noise-free and alpha falls, as inverse-variance weighting says it should)."""
-    th, tr, _ = _blend_run(0.0, True, np.full(P, 2.5), steps=20)
-    first = tr.log[:10]
+    th, log = analytic.blend_run(0.0, True, np.full(P, 2.5), steps=20)
+    first = log[:10]
     assert np.median([r["alpha"] for r in first]) > 0.9
     assert all(r["cos"] > 0.8 and r["var1"] < r["var0"] for r in first)
     assert not any(r["guard"] for r in first)
-    f, _ = _problem(0.0, True)
+    f, _ = analytic.problem(0.0, True)
     assert f(th)[0] < f(np.full(P, 2.5))[0] - 2.0
 
 
@@ -164,18 +93,13 @@ def _stoppable(run, stop_at=None, stored=None):
     return tr, None
 
 
-def _rastrigin(x):
-    x = np.atleast_2d(x)
-    return 10 * x.shape[-1] + np.sum(x**2 - 10 * np.cos(2 * np.pi * x), -1)
-
-
 @pytest.mark.parametrize("method", ["blend", pytest.param("ipop_cma_es", marks=pytest.mark.slow),
                                     pytest.param("bipop_cma_es", marks=pytest.mark.slow)])
 def test_a_stopped_run_resumes_exactly(method):
     """Blend, IPOP and BIPOP stopped mid-budget (for the restart rules: after their first restart, in the middle of
     a later run) and resumed from their stored state take the same iterates and restarts as the uninterrupted
     run. (The restart rules are slow: evosax's CMA-ES compiles once per population size, a few seconds here.)"""
-    f, df = _problem(0.0, True)
+    f, df = analytic.problem(0.0, True)
 
     def run(clk, tr, state, checkpoint):
         if method == "blend":
@@ -274,27 +198,13 @@ def test_ipop_and_bipop_reach_lower_minima_than_cma_es_on_rastrigin():
     = 2, 20,000 evaluations each, four seeds: IPOP and BIPOP reach a lower minimum than plain CMA-ES (evosax, same
     first population of 10, which converges to a local minimum and cannot use the rest of its budget) on at least
     three of the four seeds, and lower on average."""
-    def best(method, seed):
-        clk, low = _EvalClock(), [math.inf]
-
-        def f_gen(th, g):
-            clk.now += th.shape[0]
-            f = _rastrigin(th)
-            low[0] = min(low[0], float(f.min()))
-            return _rows(th, f)
-
-        x0 = np.random.default_rng(seed).uniform(-4, 4, 10)
-        tr = search.Trace((20000.0,), x0)
-        try:
-            search.run_search(method, f_gen, x0, 10, 2.0, clk, tr, seed=seed)
-        except FloatingPointError:  # plain CMA-ES converged until its float32 step size underflowed
-            pass
-        return low[0]
-
-    res = {m: [best(m, s) for s in range(4)] for m in ("cma_es", "ipop_cma_es", "bipop_cma_es")}
+    rc = analytic.restart_comparison(seeds=(0, 1, 2, 3), dim=10, evaluations=20000, popsize=10, sigma=2.0)
+    cma = [rc["runs"]["cma_es"][s]["lowest"] for s in range(4)]
     for m in ("ipop_cma_es", "bipop_cma_es"):
-        wins = sum(a < b for a, b in zip(res[m], res["cma_es"]))
-        assert wins >= 3 and np.mean(res[m]) < np.mean(res["cma_es"]), res
+        low = [rc["runs"][m][s]["lowest"] for s in range(4)]
+        assert rc["summary"][m]["below_cma_es"] >= 3 and np.mean(low) < np.mean(cma), rc["summary"]
+        assert all(len(rc["runs"][m][s]["restarts"]) >= 1 for s in range(4))
+    assert all(rc["runs"][m][s]["evaluations"] <= 20000 + 400 for m in rc["runs"] for s in range(4))
 
 
 # ------------------------------------------------------------------ the tuner's settings
