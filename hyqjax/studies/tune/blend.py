@@ -37,7 +37,10 @@ first-order samples are scaled by one number per step so that their mean has the
 (``scale = |g0| / |g1|``); the blend then weighs directions, and with equal norms the bias guard is a test of the
 angle between them against the zeroth-order noise (``|g1 - g0| = |g0| sqrt(2 - 2 cos)``). ``gamma`` is given
 relative to ``|g0|`` for the same reason (``gamma_rel = 2``: with a population whose estimate is all noise,
-``eps ~ 1.96 |g0|``, the surrogate gets almost no weight). Every step's log row holds ``alpha``, ``alpha_var``,
+``eps ~ 1.96 |g0|``, the surrogate gets almost no weight). A step whose antithetic pairs all tied (every member
+scored alike, frequent with small training batches of a success rate) measured no gradient: no step, alpha
+undefined (NaN, null in ``results.json``). With a single valid window the first-order variance is not measured
+(0), so alpha is decided by the guard alone. Every step's log row holds ``alpha``, ``alpha_var``,
 both variances, ``eps``, the bias ``|g1 - g0|``, the scale and the cosine between ``g1`` and ``g0``.
 """
 from __future__ import annotations
