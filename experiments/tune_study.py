@@ -33,7 +33,8 @@ GRADIENT_STUDY_ONLY = dict(surrogate="closed_loop", steps=20, line_search=(0.125
 #: Options of the wall-clock modes that the gradient study refuses.
 WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
                   "train_spread", "contacts_from_distance", "state_every_s", "segment_minutes", "guided_alpha",
-                  "guided_subspace", "guided_lr", "guided_grad_every")
+                  "guided_subspace", "guided_lr", "guided_grad_every", "blend_gamma", "blend_lr",
+                  "restart_stall")
 #: ``--guided-comparison``: the methods and parameterisations compared (each may be narrowed by --methods / --dims).
 GUIDED_COMPARISON = dict(methods=("guided_es", "cma_es", "snes"), dims=("per_leg", "per_leg_cond"))
 
@@ -122,6 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--guided-lr", type=float, default=H["guided_lr"], help="guided ES: Adam learning rate of the mean")
     g.add_argument("--guided-grad-every", type=int, default=H["guided_grad_every"],
                    help="guided ES: a new surrogate gradient every N generations")
+    g.add_argument("--blend-gamma", type=float, default=H["blend_gamma"],
+                   help="blend: the bias the alpha-order blend may take, relative to the zero-order estimate's norm "
+                        "(Suh et al.'s gamma)")
+    g.add_argument("--blend-lr", type=float, default=H["blend_lr"], help="blend: Adam learning rate of the iterate")
+    g.add_argument("--restart-stall", type=int, default=H["restart_stall"],
+                   help="ipop_cma_es / bipop_cma_es: generations without a better validated score that end a run "
+                        "(0: the papers' lengths)")
     s = p.add_argument_group("the gradient study at equal physics budget (--gradient-study)")
     d = GRADIENT_STUDY_ONLY
     s.add_argument("--surrogate", default=d["surrogate"], choices=["closed_loop", "kinematic"],
@@ -323,8 +331,11 @@ def _run_comparison(args) -> int:
     comp = guided_report.compare(results, args.comparison[0][2].wall_minutes[-1])
     path = os.path.join(out, "comparison.json")
     write_json(path, comp)
-    print(guided_report.markdown(comp))
-    print(f"wrote {path} ({len(results)} seeds: {', '.join(map(str, sorted(results)))})")
+    table = guided_report.markdown(comp)
+    with open(os.path.join(out, "comparison.md"), "w") as f:
+        f.write(table + "\n")
+    print(table)
+    print(f"wrote {path} and comparison.md ({len(results)} seeds: {', '.join(map(str, sorted(results)))})")
     return 0
 
 

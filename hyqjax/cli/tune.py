@@ -54,6 +54,7 @@ HIDDEN = dict(
     train_spread=None, train_heights=None, paper_crawl=False, lr=0.1, train_per_height=2, windows_per_scenario=2,
     lead=10.0, window_ticks=None, sigma=None, heldout_seed=7777, heldout_duration=24.0, select_instances=None,
     select_every=5, train_instances=32, guided_alpha=0.5, guided_subspace=1, guided_lr=0.05, guided_grad_every=1,
+    blend_gamma=2.0, blend_lr=0.05, restart_stall=25,
 )
 
 
@@ -143,7 +144,7 @@ def validate_wallclock(args) -> None:
     if list(wm) != sorted(set(wm)):
         raise UsageError(f"--wall-minutes must be increasing, got {' '.join(f'{x:g}' for x in wm)}")
     if args.study:
-        methods = args.methods if args.methods is not None else names.METHODS
+        methods = args.methods if args.methods is not None else names.STUDY_METHODS
         dims = args.dims if args.dims is not None else ("shared", "per_leg_cond")
     else:
         methods = args.methods if args.methods is not None else (names.DEFAULT_METHOD,)
@@ -162,6 +163,9 @@ def validate_wallclock(args) -> None:
     check_range("--guided-subspace", args.guided_subspace, 1, 64, integer=True)
     check_range("--guided-lr", args.guided_lr, 0.0, 1.0, lo_open=True)
     check_range("--guided-grad-every", args.guided_grad_every, 1, 10**4, integer=True)
+    check_range("--blend-gamma", args.blend_gamma, 0.0, 100.0, lo_open=True)
+    check_range("--blend-lr", args.blend_lr, 0.0, 1.0, lo_open=True)
+    check_range("--restart-stall", args.restart_stall, 0, 10**5, integer=True)
     check_range("--train-instances", args.train_instances, 4, 100000, integer=True)
     if args.train_instances % 4:
         raise UsageError(f"--train-instances must be a multiple of 4 (one share per training height), "
@@ -224,7 +228,9 @@ def validate_wallclock(args) -> None:
             contacts_from_distance=args.contacts_from_distance,
             train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             guided_alpha=args.guided_alpha, guided_subspace=args.guided_subspace, guided_lr=args.guided_lr,
-            guided_grad_every=args.guided_grad_every, start_preset=preset, final_instances=args.final_instances,
+            guided_grad_every=args.guided_grad_every, blend_gamma=args.blend_gamma, blend_lr=args.blend_lr,
+            restart_stall=args.restart_stall,
+            start_preset=preset, final_instances=args.final_instances,
             start_from=_start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:
         msg = str(e)

@@ -81,6 +81,22 @@ def run(args) -> int:
                 line += (f"; cosine with the search direction: median {c['cos_search']['median']:+.3f} (first third "
                          f"{c['cos_search']['first_third']:+.3f}, last third {c['cos_search']['last_third']:+.3f})")
             print(line)
+        if r["method"] == "blend" and r["log"]:
+            from hyqjax.studies.tune.blend import summary as blend_summary
+
+            b = blend_summary(r["log"])
+            if b["alpha"] is not None:
+                print(f"blend {key}: {b['steps']} steps; alpha median {b['alpha']['median']:.3f} (the variances "
+                      f"alone: {b['alpha_var']['median']:.3f}; bias guard active in {b['guard_share']:.2f} of steps)"
+                      + (f"; cosine of the surrogate gradient with the zero-order estimate: median "
+                         f"{b['cos']['median']:+.3f}" if b["cos"] else ""))
+        if r["method"] in ("ipop_cma_es", "bipop_cma_es") and r["log"]:
+            from hyqjax.studies.tune.restarts import summary as restart_summary
+
+            rs = restart_summary(r["log"])
+            print(f"restarts of {key}: {len(rs['runs'])} runs: " + "; ".join(
+                f"{x['regime']} population {x['popsize']} for {x['generations']} generations ({x['ended']})"
+                for x in rs["runs"]))
         fin = r.get("final_reevaluation")
         if fin:
             row = fin["candidates"][fin["chosen"]]

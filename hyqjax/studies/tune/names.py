@@ -3,16 +3,28 @@ study, parameterisations, and the default tuner's choice (no JAX import here; :m
 :mod:`hyqjax.studies.tune.schedule` and :mod:`hyqjax.studies.tune.wallclock` take them from this module)."""
 from __future__ import annotations
 
-#: Zero-order methods driven by closed-loop clean success (evosax CMA-ES, SNES, OpenES; random search).
-SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search")
+#: CMA-ES with restarts (:mod:`hyqjax.studies.tune.restarts`): IPOP (population doubled at each restart; Auger &
+#: Hansen 2005) and BIPOP (large and small population regimes under one budget; Hansen 2009).
+RESTART_METHODS = ("ipop_cma_es", "bipop_cma_es")
+#: Zero-order methods driven by closed-loop clean success (evosax CMA-ES, SNES, OpenES; random search; CMA-ES with
+#: restarts).
+SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search") + RESTART_METHODS
 #: The pathwise gradient through closed-loop windows, and the hybrid (search, then gradient polish).
 GRADIENT_METHODS = ("gradient", "hybrid")
 #: Guided evolution strategies (Maheswaranathan et al. 2019; evosax GuidedES): antithetic search whose samples
 #: lean into the subspace of recent surrogate gradients from MJX-JAX (:func:`hyqjax.studies.tune.search.run_guided`).
 GUIDED_METHODS = ("guided_es",)
-METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS
+#: Suh et al.'s (ICML 2022) alpha-order blend of the MJX-JAX window gradient and the population's antithetic
+#: zeroth-order estimate, Adam on the blend (:func:`hyqjax.studies.tune.blend.run_blend`).
+BLEND_METHODS = ("blend",)
+METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
+#: The methods of the equal-wall-clock study when none are named (``python -m experiments.tune_study``): those
+#: every stored study ran; the restart rules and the blend run when named (``--methods``).
+STUDY_METHODS = ("cma_es", "snes", "open_es", "random_search") + GRADIENT_METHODS + GUIDED_METHODS
 #: Methods that build the gradient's programs (snapshot windows and the tuning step on MJX-JAX).
-USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS
+USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
+#: Methods that sample antithetic pairs (an even --popsize).
+ANTITHETIC = ("open_es", "guided_es", "blend")
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: The default tuner (``hyqjax tune`` with no method, parameterisation or budget given): CMA-ES on the 56 per-leg

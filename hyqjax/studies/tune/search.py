@@ -18,6 +18,8 @@ batch (``N = popsize + 1``), so the returned iterate's fitness is logged on the 
 
 * ``cma_es``, ``snes``, ``open_es``: ``evosax`` 0.3.2 (jitted ``ask`` / ``tell``; ``tell`` minimises, so it gets
   ``-F``); the iterate is the search distribution's mean;
+* ``ipop_cma_es``, ``bipop_cma_es``: CMA-ES with restarts (:mod:`.restarts`: the restart controller around
+  evosax's CMA-ES; a larger population runs in chunks of the first one's batch shape);
 * ``random_search``: candidates ``theta_0 + sigma z`` around the start; the iterate is the incumbent, replaced
   by a generation's best candidate when that candidate's fitness exceeds the incumbent's on the same scenarios.
 
@@ -38,8 +40,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hyqjax.studies.tune.names import (GRADIENT_METHODS, GUIDED_METHODS, METHODS, SEARCH_METHODS,  # noqa: F401
-                                       USES_GRADIENT)
+from hyqjax.studies.tune.names import (ANTITHETIC, BLEND_METHODS, GRADIENT_METHODS, GUIDED_METHODS, METHODS,  # noqa: F401
+                                       RESTART_METHODS, SEARCH_METHODS, STUDY_METHODS, USES_GRADIENT)
 from hyqjax.studies.tune.resume import tree_like
 
 
@@ -321,11 +323,18 @@ def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float 
 
 def run_search(method: str, f_gen: Callable, theta0, popsize: int, sigma: float, clock: Clock, trace: Trace,
                seed: int = 0, generation0: int = 0, progress: Callable | None = None, stop_at: float | None = None,
-               resume: dict | None = None, checkpoint: Callable | None = None):
+               resume: dict | None = None, checkpoint: Callable | None = None, restart_stall: int = 0):
     """Maximise ``f_gen(thetas (N, P), generation) -> dict(fitness (N,), clean, completed, physics_steps)`` with
     ``method`` until ``clock`` passes ``stop_at`` (default the last checkpoint). Returns the final iterate.
     ``checkpoint(state_fn)`` is called after every generation; ``state_fn()`` is the method's state then, which
-    ``resume`` takes back (:mod:`.resume`; the clock and trace are the caller's)."""
+    ``resume`` takes back (:mod:`.resume`; the clock and trace are the caller's). ``restart_stall``: the restart
+    methods' stagnation length (:class:`.restarts.Controller`'s ``stall_generations``)."""
+    if method in RESTART_METHODS:
+        from hyqjax.studies.tune import restarts
+
+        return restarts.run_restarts(method, f_gen, theta0, popsize, sigma, clock, trace, seed=seed,
+                                     progress=progress, stop_at=stop_at, resume=resume, checkpoint=checkpoint,
+                                     stall_generations=restart_stall)
     theta0 = np.asarray(theta0, np.float64)
     stop_at = trace.checkpoints[-1] if stop_at is None else stop_at
     key = jax.random.key(seed)

@@ -35,7 +35,7 @@ def training_seeds(seed: int) -> tuple:
 class WallClockConfig:
     """Settings of the study (module docstring); every field is checked at construction (one line naming it)."""
 
-    methods: tuple = search.METHODS
+    methods: tuple = search.STUDY_METHODS
     dims: tuple = ("shared", "per_leg_cond")
     wall_minutes: tuple = (1.0, 3.0, 10.0)
     groups: tuple = spmod.DEFAULT_GROUPS
@@ -115,6 +115,16 @@ class WallClockConfig:
     guided_lr: float = 0.05
     #: a new surrogate gradient (the tuning step's, on MJX-JAX) every this many generations
     guided_grad_every: int = 1
+    # restarts of CMA-ES (:mod:`.restarts`; methods ipop_cma_es and bipop_cma_es)
+    #: generations without a better validated score of the run that end it (0: the papers' lengths, longer than
+    #: the tuner's budgets; :mod:`.restarts`)
+    restart_stall: int = 25
+    # the alpha-order blend (:func:`.blend.run_blend`)
+    #: the bias the blend may take, relative to the norm of the population's zero-order estimate (Suh et al.'s
+    #: gamma; the first-order samples are scaled to that norm)
+    blend_gamma: float = 2.0
+    #: Adam learning rate of the blend's iterate
+    blend_lr: float = 0.05
 
     def __post_init__(self):
         backend.validate_impl(self.impl)
@@ -135,13 +145,18 @@ class WallClockConfig:
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")
-        for m in ("open_es", "guided_es"):
+        for m in search.ANTITHETIC:
             if m in self.methods and self.popsize % 2:
                 raise ValueError(f"popsize must be even with {m} (it samples antithetic pairs), got {self.popsize}")
         if not 0.0 <= float(self.guided_alpha) <= 1.0:
             raise ValueError(f"guided_alpha must be in [0, 1], got {self.guided_alpha}")
         if not 0.0 < float(self.guided_lr) <= 1.0:
             raise ValueError(f"guided_lr must be in (0, 1], got {self.guided_lr}")
+        if not 0.0 < float(self.blend_gamma) <= 100.0:
+            raise ValueError(f"blend_gamma must be in (0, 100], got {self.blend_gamma}")
+        if not 0.0 < float(self.blend_lr) <= 1.0:
+            raise ValueError(f"blend_lr must be in (0, 1], got {self.blend_lr}")
+
         for k, lo, hi in (("final_instances", 0, 10**6), ("final_candidates", 2, 16)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
@@ -149,10 +164,14 @@ class WallClockConfig:
         if self.final_instances and not self.select_instances:
             raise ValueError(f"final_instances ({self.final_instances}) re-evaluates the selection's best iterates: "
                              f"it needs select_instances > 0")
+        restarting = [m for m in self.methods if m in search.RESTART_METHODS]
+        if restarting and not self.select_instances:
+            raise ValueError(f"select_instances must be > 0 with {restarting[0]}: its runs are compared on the "
+                             f"validation batch (the selection spans the restarts), got 0")
         if self.final_instances % len(tuple(self.train_heights)):
             raise ValueError(f"final_instances must be a multiple of {len(tuple(self.train_heights))} (one share per "
                              f"training height), got {self.final_instances}")
-        for k, lo, hi in (("guided_subspace", 1, 64), ("guided_grad_every", 1, 10**4)):
+        for k, lo, hi in (("guided_subspace", 1, 64), ("guided_grad_every", 1, 10**4), ("restart_stall", 0, 10**5)):
             v = getattr(self, k)
             if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
                 raise ValueError(f"{k} must be an int in [{lo}, {hi}], got {v!r}")

@@ -159,7 +159,8 @@ def selection_program(cfg: WallClockConfig) -> str:
 
 def forward_programs(method: str, cfg: WallClockConfig) -> list:
     """Charge names of the forward (Warp) programs ``method`` runs: training generations and the selection."""
-    out = ["forward"] if method in search.SEARCH_METHODS + search.GUIDED_METHODS or method == "hybrid" else []
+    out = ["forward"] if method in search.SEARCH_METHODS + search.GUIDED_METHODS + search.BLEND_METHODS \
+        or method == "hybrid" else []
     if cfg.select_instances and selection_program(cfg) not in out:
         out.append(selection_program(cfg))
     return out
@@ -167,7 +168,7 @@ def forward_programs(method: str, cfg: WallClockConfig) -> list:
 
 def _warm_up(method, param, cfg, evaluator, charges, theta0, phase) -> None:
     """A resumed run's forward programs compiled again (their outputs dropped), before its clock goes on."""
-    if method in search.SEARCH_METHODS + search.GUIDED_METHODS or phase["name"] == "search":
+    if method in search.SEARCH_METHODS + search.GUIDED_METHODS + search.BLEND_METHODS or phase["name"] == "search":
         with charges.track("forward"):
             evaluator(np.repeat(np.asarray(theta0, np.float64)[None], cfg.popsize + 1, 0),
                       forward.train_scenarios(cfg.train_instances, generation_seed(cfg.seed, param.name), 0,
@@ -201,9 +202,20 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
                           grad_every=cfg.guided_grad_every, grad_cost=grad.step_costs[param.name],
                           progress=progress, resume=state, checkpoint=hook(phase))
         return
+    if method in search.BLEND_METHODS:
+        from hyqjax.studies.tune import blend
+
+        step_fn, _, _ = grad.programs(param)
+        if stored is None:
+            for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
+                charge(charges.seconds[name])
+        blend.run_blend(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                        lr=cfg.blend_lr, gamma=cfg.blend_gamma, grad_cost=grad.step_costs[param.name],
+                        progress=progress, resume=state, checkpoint=hook(phase))
+        return
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                          progress=progress, resume=state, checkpoint=hook(phase))
+                          progress=progress, resume=state, checkpoint=hook(phase), restart_stall=cfg.restart_stall)
         return
     theta_start = theta0
     if method == "hybrid" and phase["name"] == "search":

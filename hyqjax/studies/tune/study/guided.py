@@ -31,13 +31,19 @@ def compare(results: dict, minutes: float) -> dict:
     the seeds with 95% t-intervals, Welch's differences, and guided ES's cosine summary per run."""
     names = [f"seed{s}" for s in results]
     summary = repeats.collect(list(results.values()), names, minutes)
-    cos = {}
+    from hyqjax.studies.tune import blend, restarts
+
+    cos, alpha, runs = {}, {}, {}
     for s, res in results.items():
         for key, run in res.get("runs", {}).items():
             if run["method"] == "guided_es":
                 cos.setdefault(key, {})[f"seed{s}"] = cosine_summary(run["log"])
+            elif run["method"] == "blend":
+                alpha.setdefault(key, {})[f"seed{s}"] = blend.summary(run["log"])
+            elif run["method"] in ("ipop_cma_es", "bipop_cma_es"):
+                runs.setdefault(key, {})[f"seed{s}"] = restarts.summary(run["log"])
     return dict(minutes=float(minutes), seeds=[int(s) for s in results], summary=summary,
-                differences=repeats.differences(summary), cosines=cos)
+                differences=repeats.differences(summary), cosines=cos, blend=alpha, restarts=runs)
 
 
 def markdown(comp: dict) -> str:
@@ -51,4 +57,17 @@ def markdown(comp: dict) -> str:
                          f"zero-order estimate on the same population: median {z['median']:+.3f}, share > 0 "
                          f"{z['share_positive']:.2f} (first third {z['first_third']:+.3f}, last third "
                          f"{z['last_third']:+.3f}); with the search's direction: median {s['median']:+.3f}")
+    for key, runs in comp.get("blend", {}).items():
+        for name, b in runs.items():
+            if b["alpha"] is None:
+                continue
+            lines.append(f"{key} {name}: {b['steps']} steps; alpha median {b['alpha']['median']:.3f} (first third "
+                         f"{b['alpha']['first_third']:.3f}, last third {b['alpha']['last_third']:.3f}; the variances "
+                         f"alone {b['alpha_var']['median']:.3f}); cosine of the surrogate gradient with the zero-order "
+                         f"estimate: median " + (f"{b['cos']['median']:+.3f}" if b["cos"] else "n/a"))
+    for key, runs in comp.get("restarts", {}).items():
+        for name, r in runs.items():
+            lines.append(f"{key} {name}: {len(r['runs'])} runs: " + "; ".join(
+                f"{x['regime']} population {x['popsize']} for {x['generations']} generations ({x['ended']})"
+                for x in r["runs"]))
     return "\n".join(lines)
