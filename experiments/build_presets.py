@@ -188,11 +188,14 @@ def bound_envelope_figs(falls: str, yaw: str, nominal: dict | None):
 BOUND_PRESETS_H200 = f"{R}/bounding_presets_h200/bounding_presets.json"
 
 
-def bound_presets_figs(preset: str) -> list[dict]:
+BOUND_PRESETS_H200_5151 = f"{R}/bounding_presets_h200_seed5151/bounding_presets.json"
+
+
+def bound_presets_figs(preset: str, source: str = BOUND_PRESETS_H200) -> list[dict]:
     """Figures of ``preset`` from the presets-on-the-same-instances run (``experiments/bounding_presets.py``, stored in
     :data:`BOUND_PRESETS_H200`): falls and worst yaw error at friction 0.5-0.6 with 10 kg (the nominal command and the
     four corners of the command box, 1,024 runs each), the speed error at the nominal command."""
-    d = read(BOUND_PRESETS_H200)
+    d = read(source)
     rows = [r for r in d["rows"] if r["preset"] == preset]
     low = [r for r in rows if r["condition"] != "nominal"]
     nom = next(r for r in rows if r["condition"] == "nominal")
@@ -201,7 +204,7 @@ def bound_presets_figs(preset: str) -> list[dict]:
     common = dict(heldout=(f"seed {prov['seed']}: the nominal command (0.5 m/s, 0.3 rad/s) and the corners of the command "
                            "box (0 and 1.0 m/s x -0.8 and +0.8 rad/s) at friction 0.5-0.6 with a 10 kg payload, "
                            f"{nom['n']:,} runs x {d['duration']:g} s each"),
-                  command=cmd, device="NVIDIA H200, MuJoCo Warp", date=prov["date"][:10], source=BOUND_PRESETS_H200)
+                  command=cmd, device="NVIDIA H200, MuJoCo Warp", date=prov["date"][:10], source=source)
     per = ", ".join(f"{r['failures']}" for r in low)
     return [dict(what="runs that fall at friction 0.5-0.6, 10 kg (nominal command, then the four corners)",
                  value=sum(r["failures"] for r in low), unit=f"of {sum(r['n'] for r in low):,} ({per})",
@@ -316,13 +319,14 @@ def build() -> dict[str, dict]:
         dict(prov_of(read(BOUND_REFINE), refined, method=pr.get("method"),
                      start="bound_robust_8s (the preset's name was bound_robust until this run replaced it)"),
              command=read(BOUND_REFINE)["provenance"]["command"].replace("/root/out/", "out/")),
-        bound_refine_figs("refined"))
+        bound_refine_figs("refined") + bound_presets_figs("bound_robust", BOUND_PRESETS_H200_5151))
     amp, gains, p8 = bound_file(f"{R}/bounding_robust_h100_8s/params_cma_es.json")
     res8 = read(f"{R}/bounding_robust_h100_8s/results.json")
     add("bound_robust_8s", "bound", "CMA-ES's impulses and gains over commands, friction and payload (8 s training); "
         "bound_robust's start", dict(amplitudes=amp, gains=gains),
         prov_of(res8, f"{R}/bounding_robust_h100_8s/params_cma_es.json", method=p8.get("method")),
-        bound_heldout_fig("cma_es") + bound_presets_figs("bound_robust"),
+        bound_heldout_fig("cma_es") + bound_presets_figs("bound_robust")
+        + bound_presets_figs("bound_robust_8s", BOUND_PRESETS_H200_5151),
         aliases=("--params robust_8s",))
     amp, gains, pg = bound_file(f"{R}/bounding_robust_h100/params_gradient.json")
     resg = read(f"{R}/bounding_robust_h100/results.json")
