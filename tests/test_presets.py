@@ -4,7 +4,7 @@ Fast lane: every preset loads into its parameter object; the files are what the 
 (experiments/build_presets.py --check); every figure names its held-out set and its command; the presets the
 old spellings named are the same parameters (reach = the SNES run + the probe; robust_8s = bound_robust_8s; --remedy
 = remedy; hyqjax bound's default = bound_robust); unknown, wrong-kind and out-of-range presets are refused in one
-line with exit status 2 and nothing written. Slow: a per-leg set with four equal rows runs bit for bit as its
+line with exit status 2 and nothing written. Slow: every bounding preset runs a C MuJoCo batch; a per-leg set with four equal rows runs bit for bit as its
 CrawlParams on C MuJoCo; every crawl preset runs a CPU batch; `hyqjax stepdown --preset tuned_per_leg` runs.
 """
 from __future__ import annotations
@@ -280,6 +280,29 @@ def test_every_crawl_preset_runs_a_cpu_batch():
     assert not cols["diverged"].any(), cols["diverged"]
     assert np.all(cols["progress"] > 0.05), dict(zip(names, cols["progress"]))
     assert np.all(cols["n_steps"] >= 2), dict(zip(names, cols["n_steps"]))
+
+
+@pytest.mark.slow
+def test_every_bound_preset_runs_a_cpu_batch(tmp_path):
+    """Every bounding preset in one C MuJoCo batch (experiments.bounding_presets: the nominal command and the four
+    corners at friction 0.5-0.6 with 10 kg, one 2.4 s run each): none diverges or falls at the nominal command; the
+    robust presets stand at every command with a yaw error under the paper's 4 deg, and the default's worst yaw at low
+    friction is below the paper's gains'."""
+    from experiments import bounding_presets as bpre
+
+    names = presets.names("bound")
+    assert bpre.main(["--impl", "c", "--instances", "1", "--duration", "2.4", "--presets", *names,
+                      "--out", str(tmp_path / "bp")]) == 0
+    rows = json.load(open(tmp_path / "bp" / "bounding_presets.json"))["rows"]
+    assert {r["preset"] for r in rows} == set(names) and len(rows) == 6 * len(names)
+    assert all(r["failures"] == 0 for r in rows if r["condition"] == "nominal"), rows
+    robust = [r for r in rows if r["preset"].startswith("bound_robust")]
+    assert all(r["failures"] == 0 and r["yaw_error_worst_deg"] < 4.0 for r in robust), robust
+
+    def worst(p):
+        return max(r["yaw_error_worst_deg"] for r in rows if r["preset"] == p and r["condition"] != "nominal")
+
+    assert worst("bound_robust") < worst("bound_paper")
 
 
 @pytest.mark.slow
