@@ -4,8 +4,9 @@ Fast lane: every preset loads into its parameter object; the files are what the 
 (experiments/build_presets.py --check); every figure names its held-out set and its command; the presets the
 old spellings named are the same parameters (reach = the SNES run + the probe; robust_8s = bound_robust_8s; --remedy
 = remedy; hyqjax bound's default = bound_robust); unknown, wrong-kind and out-of-range presets are refused in one
-line with exit status 2 and nothing written. Slow: every bounding preset runs a C MuJoCo batch; a per-leg set with four equal rows runs bit for bit as its
-CrawlParams on C MuJoCo; every crawl preset runs a CPU batch; `hyqjax stepdown --preset tuned_per_leg` runs.
+line with exit status 2 and nothing written. Slow: every bounding preset runs a C MuJoCo batch; a per-leg set with
+four equal rows runs bit for bit as its CrawlParams on C MuJoCo; every crawl preset runs a CPU batch; `hyqjax
+stepdown --preset tuned_per_leg` runs.
 """
 from __future__ import annotations
 
