@@ -85,7 +85,8 @@ def test_guided_cosines_on_a_linear_function():
 def test_guided_es_on_the_step_down_records_finite_agreement(tmp_path):
     """A tiny CPU run of guided ES through ``python -m experiments.tune_study`` (C MuJoCo forward runs, the
     surrogate gradient by jacfwd through MJX-JAX windows): every generation's log row carries a fresh surrogate
-    gradient and finite agreement data, and the run is held out like any other method. (On this CPU size, 0.5 s
+    gradient and finite agreement data, the run compiles no program it does not run (the window value program of
+    the gradient method's line search), and the run is held out like any other method. (On this CPU size, 0.5 s
     training runs, every member of a population may score alike: the population then measured no gradient, its
     slope along the surrogate is 0 and the cosines are undefined, stored as null.)"""
     from experiments import tune_study
@@ -112,6 +113,9 @@ def test_guided_es_on_the_step_down_records_finite_agreement(tmp_path):
     from hyqjax.studies.tune.wallclock_results import member_key
 
     assert run["physics_steps"] > 0
+    # guided ES takes no line search: the windows' value program is not compiled, only the tuning step
+    assert {"gradient_windows", "jacfwd/shared"} <= set(res["charges"]), res["charges"]
+    assert "window_value/shared" not in res["charges"], res["charges"]
     h = res["heldout"][member_key("guided_es", "shared", 30.0)]
     assert h["n"] == 4 and 0.0 <= h["clean"] <= 1.0
 

@@ -61,6 +61,7 @@ class GradientPrograms:
         self.fns: dict = {}
         self.exact_fns: dict = {}
         self.value_fns: dict = {}
+        self._value_warm: set = set()  # the parameterisations whose window value program is compiled
         self.step_costs: dict = {}
         self.charges = charges
         log(f"gradient windows: {int(np.asarray(self.win.valid).sum())} of {self.win.size} triggered "
@@ -116,8 +117,10 @@ class GradientPrograms:
             return objective.reverse_physics_steps(self.win.size, self.obj)
         return objective.physics_steps(self.win.size, self.obj, param.size)
 
-    def programs(self, param: schedule.Parameterisation):
-        """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use."""
+    def programs(self, param: schedule.Parameterisation, line_search: bool = True):
+        """``(step_fn, evaluate, step_cost)`` for ``param``; compiles (charged once) on first use. ``line_search``
+        False (guided ES, which takes no line search): the window value program ``evaluate`` runs is not compiled
+        here (a later call with ``line_search`` compiles it)."""
         from hyqjax.studies.tune import objective
 
         if param.name not in self.fns:
@@ -135,17 +138,20 @@ class GradientPrograms:
             self.value_fns[param.name] = fval
             th = jnp.asarray(param.theta_of(self.base), jnp.float32)
             k = 6  # c = 0 and the five line-search scales of search.run_gradient
-            cands = jnp.tile(th[None], (k, 1))
             with self.charges.track(self.step_name(param)):
                 jax.block_until_ready(vj(th, self.win))
-            with self.charges.track(f"window_value/{param.name}"):
-                jax.block_until_ready(fval(cands, self.win))
             n_win = self.win.size
             step = objective.physics_steps(n_win, self.obj, k_dir) if k_dir else self.exact_physics_steps(param)
             cost = step + k * objective.physics_steps(n_win, self.obj)
             self.step_costs[param.name] = step  # the tuning step alone (guided ES takes no line search)
             self.fns[param.name] = (lambda t: vj(jnp.asarray(t, jnp.float32), self.win),
                                     lambda ts: np.asarray(fval(jnp.asarray(ts, jnp.float32), self.win)), cost)
+        if line_search and param.name not in self._value_warm:
+            th = jnp.asarray(param.theta_of(self.base), jnp.float32)
+            cands = jnp.tile(th[None], (6, 1))  # c = 0 and the five line-search scales of search.run_gradient
+            with self.charges.track(f"window_value/{param.name}"):
+                jax.block_until_ready(self.value_fns[param.name](cands, self.win))
+            self._value_warm.add(param.name)
         return self.fns[param.name]
 
     def charge_names(self, param) -> list:

@@ -46,7 +46,7 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     if method in search.USES_GRADIENT:  # compiled (and charged) before the clock starts
         with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
-            grad.programs(param)
+            grad.programs(param, line_search=method not in search.GUIDED_METHODS)
     clock = search.Clock()
     selection = None
     if cfg.select_instances:
@@ -193,7 +193,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
                 charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
         trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
     if method in search.GUIDED_METHODS:
-        step_fn, _, _ = grad.programs(param)
+        step_fn, _, _ = grad.programs(param, line_search=False)
         if stored is None:
             for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
                 charge(charges.seconds[name])
