@@ -82,17 +82,19 @@ def test_guided_cosines_on_a_linear_function():
 
 
 @pytest.mark.slow
-def test_guided_es_on_the_step_down_records_finite_agreement(tmp_path):
-    """A tiny CPU run of guided ES through ``python -m experiments.tune_study`` (C MuJoCo forward runs, the
-    surrogate gradient by jacfwd through MJX-JAX windows): every generation's log row carries a fresh surrogate
-    gradient and finite agreement data, the run compiles no program it does not run (the window value program of
-    the gradient method's line search), and the run is held out like any other method. (On this CPU size, 0.5 s
-    training runs, every member of a population may score alike: the population then measured no gradient, its
-    slope along the surrogate is 0 and the cosines are undefined, stored as null.)"""
+def test_guided_es_and_the_blend_on_the_step_down_record_finite_agreement(tmp_path):
+    """A tiny CPU run of guided ES and of Suh et al.'s blend through ``python -m experiments.tune_study`` (C MuJoCo
+    forward runs, the surrogate gradient by jacfwd through MJX-JAX windows, compiled once for both): every guided-ES
+    generation's log row carries a fresh surrogate gradient and finite agreement data; every blend step's row the
+    surrogate's windows and either the alpha-order diagnostics (alpha in [0, 1], finite variances, a cosine in
+    [-1, 1]) or, where every antithetic pair tied, alpha undefined and no step; neither compiles a program it does
+    not run (the window value program of the gradient method's line search), and both are held out like any other
+    method. (On this CPU size, 0.5 s training runs, every member of a population may score alike: the population
+    then measured no gradient, its slope along the surrogate is 0 and the cosines are undefined, stored as null.)"""
     from experiments import tune_study
 
     out = tmp_path / "g"
-    code = tune_study.main(["--out", str(out), "--impl", "c", "--methods", "guided_es", "--dims", "shared",
+    code = tune_study.main(["--out", str(out), "--impl", "c", "--methods", "guided_es,blend", "--dims", "shared",
                             "--wall-minutes", "0.5", "--popsize", "4", "--train-instances", "4", "--heldout", "4",
                             "--heldout-chunk", "1", "--train-duration", "0.5", "--heldout-duration", "1",
                             "--window-ticks", "20", "--train-per-height", "1", "--lead", "4", "--select-instances", "0",
@@ -118,6 +120,14 @@ def test_guided_es_on_the_step_down_records_finite_agreement(tmp_path):
     assert "window_value/shared" not in res["charges"], res["charges"]
     h = res["heldout"][member_key("guided_es", "shared", 30.0)]
     assert h["n"] == 4 and 0.0 <= h["clean"] <= 1.0
+    blend = res["runs"]["blend/shared"]
+    assert blend["log"] and all(r["windows"] >= 1 for r in blend["log"])
+    for r in blend["log"]:
+        if r["pairs_differing"]:
+            assert 0.0 <= r["alpha"] <= 1.0 and r["var0"] >= 0 and r["var1"] >= 0 and -1.0 <= r["cos"] <= 1.0
+        else:
+            assert r["alpha"] is None and r["var0"] == 0.0  # NaN, stored as null
+    assert blend["physics_steps"] > 0 and res["heldout"][member_key("blend", "shared", 30.0)]["n"] == 4
 
 
 def test_the_guided_comparison_summarises_seeds_and_agreement():

@@ -1,6 +1,7 @@
 """Restarts of CMA-ES (IPOP / BIPOP, :mod:`hyqjax.studies.tune.restarts`) and Suh et al.'s alpha-order blend of
 first- and zeroth-order gradients (:mod:`hyqjax.studies.tune.blend`): analytic objectives with known answers, exact
-resumes, the tuner's refusals, and a tiny closed-loop run of both methods that resumes after its process stops."""
+resumes, the tuner's refusals, and a tiny closed-loop IPOP run that resumes after its process is killed (the blend's
+closed-loop run shares guided ES's in tests/test_guided_es.py: one compile of the gradient programs)."""
 from __future__ import annotations
 
 import json
@@ -11,7 +12,6 @@ import pytest
 
 from hyqjax.studies.tune import blend, restarts, resume, search
 from hyqjax.studies.tune.study import analytic
-
 
 _EvalClock, _rows, _rastrigin = analytic.EvalClock, analytic.rows, analytic.rastrigin
 P, SIG = analytic.P, analytic.SIG
@@ -266,6 +266,7 @@ def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
     import time
 
     from conftest import start_python
+
     from experiments import tune_study
 
     out = tmp_path / "k"
@@ -303,28 +304,3 @@ def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
     from hyqjax.studies.tune.wallclock_results import member_key
 
     assert res["heldout"][member_key("ipop_cma_es", "shared", 24.0)]["n"] == 4
-
-
-@pytest.mark.slow
-def test_blend_on_the_step_down_logs_alpha_variances_and_cosine(tmp_path):
-    """The blend through the tuner's study command on the CPU (C MuJoCo forward runs, the window gradient by jacfwd
-    through MJX-JAX): every step's row carries the surrogate's windows and either the alpha-order diagnostics
-    (alpha in [0, 1], finite variances, a cosine in [-1, 1]) or, where every antithetic pair tied (a population
-    that measured no gradient, frequent at this size), alpha undefined and no step; the run is held out like any
-    other method. (Slow: the MJX-JAX gradient programs compile for about a minute on a CPU.)"""
-    from experiments import tune_study
-
-    out = tmp_path / "b"
-    assert tune_study.main(["--out", str(out), "--methods", "blend", "--wall-minutes", "0.3"] + TINY) == 0
-    res = json.loads((out / "results.json").read_text())
-    run = res["runs"]["blend/shared"]
-    rows = run["log"]
-    assert rows and all(r["windows"] >= 1 for r in rows)
-    for r in rows:
-        if r["pairs_differing"]:
-            assert 0.0 <= r["alpha"] <= 1.0 and r["var0"] >= 0 and r["var1"] >= 0 and -1.0 <= r["cos"] <= 1.0
-        else:
-            assert r["alpha"] is None and r["var0"] == 0.0  # NaN, stored as null
-    from hyqjax.studies.tune.wallclock_results import member_key
-
-    assert run["physics_steps"] > 0 and res["heldout"][member_key("blend", "shared", 18.0)]["n"] == 4

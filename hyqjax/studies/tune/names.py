@@ -23,6 +23,8 @@ METHODS = SEARCH_METHODS + GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
 STUDY_METHODS = ("cma_es", "snes", "open_es", "random_search") + GRADIENT_METHODS + GUIDED_METHODS
 #: Methods that build the gradient's programs (snapshot windows and the tuning step on MJX-JAX).
 USES_GRADIENT = GRADIENT_METHODS + GUIDED_METHODS + BLEND_METHODS
+#: Of those, the ones that take no line search along the gradient: the windows' value program is not built for them.
+NO_LINE_SEARCH = GUIDED_METHODS + BLEND_METHODS
 #: Methods that sample antithetic pairs (an even --popsize).
 ANTITHETIC = ("open_es", "guided_es", "blend")
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).

@@ -11,6 +11,7 @@ import numpy as np
 
 from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.gradient_programs import GradientPrograms
+from hyqjax.studies.tune.names import NO_LINE_SEARCH
 from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed, start_point, start_theta
 
 
@@ -46,7 +47,7 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
     if method in search.USES_GRADIENT:  # compiled (and charged) before the clock starts
         with heartbeat(log, lambda t0=time.perf_counter(): f"  compiling the gradient programs for {param.name} "
                        f"({param.size} tangents): {time.perf_counter() - t0:.0f} s"):
-            grad.programs(param, line_search=method not in search.GUIDED_METHODS)
+            grad.programs(param, line_search=method not in NO_LINE_SEARCH)
     clock = search.Clock()
     selection = None
     if cfg.select_instances:
@@ -205,7 +206,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
     if method in search.BLEND_METHODS:
         from hyqjax.studies.tune import blend
 
-        step_fn, _, _ = grad.programs(param)
+        step_fn, _, _ = grad.programs(param, line_search=False)
         if stored is None:
             for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
                 charge(charges.seconds[name])
