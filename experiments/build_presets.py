@@ -205,6 +205,12 @@ def bound_presets_figs(preset: str, source: str = BOUND_PRESETS_H200) -> list[di
                            "box (0 and 1.0 m/s x -0.8 and +0.8 rad/s) at friction 0.5-0.6 with a 10 kg payload, "
                            f"{nom['n']:,} runs x {d['duration']:g} s each"),
                   command=cmd, device="NVIDIA H200, MuJoCo Warp", date=prov["date"][:10], source=source)
+    return low_friction_figs(low, nom, common)
+
+
+def low_friction_figs(low: list[dict], nom: dict, common: dict) -> list[dict]:
+    """Falls and the worst yaw error over the low-friction, 10 kg rows ``low`` (the nominal command and the four
+    corners), the speed error of the nominal row ``nom``; ``common``: the figures' held-out set and provenance."""
     per = ", ".join(f"{r['failures']}" for r in low)
     return [dict(what="runs that fall at friction 0.5-0.6, 10 kg (nominal command, then the four corners)",
                  value=sum(r["failures"] for r in low), unit=f"of {sum(r['n'] for r in low):,} ({per})",
@@ -241,14 +247,7 @@ def bound_refine_figs(set_name: str) -> list[dict]:
                                 f"{dr['speed'][0]:g}-{dr['speed'][1]:g} m/s, yaw rate +-{dr['yaw_rate'][1]:g} rad/s, "
                                 f"friction {dr['friction'][0]:g}-{dr['friction'][1]:g}, payload "
                                 f"{dr['payload'][0]:g}-{dr['payload'][1]:g} kg"))
-    per = ", ".join(f"{r['failures']}" for r in low)
-    return [dict(what="runs that fall at friction 0.5-0.6, 10 kg (nominal command, then the four corners)",
-                 value=sum(r["failures"] for r in low), unit=f"of {sum(r['n'] for r in low):,} ({per})",
-                 interval=None, **cond),
-            dict(what="worst yaw error there", value=round(max(r["yaw_error_worst_deg"] for r in low), 2), unit="deg",
-                 interval=None, **cond),
-            dict(what="mean absolute speed error at the nominal command", value=round(nom["speed_error_mean_abs"], 3),
-                 unit="m/s", interval=None, **cond),
+    return low_friction_figs(low, nom, cond) + [
             dict(what="falls, held-out bounding runs", value=b["failures"], unit=f"of {b['n']:,}", interval=None,
                  **broad),
             dict(what="worst yaw error, held-out bounding runs", value=round(b["yaw_error_worst_deg"], 2), unit="deg",
