@@ -63,18 +63,25 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m experiments.bounding_presets", description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--presets", nargs="+", default=["bound_paper", "bound_robust"], metavar="NAME",
-                    help="bounding presets (`hyqjax presets --kind bound`)")
-    ap.add_argument("--instances", type=int, default=1024, help="instances per preset and command")
+def add_condition_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options of the six conditions (:func:`specs`): runs per condition and command, their duration, the
+    low-friction conditions' friction and payload, the corners' speeds and yaw rates (also
+    ``experiments.bounding_refine``'s held-out conditions)."""
+    ap.add_argument("--instances", type=int, default=1024, help="runs per parameter set, condition and command")
     ap.add_argument("--duration", type=float, default=8.0, help="simulated seconds per run, a multiple of 0.4")
     ap.add_argument("--friction", type=float, nargs=2, default=(0.5, 0.6), metavar=("LO", "HI"),
                     help="friction of the low-friction conditions")
     ap.add_argument("--payload", type=float, default=10.0, metavar="KG", help="payload of the low-friction conditions")
     ap.add_argument("--corner-speeds", type=float, nargs="+", default=(0.0, 1.0), metavar="V")
     ap.add_argument("--corner-yaw-rates", type=float, nargs="+", default=(-0.8, 0.8), metavar="W")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m experiments.bounding_presets", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--presets", nargs="+", default=["bound_paper", "bound_robust"], metavar="NAME",
+                    help="bounding presets (`hyqjax presets --kind bound`)")
+    add_condition_arguments(ap)
     ap.add_argument("--seed", type=int, default=2911)
     ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
     ap.add_argument("--out", default="out/bounding_presets")

@@ -66,6 +66,8 @@ def log(msg):
 
 
 def parse(argv):
+    from experiments import bounding_presets as bpre
+
     ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/bounding_refine")
     ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
@@ -86,14 +88,8 @@ def parse(argv):
     ap.add_argument("--corner-friction", type=float, nargs=2, default=(0.4, 0.6), metavar=("LO", "HI"))
     ap.add_argument("--corner-payload", type=float, nargs=2, default=(8.0, 12.0), metavar=("LO", "HI"))
     # held-out
-    ap.add_argument("--instances", type=int, default=1024, help="held-out instances per condition and command")
-    ap.add_argument("--duration", type=float, default=8.0, help="held-out rollout (s), a multiple of 0.4")
+    bpre.add_condition_arguments(ap)  # the six held-out conditions of experiments.bounding_presets
     ap.add_argument("--heldout-seed", type=int, default=2911, help="seed of the six conditions")
-    ap.add_argument("--friction", type=float, nargs=2, default=(0.5, 0.6), metavar=("LO", "HI"),
-                    help="friction of the low-friction conditions")
-    ap.add_argument("--payload", type=float, default=10.0, metavar="KG", help="payload of the low-friction conditions")
-    ap.add_argument("--corner-speeds", type=float, nargs="+", default=(0.0, 1.0), metavar="V")
-    ap.add_argument("--corner-yaw-rates", type=float, nargs="+", default=(-0.8, 0.8), metavar="W")
     ap.add_argument("--broad", type=int, default=4096, help="instances of the broad held-out envelope")
     ap.add_argument("--broad-seed", type=int, default=7777)
     ap.add_argument("--chunk", type=int, default=0,
