@@ -10,7 +10,7 @@ the guided-ES comparison (``--guided-comparison``) and the gradient study at equ
 The equal-wall-clock study (:mod:`hyqjax.studies.tune.wallclock`) runs every method in ``--methods`` on every
 parameterisation in ``--dims`` under the same wall-clock budget (compile included), then evaluates what each
 returns on the held-out set. ``--guided-comparison`` is that study for guided ES (MJX-JAX surrogate gradients
-inside the search, ``hyqjax.studies.tune.search.run_guided``) against CMA-ES and SNES on 56 and 68 coordinates,
+inside the search, ``hyqjax.studies.tune.guided.run_guided``) against CMA-ES and SNES on 56 and 68 coordinates,
 once per seed of ``--seeds`` (DIR/seed<N>/), with the held-out clean success of every run, the mean and t-interval
 over seeds per method and parameterisation, and guided ES's per-generation cosine between the surrogate gradient and
 the population's own gradient estimate in DIR/comparison.json. Every option of ``hyqjax tune`` applies; bad

@@ -1,4 +1,4 @@
-"""Guided evolution strategies inside the tuner (:func:`hyqjax.studies.tune.search.run_guided`, evosax GuidedES):
+"""Guided evolution strategies inside the tuner (:func:`hyqjax.studies.tune.guided.run_guided`, evosax GuidedES):
 on a smooth function with a known gradient the surrogate-guided search beats isotropic antithetic ES at equal
 evaluations, and the per-generation agreement it records reads "the surrogate points the right way" for the true
 gradient and "no better than chance" for a random one; on the step-down a tiny CPU run records finite agreement
@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from hyqjax.studies.tune import search
+from hyqjax.studies.tune import guided, search
 
 P = 20
 W = np.linspace(1.0, 10.0, P)
@@ -37,7 +37,7 @@ def _run(seed, alpha, surrogate, generations=30):
         return dict(loss=quad(th), grad=surrogate(th))
 
     trace = search.Trace((1e9,), np.zeros(P))
-    m = search.run_guided(f_gen, grad_fn, np.zeros(P), 8, 0.1, search.Clock(), trace, seed=seed, alpha=alpha,
+    m = guided.run_guided(f_gen, grad_fn, np.zeros(P), 8, 0.1, search.Clock(), trace, seed=seed, alpha=alpha,
                           lr=0.05, generations=generations)
     # descent_slope / |true gradient at the generation's mean| = cos(surrogate, true gradient), measured
     ratio = [r["descent_slope"] / np.linalg.norm(true_grad(x)) for r, x in zip(trace.log, means)]
@@ -74,11 +74,11 @@ def test_guided_cosines_on_a_linear_function():
     pop = mean + np.concatenate([z, -z])
     f = pop @ c
     sub = c[:, None]
-    r = search.guided_cosines(c, pop, mean, f, 0.1, 0.5, sub)
+    r = guided.guided_cosines(c, pop, mean, f, 0.1, 0.5, sub)
     assert r["descent_slope"] == pytest.approx(np.linalg.norm(c), rel=1e-9)
-    assert search.guided_cosines(-c, pop, mean, f, 0.1, 0.5, sub)["descent_slope"] == pytest.approx(
+    assert guided.guided_cosines(-c, pop, mean, f, 0.1, 0.5, sub)["descent_slope"] == pytest.approx(
         -np.linalg.norm(c), rel=1e-9)
-    assert np.isnan(search.guided_cosines(c, pop, mean, f, 0.1, 0.0, sub)["cos_zero_order"])
+    assert np.isnan(guided.guided_cosines(c, pop, mean, f, 0.1, 0.0, sub)["cos_zero_order"])
 
 
 @pytest.mark.slow

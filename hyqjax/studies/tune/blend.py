@@ -22,7 +22,7 @@ approximation ``E |g0 - grad F|^2 = s0^2`` with ``z_delta = 1.96``.
 
 **Why a method of its own (Adam on ``g_alpha``), not the surrogate fed to guided ES.** Suh et al.'s estimator is a
 gradient estimate for a descent step: its ``alpha`` trades the step's variance against its bias. Guided ES
-(:func:`.search.run_guided`) uses its surrogate only for the *subspace* it samples in, and moves its mean by the
+(:func:`.guided.run_guided`) uses its surrogate only for the *subspace* it samples in, and moves its mean by the
 population's own zeroth-order estimate, so the blend's variance reduction would never reach the step. Run as a
 method, the blend's step is exactly ``g_alpha``: the comparison with guided ES at equal wall-clock then says which
 use of the same MJX-JAX gradient pays.

@@ -12,7 +12,7 @@ SEARCH_METHODS = ("cma_es", "snes", "open_es", "random_search") + RESTART_METHOD
 #: The pathwise gradient through closed-loop windows, and the hybrid (search, then gradient polish).
 GRADIENT_METHODS = ("gradient", "hybrid")
 #: Guided evolution strategies (Maheswaranathan et al. 2019; evosax GuidedES): antithetic search whose samples
-#: lean into the subspace of recent surrogate gradients from MJX-JAX (:func:`hyqjax.studies.tune.search.run_guided`).
+#: lean into the subspace of recent surrogate gradients from MJX-JAX (:func:`hyqjax.studies.tune.guided.run_guided`).
 GUIDED_METHODS = ("guided_es",)
 #: Suh et al.'s (ICML 2022) alpha-order blend of the MJX-JAX window gradient and the population's antithetic
 #: zeroth-order estimate, Adam on the blend (:func:`hyqjax.studies.tune.blend.run_blend`).

@@ -106,7 +106,7 @@ class WallClockConfig:
     #: seed's next draw) and the best pooled over both batches is returned; 0: off (the selected iterate)
     final_instances: int = 0
     final_candidates: int = 3
-    # guided ES (:func:`.search.run_guided`)
+    # guided ES (:func:`.guided.run_guided`)
     #: share of the sampling variance in the full space (1: isotropic antithetic ES; 0: the gradient subspace only)
     guided_alpha: float = 0.5
     #: number of recent surrogate gradients that span the guiding subspace

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from hyqjax.studies.tune import forward, resume, schedule, search
+from hyqjax.studies.tune import forward, guided, resume, schedule, search
 from hyqjax.studies.tune.gradient_programs import GradientPrograms
 from hyqjax.studies.tune.names import NO_LINE_SEARCH
 from hyqjax.studies.tune.wallclock_config import WallClockConfig, generation_seed, start_point, start_theta
@@ -198,7 +198,7 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
         if stored is None:
             for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
                 charge(charges.seconds[name])
-        search.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+        guided.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
                           alpha=cfg.guided_alpha, subspace=cfg.guided_subspace, lr=cfg.guided_lr,
                           grad_every=cfg.guided_grad_every, grad_cost=grad.step_costs[param.name],
                           progress=progress, resume=state, checkpoint=hook(phase))

@@ -1,6 +1,6 @@
 """Guided ES against the gradient-free methods over seeds (``python -m experiments.tune_study --guided-comparison``):
 held-out clean success per method and parameterisation over runs (:mod:`.repeats`) and what the per-generation
-cosines of guided ES say about its surrogate gradient (:func:`hyqjax.studies.tune.search.guided_cosines`)."""
+cosines of guided ES say about its surrogate gradient (:func:`hyqjax.studies.tune.guided.guided_cosines`)."""
 from __future__ import annotations
 
 import numpy as np
