@@ -76,6 +76,8 @@ def parse_args(argv=None):
         p.error(f"--arms: unknown {bad}; allowed {list(ARMS)}")
     if not 1 <= a.seeds <= 1000 or a.jobs < 1:
         p.error("--seeds must be in [1, 1000], --jobs >= 1")
+    if not 0 <= a.cores_per_job <= (os.cpu_count() or 1):
+        p.error(f"--cores-per-job must be in [0, {os.cpu_count() or 1}] (the cores of this machine), got {a.cores_per_job}")
     a.arm_list = arms
     if a.ci_family is None:
         a.ci_family = ci_family()
