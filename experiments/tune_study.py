@@ -91,7 +91,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--contacts-from-distance", type=float, default=H["contacts_from_distance"], metavar="N_PER_M",
                    help="backward-only springs under the feet in the gradient's windows (2 cm reach); 0: off")
     g.add_argument("--train-spread", default=None, choices=["train", "wide"],
-                   help="training draws' ranges (default: --objective's, train for clean, wide for reach)")
+                   help="training draws' ranges (default: train for --objective clean, as every stored study ran; "
+                        "wide for reach; hyqjax tune trains on wide)")
     g.add_argument("--train-heights", type=tune.floats, default=None,
                    help="training heights (m), comma-separated (default: --objective's)")
     g.add_argument("--paper-crawl", action="store_true",

@@ -1428,8 +1428,8 @@ def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(ch
 
 
 def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
-    """The default start of ``hyqjax tune`` (per_leg) is the preset ``tuned_per_leg``, the 30-minute per-leg CMA-ES
-    set: its start ``theta`` is the stored run's returned ``theta`` (float32 storage); a conditioned preset starts its
+    """The default start of ``hyqjax tune`` (per_leg) is the preset ``reach``; the 30-minute per-leg CMA-ES set
+    ``tuned_per_leg`` starts at the stored run's returned ``theta`` (float32 storage); a conditioned preset starts its
     own parameterisation at its own ``theta``."""
     import json
 
@@ -1449,13 +1449,49 @@ def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
     from hyqjax.cli import tune as tune_cli
 
     tune_cli._fill_hidden(args)
-    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "tuned_per_leg"
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "reach"
     args.preset = "none"
     assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == ""
     c = presets.get("tuned_per_leg_cond").values["conditioned"]
     pc = schedule.make(c["parameterisation"], tuple(c["groups"]))
     cfg = wallclock.WallClockConfig(dims=(pc.name,), methods=("cma_es",), start_preset="tuned_per_leg_cond")
     np.testing.assert_allclose(start_theta(pc, start_point(cfg)), c["theta"], atol=1e-4)
+
+
+def test_a_run_from_a_preset_keeps_and_returns_its_untuned_values(tmp_path):
+    """A run started from ``reach`` (whose edge probe no parameterisation tunes) maps every ``theta`` on the
+    preset's crawl, not on Table I's: the forward runs' base and the set read back from ``results.json`` carry the
+    probe, per leg too; the start ``theta`` reads back as the preset itself; an older ``results.json`` without
+    ``start_base`` reads the registry's values."""
+    import json
+
+    import jax
+
+    from hyqjax import presets
+    from hyqjax.studies.tune import schedule, tuned, wallclock
+    from hyqjax.studies.tune.wallclock_config import start_point, start_settings, start_theta
+
+    reach = presets.load("reach")
+    assert float(reach.edge_probe) > 0
+    for dim in ("shared", "per_leg"):
+        cfg = wallclock.WallClockConfig(dims=(dim,), methods=("cma_es",), start_preset="reach")
+        base = wallclock.start_params(cfg)
+        assert float(base.edge_probe) == float(reach.edge_probe) and float(base.edge_deep) == float(reach.edge_deep)
+        p = schedule.make(dim, cfg.groups)
+        theta = start_theta(p, start_point(cfg))
+        res = dict(kind="wallclock", config=cfg.to_dict(), start_base=start_settings("reach"),
+                   runs={f"cma_es/{dim}": dict(theta=theta.tolist())})
+        path = tmp_path / f"{dim}.json"
+        for r in (res, {k: v for k, v in res.items() if k != "start_base"}):
+            path.write_text(json.dumps(r))
+            back = tuned.crawl_params(str(path), "cma_es")
+            row = back.row(2) if dim == "per_leg" else back
+            for (k, a), (_, b) in zip(jax.tree_util.tree_flatten_with_path(row)[0],
+                                      jax.tree_util.tree_flatten_with_path(reach)[0]):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-5, atol=1e-6,
+                                           err_msg=jax.tree_util.keystr(k))
+    table1 = wallclock.start_params(wallclock.WallClockConfig())
+    assert float(table1.edge_probe) == 0.0 and float(table1.shin_remedy) == 1.0
 
 
 @pytest.mark.parametrize("argv, match", [(["--preset", "bound_robust"], "bound preset"),

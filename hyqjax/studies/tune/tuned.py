@@ -14,9 +14,10 @@ rows also move with features the controller measures) gives a
 :class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`. The crawl runs each wherever it runs a
 ``CrawlParams``.
 
-``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it) with the caller's
-other settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned
-value would silently replace it.
+``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it; a start preset's
+values of the fields the run did not tune, such as an edge probe: :func:`start_base`) with the caller's other
+settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned value
+would silently replace it.
 """
 from __future__ import annotations
 
@@ -111,8 +112,13 @@ def crawl_params(path: str, run: str | None = None, **settings):
         raise ValueError(f"{', '.join(tuned)}: tuned by run {key} of {path}; leave it out")
     if "shin_remedy" in settings:
         raise ValueError(f"shin_remedy: set by run {key} of {path} (remedy {bool(cfg.get('remedy', False))})")
+    start = start_base(res)
     try:
-        base = crawl.CrawlParams.make(shin_remedy=bool(cfg.get("remedy", False)), **settings)
+        from hyqjax.reflex.params import ReflexParams
+
+        reflex = ReflexParams.make(**start["reflex"]) if start.get("reflex") else None
+        base = crawl.CrawlParams.make(**{"shin_remedy": bool(cfg.get("remedy", False)), **start.get("crawl", {}),
+                                         **settings}, reflex_params=reflex)
         if dim not in (SHARED, PER_LEG):
             return schedule.ConditionedCrawlParams.of_theta(pz, theta, base)
         if not per_leg:
@@ -120,6 +126,23 @@ def crawl_params(path: str, run: str | None = None, **settings):
         return per_leg_params(space, theta.reshape(4, space.size), base)
     except (ParameterError, ValueError, TypeError) as e:
         raise ValueError(f"run {key} of {path}: {e}") from None
+
+
+def start_base(res: dict) -> dict:
+    """The settings of the crawl the run mapped its ``theta`` on, beyond Table I and the default crawl: the start
+    preset's ``crawl`` settings and ``reflex`` values (``res["start_base"]``, or the registry's values of
+    ``config.start_preset`` for a ``results.json`` written before it was stored; ``{}`` for a run from Table I)."""
+    if isinstance(res.get("start_base"), dict):
+        return res["start_base"]
+    name = res["config"].get("start_preset") or ""
+    if not name:
+        return {}
+    from hyqjax.studies.tune.wallclock_config import start_settings
+
+    try:
+        return start_settings(name)
+    except ValueError as e:
+        raise ValueError(f"the run started from preset {name}, which this installation cannot read ({e})") from None
 
 
 def per_leg_params(space, rows, base):

@@ -55,7 +55,7 @@ from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
                                                   diagnostic_iterates, gradient_diagnostics)
-from hyqjax.studies.tune.wallclock_config import (WallClockConfig, is_per_leg, start_point,  # noqa: F401
+from hyqjax.studies.tune.wallclock_config import (WallClockConfig, is_per_leg, start_point, start_settings,  # noqa: F401
                                                    start_theta)
 from hyqjax.studies.tune.wallclock_results import budget_curves, member_key, step_cost_line, summarize
 
@@ -65,8 +65,11 @@ from hyqjax.studies.tune.names import DEFAULT_DIM, DEFAULT_METHOD  # noqa: E402,
 
 
 def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:
-    """Where every method starts: Table I and the default crawl, with the shin-strike remedy if ``cfg.remedy``."""
-    return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
+    """The crawl every ``theta`` is mapped on (the values of the coordinates a run does not tune): the start
+    preset's crawl (a per-leg or conditioned set's ``base``) when ``cfg.start_preset`` names one, else Table I and
+    the default crawl with the shin-strike remedy if ``cfg.remedy``."""
+    start = start_point(cfg)
+    return start.base if is_per_leg(start) else start
 
 
 def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
@@ -126,6 +129,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
     base = start_params(cfg)
     params = {d: schedule.make(d, cfg.groups) for d in cfg.dims}
     evaluator = forward.SuccessEvaluator(params[cfg.dims[0]], base, cfg.train_duration, cfg.impl, cfg.completed_weight)
+    res["start_base"] = start_settings(cfg.start_preset)
     res["impl"] = evaluator.setup.impl  # the simulator the forward runs use (cfg.impl resolved by their setup)
     # compile charges are re-measured in every process (a resumed study's programs compile again)
     charges = search.Charges()

@@ -269,6 +269,19 @@ def start_point(cfg: WallClockConfig):
     return crawl.CrawlParams.make(shin_remedy=cfg.remedy)
 
 
+def start_settings(preset: str) -> dict:
+    """The ``CrawlParams.make`` settings (``crawl``) and Table I values (``reflex``) of the crawl a run started
+    from preset ``preset`` maps its ``theta`` on (``{}`` for none): stored in ``results.json`` as ``start_base``
+    so that the returned set reads back (:func:`hyqjax.studies.tune.tuned.crawl_params`) with the preset's values
+    of the coordinates the run did not tune (an edge probe, say)."""
+    if not preset:
+        return {}
+    from hyqjax import presets
+
+    values = presets.get(preset).values or {}
+    return {"crawl": dict(values.get("crawl", {})), "reflex": dict(values.get("reflex", {}))}
+
+
 def is_per_leg(start) -> bool:
     """Whether a start point is a scheduled set around a ``base`` (a per-leg set or a tuner's conditioned set)."""
     return hasattr(start, "base") and (hasattr(start, "row") or hasattr(start, "parameterisation"))

@@ -1,0 +1,159 @@
+"""``hyqjax tune`` with its defaults, run once per training seed, and what the runs return judged on held-out
+step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.targets`).
+
+    python -m experiments.tune_default_repeats --out DIR --impl warp                        # one GPU
+    python -m experiments.tune_default_repeats --out DIR --impl c --seeds 0 1 --wall-minutes 1 \\
+        --heldout 4 --instances 2 --tune-option=--quick                                    # CPU check
+
+1. ``runs``: ``hyqjax tune --out DIR/run_S --seed S --impl IMPL --wall-minutes W`` for every ``--seeds`` S, one after
+   the other, every other option at the tuner's default (``--heldout`` and ``--tune-option`` pass further options;
+   the tuner's own held-out evaluation is not what is judged). A finished run is kept; a killed one goes on from
+   its stored state (the tuner resumes); ``--max-minutes`` stops before a run that would not finish in the time
+   left (exit status 75: the same command goes on).
+2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
+   same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
+   seed and heights the tuner never saw), in ``DIR/heldout``.
+3. ``targets``: per set, clean success pooled up to 26 cm, the worst clean rate at a height up to 24 cm and h90;
+   over the runs, the mean with its 95% t-interval, the range, and the four targets (``DIR/targets.json``,
+   ``DIR/targets.md``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+PROG = "python -m experiments.tune_default_repeats"
+#: Minutes a default run takes beyond its budget: the final re-evaluation, the held-out runs of the tuner, start-up.
+OVERHEAD_MINUTES = 1.5
+
+
+def parse(argv):
+    from hyqjax.studies.tune.study import targets
+
+    ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--out", default="out/tune_default_repeats")
+    ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds, one run each")
+    ap.add_argument("--wall-minutes", type=float, default=None,
+                    help="each run's budget (default: the tuner's, 30 minutes)")
+    ap.add_argument("--heldout", type=int, default=None, help="the tuner's own held-out instances (its --heldout)")
+    ap.add_argument("--tune-option", action="append", default=[], metavar="OPTION",
+                    help="a further option of hyqjax tune, e.g. --tune-option=--quick (repeatable)")
+    ap.add_argument("--references", nargs="*", default=["reach", "tuned_per_leg", "paper"],
+                    help="crawl presets evaluated beside the runs")
+    ap.add_argument("--extra-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
+                    help="a further set from a tuning results.json (the reach map's --tuned-run)")
+    ap.add_argument("--instances", type=int, default=targets.HELDOUT["instances"], help="held-out runs per height")
+    ap.add_argument("--max-minutes", type=float, default=None,
+                    help="stop (exit 75) before a run that would not finish in this many minutes of this process")
+    args = ap.parse_args(argv)
+    if not args.seeds or len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
+        raise ValueError(f"--seeds {args.seeds}: distinct non-negative integers, at least one")
+    if args.wall_minutes is not None and not 0 < args.wall_minutes <= 600:
+        raise ValueError(f"--wall-minutes {args.wall_minutes}: must be in (0, 600]")
+    if args.heldout is not None and not 1 <= args.heldout <= 10**6:
+        raise ValueError(f"--heldout {args.heldout}: must be in [1, 1000000]")
+    if not 1 <= args.instances <= 100000:
+        raise ValueError(f"--instances {args.instances}: must be in [1, 100000]")
+    if args.max_minutes is not None and args.max_minutes <= 0:
+        raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
+    from hyqjax import presets
+
+    for r in args.references:
+        try:
+            presets.check_kind(r, "crawl", "--references")
+        except ValueError as e:
+            raise ValueError(str(e)) from None
+    return args
+
+
+def tune_argv(args, seed: int) -> list[str]:
+    argv = [sys.executable, "-m", "hyqjax.cli", "tune", "--out", run_dir(args, seed), "--seed", str(seed),
+            "--impl", args.impl]
+    if args.wall_minutes is not None:
+        argv += ["--wall-minutes", f"{args.wall_minutes:g}"]
+    if args.heldout is not None:
+        argv += ["--heldout", str(args.heldout)]
+    return argv + list(args.tune_option)
+
+
+def run_dir(args, seed: int) -> str:
+    return os.path.join(args.out, f"run_{seed}")
+
+
+def complete(path: str) -> bool:
+    try:
+        with open(os.path.join(path, "results.json")) as f:
+            return bool(json.load(f).get("complete"))
+    except (OSError, ValueError):
+        return False
+
+
+def main(argv=None) -> int:
+    try:
+        args = parse(argv)
+    except ValueError as e:
+        print(f"tune_default_repeats: {e}", file=sys.stderr)
+        return 2
+    from hyqjax.io import atomic
+    from hyqjax.studies.tune import names
+    from hyqjax.studies.tune.study import targets
+
+    t0 = time.time()
+    os.makedirs(args.out, exist_ok=True)
+    budget = args.wall_minutes if args.wall_minutes is not None else names.DEFAULT_WALL_MINUTES[-1]
+    for seed in args.seeds:
+        d = run_dir(args, seed)
+        if complete(d):
+            continue
+        left = None if args.max_minutes is None else args.max_minutes - (time.time() - t0) / 60
+        if left is not None and left < budget + OVERHEAD_MINUTES:
+            todo = sum(not complete(run_dir(args, s)) for s in args.seeds)
+            print(f"tune_default_repeats: stopping with {todo} run(s) to go ({left:.1f} min left of --max-minutes); "
+                  f"the same command goes on", flush=True)
+            return 75
+        os.makedirs(d, exist_ok=True)
+        cmd = tune_argv(args, seed)
+        print(f"[{time.strftime('%H:%M:%S')}] run {seed}: {' '.join(cmd[1:])}", flush=True)
+        with open(os.path.join(d, "run.log"), "a") as log:
+            rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT)
+        if rc != 0 or not complete(d):
+            print(f"tune_default_repeats: run {seed} ended with exit status {rc} (log: {d}/run.log)", file=sys.stderr)
+            return rc or 1
+    from experiments import reach_map
+
+    runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
+    heldout = os.path.join(args.out, "heldout")
+    rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances)
+    print(f"[{time.strftime('%H:%M:%S')}] held-out: python -m experiments.reach_map {' '.join(rm_argv)}", flush=True)
+    rc = reach_map.main(rm_argv)
+    if rc != 0:
+        return rc
+    with open(os.path.join(heldout, "reach_map.json")) as f:
+        cells = json.load(f)["cells"]
+    summary = targets.judge(cells, list(runs), list(args.references) + [t.split(":", 1)[0] for t in args.extra_run])
+    summary.update(budget_minutes=budget, seeds=args.seeds, reach_map_command=["python", "-m", "experiments.reach_map",
+                                                                              *rm_argv],
+                   run_walls_s={k: _wall(os.path.dirname(p)) for k, p in runs.items()})
+    atomic.write_json(os.path.join(args.out, "targets.json"), summary)
+    text = targets.table(summary)
+    with open(os.path.join(args.out, "targets.md"), "w") as f:
+        f.write(text + "\n")
+    print(text)
+    return 0
+
+
+def _wall(d: str):
+    try:
+        with open(os.path.join(d, "results.json")) as f:
+            return json.load(f).get("wall_s")
+    except (OSError, ValueError):
+        return None
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

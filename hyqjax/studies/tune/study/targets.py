@@ -1,0 +1,132 @@
+"""The default tuner's targets, judged over repeated runs on one held-out reach map.
+
+A *run* is one ``hyqjax tune`` with its defaults (one training seed); the sets the runs return and some reference
+presets are evaluated on the same held-out instances (``python -m experiments.reach_map`` on the wide spread, a
+seed and heights no part of the tuner saw: :data:`HELDOUT`). Per variant (a run's set or a reference):
+
+* ``clean``: clean success pooled over the heights up to :data:`CLEAN_MAX_HEIGHT` (Wilson 95% interval);
+* ``per_height``: clean success at every height, and ``worst_low``: the lowest clean rate at the heights up to
+  :data:`PER_HEIGHT_MAX` (with its height);
+* ``h90``: the tallest height with >= 90 % completed step-downs there and at every lower height (the reach map's).
+
+Over the runs: the mean of ``clean`` with the 95% Student-t interval over runs (:func:`.repeats.over_runs`), the
+range (max - min), and the issue's four targets, each ``pass`` / ``fail`` with the measured value:
+
+* ``clean_lower``: the lower end of the interval over runs >= :data:`CLEAN_LOWER` (0.80);
+* ``per_height``: every run >= :data:`PER_HEIGHT_CLEAN` (0.85) at every height up to 24 cm;
+* ``h90``: every run's ``h90`` >= :data:`H90` (27 cm);
+* ``spread``: the range of ``clean`` over runs <= :data:`SPREAD` (0.05).
+"""
+from __future__ import annotations
+
+from hyqjax.studies import statistics
+from hyqjax.studies.tune.study.repeats import over_runs
+
+#: The held-out reach map of the targets: the wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm),
+#: heights of which none is a training height (the tuner trains at 16, 20, 24 and 28 cm) and a seed no study used.
+HELDOUT = dict(spread="wide", seed=60613, instances=512,
+               heights=(0.14, 0.15, 0.17, 0.18, 0.19, 0.21, 0.22, 0.23, 0.25, 0.26, 0.27, 0.29))
+CLEAN_MAX_HEIGHT = 0.26
+PER_HEIGHT_MAX = 0.24
+CLEAN_LOWER = 0.80
+PER_HEIGHT_CLEAN = 0.85
+H90 = 0.27
+SPREAD = 0.05
+
+
+def variant_summary(cell: dict) -> dict:
+    """One reach-map cell (a variant on one spread) -> its ``clean``, ``per_height``, ``worst_low``, ``h90``,
+    ``diverged`` and ``n``."""
+    rows = sorted(cell["per_height"], key=lambda r: r["height"])
+    low = [r for r in rows if r["height"] <= CLEAN_MAX_HEIGHT + 1e-9]
+    k, n = sum(r["clean"] for r in low), sum(r["n"] for r in low)
+    lo, hi = statistics.wilson_interval(int(k), int(n))
+    upto = [r for r in rows if r["height"] <= PER_HEIGHT_MAX + 1e-9]
+    worst = min(upto, key=lambda r: r["clean_rate"]) if upto else None
+    return dict(clean=k / n if n else None, clean_ci95=[lo, hi], n_clean=int(n),
+                per_height=[dict(height=r["height"], clean=r["clean_rate"], completed=r["completed_rate"],
+                                 n=r["n"]) for r in rows],
+                worst_low=None if worst is None else dict(height=worst["height"], clean=worst["clean_rate"]),
+                h90=cell.get("h90"), diverged=int(cell.get("diverged", 0)), n=int(cell.get("n", 0)))
+
+
+def judge(cells: list[dict], runs: list[str], references: list[str] = ()) -> dict:
+    """The targets over ``runs`` (variant names of the reach map ``cells``), with ``references`` summarised beside
+    them. A run or reference missing from the map is a ``ValueError`` naming it."""
+    by = {c["variant"]: c for c in cells if c.get("spread", HELDOUT["spread"]) == HELDOUT["spread"]}
+    missing = [v for v in list(runs) + list(references) if v not in by]
+    if missing:
+        raise ValueError(f"variant {missing[0]} is not in the reach map (it has {', '.join(sorted(by))})")
+    per = {v: variant_summary(by[v]) for v in list(runs) + list(references)}
+    clean = [per[v]["clean"] for v in runs]
+    stats = over_runs(clean) if runs else dict(n=0, mean=None, sd=None, ci95=None)
+    rng = float(max(clean) - min(clean)) if runs else None
+    worst = min((per[v]["worst_low"]["clean"] for v in runs if per[v]["worst_low"]), default=None)
+    h90s = [per[v]["h90"] for v in runs]
+    lower = stats["ci95"][0] if stats.get("ci95") else None
+    targets = dict(
+        clean_lower=dict(value=lower, target=CLEAN_LOWER, ok=lower is not None and lower >= CLEAN_LOWER),
+        per_height=dict(value=worst, target=PER_HEIGHT_CLEAN, ok=worst is not None and worst >= PER_HEIGHT_CLEAN),
+        h90=dict(value=min((h for h in h90s if h is not None), default=None) if all(h is not None for h in h90s)
+                 else None, target=H90, ok=bool(runs) and all(h is not None and h >= H90 - 1e-9 for h in h90s)),
+        spread=dict(value=rng, target=SPREAD, ok=rng is not None and rng <= SPREAD))
+    return dict(heldout=dict(HELDOUT, clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
+                runs=list(runs), references=list(references), variants=per,
+                over_runs=dict(stats, range=rng, clean=clean), targets=targets,
+                diverged=sum(per[v]["diverged"] for v in per))
+
+
+def table(summary: dict) -> str:
+    """Markdown: one row per run and reference, then the targets."""
+    def f(x, d=3):
+        return "-" if x is None else f"{x:.{d}f}"
+
+    def cm(h):
+        return "-" if h is None else f"{100 * h:.0f} cm"
+
+    lines = ["| set | clean (<= {:.0f} cm) [95%] | worst clean <= {:.0f} cm (height) | h90 | diverged |".format(
+        100 * CLEAN_MAX_HEIGHT, 100 * PER_HEIGHT_MAX), "|---|---|---|---|---|"]
+    for v in summary["runs"] + summary["references"]:
+        s = summary["variants"][v]
+        w = s["worst_low"]
+        lines.append(f"| {v} | {f(s['clean'])} [{f(s['clean_ci95'][0])}, {f(s['clean_ci95'][1])}] | "
+                     f"{f(w and w['clean'])} ({cm(w and w['height'])}) | {cm(s['h90'])} | {s['diverged']} |")
+    o = summary["over_runs"]
+    ci = o.get("ci95")
+    lines += ["", f"over {o['n']} runs: clean {f(o['mean'])}"
+              + (f" [{f(ci[0])}, {f(ci[1])}] (95% t-interval over runs)" if ci else "")
+              + f", range {f(o['range'])}", "", "| target | measured | required | met |", "|---|---|---|---|"]
+    t = summary["targets"]
+    rows = [("clean, lower end of the interval over runs", f(t["clean_lower"]["value"]), f">= {CLEAN_LOWER:.2f}",
+             t["clean_lower"]["ok"]),
+            (f"clean at every height <= {100 * PER_HEIGHT_MAX:.0f} cm (worst run and height)",
+             f(t["per_height"]["value"]), f">= {PER_HEIGHT_CLEAN:.2f}", t["per_height"]["ok"]),
+            ("h90 on the wide spread (lowest run)", cm(t["h90"]["value"]), f">= {cm(H90)}", t["h90"]["ok"]),
+            ("range of clean over runs", f(t["spread"]["value"]), f"<= {SPREAD:.2f}", t["spread"]["ok"])]
+    lines += [f"| {a} | {b} | {c} | {'yes' if ok else 'no'} |" for a, b, c, ok in rows]
+    return "\n".join(lines)
+
+
+def reach_map_arguments(runs: dict, references=(), extra_runs=(), impl: str = "auto", out: str = "",
+                        instances: int | None = None) -> list[str]:
+    """``python -m experiments.reach_map`` arguments of the targets' held-out map: ``runs`` maps a variant name to
+    a tuning ``results.json`` (its one run), ``references`` are presets, ``extra_runs`` further
+    ``NAME:PATH:METHOD[:settings]`` variants."""
+    h = HELDOUT
+    argv = ["--out", out, "--impl", impl, "--instances", str(instances or h["instances"]), "--spread", h["spread"],
+            "--seed", str(h["seed"]), "--heights", *[f"{x:g}" for x in h["heights"]]]
+    if references:
+        argv += ["--preset", *references]
+    for name, path in runs.items():
+        argv += ["--tuned-run", f"{name}:{path}:{_only_run(path)}"]
+    for t in extra_runs:
+        argv += ["--tuned-run", t]
+    names = list(references) + list(runs) + [t.split(":", 1)[0] for t in extra_runs]
+    return argv + ["--variants", *names]
+
+
+def _only_run(path: str) -> str:
+    from hyqjax.studies.tune import tuned
+
+    return tuned.pick_run(tuned.read(path), None, path)
+

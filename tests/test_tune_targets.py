@@ -1,0 +1,79 @@
+"""The default tuner's targets over repeated runs (hyqjax.studies.tune.study.targets) and the default training
+spread of ``hyqjax tune``."""
+import json
+import os
+
+import pytest
+
+from hyqjax.studies.tune.study import targets
+
+STORED = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_h200")
+
+
+def cell(name, rates, n=100, completed=None):
+    """A reach-map cell of ``rates`` (clean) per held-out height, ``completed`` (default 1) per height."""
+    hs = targets.HELDOUT["heights"]
+    completed = completed or [1.0] * len(hs)
+    return dict(spread="wide", variant=name, n=n * len(hs), diverged=0,
+                per_height=[dict(height=h, n=n, clean=round(r * n), clean_rate=round(r * n) / n,
+                                 completed_rate=c) for h, r, c in zip(hs, rates, completed)],
+                h90=max([h for i, h in enumerate(hs) if all(c >= 0.9 for c in completed[:i + 1])], default=None))
+
+
+def test_targets_pool_clean_up_to_26_cm_and_judge_every_run():
+    hs = targets.HELDOUT["heights"]
+    good = [0.9] * len(hs)
+    low_at_19 = [0.9 if h != 0.19 else 0.80 for h in hs]
+    short = [1.0] * len(hs)
+    cells = [cell("a", good), cell("b", good), cell("c", low_at_19),
+             cell("d", short, completed=[1.0 if h < 0.25 else 0.5 for h in hs])]
+    s = targets.judge(cells, ["a", "b"], ["c", "d"])
+    assert s["variants"]["a"]["clean"] == pytest.approx(0.9)
+    assert s["variants"]["a"]["n_clean"] == 100 * sum(h <= 0.26 for h in hs)
+    assert s["over_runs"]["range"] == 0.0 and s["targets"]["spread"]["ok"]
+    assert s["targets"]["per_height"]["ok"] and s["targets"]["h90"]["ok"] and s["targets"]["clean_lower"]["ok"]
+    assert s["variants"]["c"]["worst_low"] == dict(height=0.19, clean=0.80)
+    s = targets.judge(cells, ["a", "c", "d"])
+    assert not s["targets"]["per_height"]["ok"] and s["targets"]["per_height"]["value"] == 0.80
+    assert not s["targets"]["h90"]["ok"] and s["targets"]["h90"]["value"] == 0.23
+    assert s["over_runs"]["range"] == pytest.approx(s["variants"]["d"]["clean"] - s["variants"]["c"]["clean"])
+    with pytest.raises(ValueError, match="variant zz"):
+        targets.judge(cells, ["zz"])
+    text = targets.table(s)
+    assert "| h90 on the wide spread (lowest run) | 23 cm | >= 27 cm | no |" in text
+
+
+def test_stored_targets_are_what_the_stored_map_gives():
+    """The stored five-run result (docs/results/tune_default_repeats_h200) is recomputed from its reach map."""
+    with open(os.path.join(STORED, "heldout", "reach_map.json")) as f:
+        cells = json.load(f)["cells"]
+    with open(os.path.join(STORED, "targets.json")) as f:
+        stored = json.load(f)
+    s = targets.judge(cells, stored["runs"], stored["references"])
+    assert s["over_runs"]["clean"] == pytest.approx(stored["over_runs"]["clean"])
+    assert {k: v["ok"] for k, v in s["targets"].items()} == {k: v["ok"] for k, v in stored["targets"].items()}
+    assert s["diverged"] == 0 and all(v["n"] == 512 * len(targets.HELDOUT["heights"]) for v in s["variants"].values())
+
+
+def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):
+    from experiments import tune_study
+
+    from hyqjax.cli import tune
+    from hyqjax.cli.app import build_parser
+
+    a = build_parser().parse_args(["tune", "--out", str(tmp_path / "t")])
+    tune.validate(a)
+    assert a.wallclock_config.train_spread == "wide" and a.wallclock_config.start_preset == "reach"
+    a = tune_study.build_parser().parse_args(["--out", str(tmp_path / "s")])
+    tune_study.validate(a)
+    assert a.wallclock_config.train_spread == "train"
+
+
+def test_repeats_driver_refuses_bad_options_in_one_line(capsys):
+    from experiments import tune_default_repeats as tdr
+
+    for argv, needle in ((["--seeds", "1", "1"], "--seeds"), (["--wall-minutes", "0"], "--wall-minutes"),
+                         (["--references", "bound_robust"], "bound"), (["--instances", "0"], "--instances")):
+        assert tdr.main(argv + ["--out", "/nonexistent/x"]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0] and "Traceback" not in err[0], err
