@@ -5,6 +5,8 @@ the same held-out instances. One command, one GPU, everything under ``--out``:
     python -m experiments.bounding_refine --impl warp --out out/bounding_refine                  # one H200, ~7 min
     python -m experiments.bounding_refine --impl c --popsize 4 --train-envelope 2 --train-corners 2 \\
         --train-duration 0.8 --duration 0.8 --instances 2 --broad 4 --max-wall 20 --out /tmp/br   # CPU check
+    python -m experiments.bounding_refine --impl warp --methods cma_es guided_es --max-wall 150 --instances 256 \\
+        --out out/bounding_guided                                          # guided ES vs CMA-ES, one H200, ~8 min
 
 1. ``training``: evosax CMA-ES (:func:`hyqjax.bounding.robust.cma_es`) on the robust study's coordinates
    (:class:`hyqjax.bounding.robust.RobustSpace` around the paper's gains, the same scales and bounds), started at
@@ -33,6 +35,33 @@ instances = 2,048 rollouts of 8 s. The robust study's CMA-ES ran 4,096 such roll
 one H100 (``docs/results/bounding_robust_h100_8s``: 55 generations in 295 s, the first with its compile), so 2,048
 take about 2-3 s and ``--max-wall 280`` gives about 90-140 generations (the start's evaluation before it carries the
 compile). Held-out: 3 sets x (6 x 1,024 + 4,096) = 30,720 rollouts, 15 chunks of 2,048, about 40-75 s.
+
+Guided ES against CMA-ES at equal wall-clock (``--methods cma_es guided_es``): each method in turn from the same
+start on the same training batch and the same ``f_pop``, each until ``--max-wall`` s (the start's evaluation, with the
+forward runs' compile, comes before both), then the start and every method's best candidate and final mean (sets
+``<method>`` and ``<method>_mean``, files ``params_<method>.json`` and ``params_<method>_mean.json``) on the same
+held-out instances. Guided ES (:func:`hyqjax.bounding.guided.guided_es`: evosax ``GuidedES``, antithetic, the mean moved
+by Adam at ``--guided-lr``, perturbations of expected norm ``--guided-sigma``, isotropic share ``--alpha``, the last
+``--subspace`` gradients spanning the guided part) takes a surrogate gradient every ``--grad-every`` generations:
+:func:`hyqjax.bounding.robust.make_value_and_jac` (MJX-JAX ``jacfwd``, 22 tangents) at its mean on ``--grad-instances``
+of the training instances (spread over the envelope and corner parts) for ``--grad-duration`` s; the gradient is built
+and compiled inside the method's clock, so its compile is part of the budget. Reported per method
+(``results.json``: ``training.methods``, ``comparison``; ``refine.md``): wall-clock, generations, physics steps
+(forward candidates, gradient tangents: ``robust.physics_steps(instances, duration, tangents=22)`` a gradient, and
+total), the broad held-out falls with Wilson 95 % intervals and worst yaw of both sets; for guided ES every
+generation's surrogate loss, gradient time (and compile), and the cosines of the surrogate gradient with what that
+generation's antithetic pairs measured (:func:`hyqjax.studies.tune.guided.guided_cosines`; ``cos_sampled``, inside the
+span of the pairs, is 1 on a linear cost whose gradient the surrogate is, and has a chance spread of about
+``1 / sqrt(popsize / 2)`` for an unrelated one), summarised by median and share > 0. With ``--methods cma_es`` alone
+(the default) the run and its outputs are the refinement above.
+
+Sizing of the comparison on one H200 (one call of at most 9 minutes), from the runs above and the robust study's
+(``docs/results/bounding_robust_h100*``): the start's evaluation with the Warp compile about 120 s; a CMA-ES generation
+about 3.2 s; the MJX-JAX ``jacfwd`` gradient (22 tangents) took 6.0 s per call over 128 instances x 3.2 s and 16 s over
+128 x 8 s on one H100, its first call 45-65 s more (compile), so its time follows the rollout length, not the batch,
+at these sizes. Assumed here: 64 instances x 3.2 s take about 6 s on an H200 (two CMA-ES generations) and compile in
+about 60 s, both on guided ES's clock. ``--max-wall 150 --instances 256``: 2 x 150 s of training, held-out 5 sets x
+(6 x 256 + 4,096) = 28,160 runs, about 35 s; about 480 s in all.
 
 Every simulator call runs in chunks of ``--chunk`` instances (default: popsize x training instances), so one
 compiled program serves the training and every held-out batch. The training seed must differ from both held-out

@@ -42,6 +42,26 @@ def test_cosine_is_one_on_a_linear_function_with_the_true_gradient():
     assert np.all(np.abs(cos) < 1 - 1e-3) and abs(np.median(cos)) < 0.3, cos
 
 
+def test_cos_sampled_of_an_unrelated_surrogate_scatters_around_zero_with_spread_one_over_sqrt_pairs():
+    """The chance level docs/bounding.md states: guided samples (half the variance along the surrogate) on random
+    linear costs, the surrogate drawn independently of the cost's gradient: ``cos_sampled`` has mean 0 and standard
+    deviation about ``1 / sqrt(pairs)`` (0.35 at population 16)."""
+    from hyqjax.studies.tune.guided import guided_cosines
+
+    rng = np.random.default_rng(0)
+    p, n, sigma = 22, 8, 0.7
+    cs = []
+    for _ in range(400):
+        c, g = rng.standard_normal(p), rng.standard_normal(p)
+        q = g / np.linalg.norm(g)
+        z = (sigma * np.sqrt(0.5 / p) * rng.standard_normal((n, p))
+             + sigma * np.sqrt(0.5) * rng.standard_normal((n, 1)) * q)
+        pop = np.concatenate([z, -z])
+        cs.append(guided_cosines(g, pop, np.zeros(p), pop @ c, sigma, 0.5, q[:, None])["cos_sampled"])
+    cs = np.asarray(cs)
+    assert abs(cs.mean()) < 0.06 and 0.8 / np.sqrt(n) < cs.std() < 1.2 / np.sqrt(n), (cs.mean(), cs.std())
+
+
 def test_the_clock_includes_the_gradient_and_stops_like_cma_es():
     """The first generation's recorded time includes the surrogate's compile (here a 0.3 s sleep reported as compile
     time) and every gradient's time; a generation started before ``max_wall_s`` finishes, none starts after it; the
