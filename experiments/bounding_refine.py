@@ -58,10 +58,10 @@ span of the pairs, is 1 on a linear cost whose gradient the surrogate is, and ha
 Sizing of the comparison on one H200 (one call of at most 9 minutes), from the runs above and the robust study's
 (``docs/results/bounding_robust_h100*``): the start's evaluation with the Warp compile about 120 s; a CMA-ES generation
 about 3.2 s; the MJX-JAX ``jacfwd`` gradient (22 tangents) took 6.0 s per call over 128 instances x 3.2 s and 16 s over
-128 x 8 s on one H100, its first call 45-65 s more (compile), so its time follows the rollout length, not the batch,
-at these sizes. Assumed here: 64 instances x 3.2 s take about 6 s on an H200 (two CMA-ES generations) and compile in
-about 60 s, both on guided ES's clock. ``--max-wall 150 --instances 256``: 2 x 150 s of training, held-out 5 sets x
-(6 x 256 + 4,096) = 28,160 runs, about 35 s; about 480 s in all.
+128 x 8 s on one H100 (about 2 s per simulated second at 128 instances), its first call 45-65 s more (compile).
+Assumed here: 64 instances x 3.2 s take no longer than 128 did, about 6 s on an H200 (two CMA-ES generations; sized
+to stay under three), and compile in about 60 s, both on guided ES's clock. ``--max-wall 150 --instances 256``:
+2 x 150 s of training, held-out 5 sets x (6 x 256 + 4,096) = 28,160 runs, about 35 s; about 480 s in all.
 
 Every simulator call runs in chunks of ``--chunk`` instances (default: popsize x training instances), so one
 compiled program serves the training and every held-out batch. The training seed must differ from both held-out
