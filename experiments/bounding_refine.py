@@ -370,7 +370,7 @@ def train_method(method: str, args, space, train, theta0, f_pop):
     return out, rec, dict(label="guided ES (evosax GuidedES)", short="guided ES", settings=settings)
 
 
-def trained_settings(args, rec: dict) -> str:
+def trained_settings(rec: dict) -> str:
     return (f"sigma {rec['sigma']:g}, lr {rec['lr']:g}, alpha {rec['alpha']:g}, subspace {rec['subspace']}; surrogate "
             f"gradient on {rec['grad_instances']} instances x {rec['grad_duration']:g} s, {rec['grad_tangents']} "
             f"tangents, every {rec['grad_every']} generation(s)")
@@ -611,7 +611,7 @@ def run(args, command: str) -> dict:
     lines = [f"# Bounding refinement at the fast corners ({device}, impl {args.impl}, {prov['date']})", "",
              f"`{command}`", "",
              *[(f"{'CMA-ES' if m == 'cma_es' else 'Guided ES'} from `{args.start_preset}` "
-                f"({'sigma %g' % args.sigma if m == 'cma_es' else trained_settings(args, t['rec'])}, popsize "
+                f"({'sigma %g' % args.sigma if m == 'cma_es' else trained_settings(t['rec'])}, popsize "
                 f"{args.popsize}): {t['out']['generations']} generations in {t['out']['wall_s']:.0f} s on {n_train} "
                 f"training instances ({int((~corner).sum())} envelope, {int(corner.sum())} fast corners) x "
                 f"{args.train_duration:g} s, seed {args.seed}; training cost {start_rec['value']:.4f} -> "
