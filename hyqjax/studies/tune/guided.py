@@ -15,6 +15,7 @@ from hyqjax.studies.tune.resume import tree_like
 from hyqjax.studies.tune.search import Clock, Trace, evaluate_generation, tell_generation
 
 
+@np.errstate(invalid="ignore")  # a non-finite fitness gives NaN cosines, documented below
 def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspace) -> dict:
     """How far the surrogate gradient ``g`` agrees with what the population itself measured, on the same
     antithetic population (``pop`` (N, P), pairs ``i`` and ``i + N/2``; ``fitness_min`` (N,) the minimised
