@@ -79,6 +79,13 @@ def test_guided_cosines_on_a_linear_function():
     assert guided.guided_cosines(-c, pop, mean, f, 0.1, 0.5, sub)["descent_slope"] == pytest.approx(
         -np.linalg.norm(c), rel=1e-9)
     assert np.isnan(guided.guided_cosines(c, pop, mean, f, 0.1, 0.0, sub)["cos_zero_order"])
+    # inside the span of the 6 pairs, the least-squares gradient is c's projection: cosine 1 with fewer pairs than
+    # dimensions; a surrogate off c's direction scores less
+    assert r["cos_sampled"] == pytest.approx(1.0, abs=1e-9)
+    other = c + 2.0 * rng.standard_normal(12)
+    assert guided.guided_cosines(other, pop, mean, f, 0.1, 0.5, sub)["cos_sampled"] < 0.99
+    assert np.isnan(guided.guided_cosines(c, pop, mean, np.where(np.arange(12) == 0, np.inf, f), 0.1, 0.5, sub)[
+        "cos_sampled"])
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ from hyqjax.studies.tune.resume import tree_like
 from hyqjax.studies.tune.search import Clock, Trace, evaluate_generation, tell_generation
 
 
+@np.errstate(invalid="ignore")  # a non-finite fitness gives NaN cosines, documented below
 def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspace) -> dict:
     """How far the surrogate gradient ``g`` agrees with what the population itself measured, on the same
     antithetic population (``pop`` (N, P), pairs ``i`` and ``i + N/2``; ``fitness_min`` (N,) the minimised
@@ -32,6 +33,11 @@ def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspa
       z_i`` (``Sigma = a^2 I + c^2 Q Q^T`` the sampling covariance, ``a^2 = sigma^2 alpha / P``, ``c^2 = sigma^2
       (1 - alpha) / k``, ``Q`` an orthonormal basis of ``subspace`` (P, k)); unbiased but noisy unless the
       population is large against ``P``. NaN when ``alpha`` is 0 or a vector is zero;
+    * ``cos_sampled``: the same comparison inside the directions the population explored: the least-squares
+      (minimum-norm) zero-order gradient ``h`` with ``z_i . h = (f_i+ - f_i-) / 2`` against ``g`` projected onto the
+      span of the ``z_i``. For a linear ``f`` ``h`` is exactly the projection of ``grad f``, so it is 1 when ``g`` is
+      the true gradient, whatever the population size (the other two cosines need many samples to get near 1); NaN
+      when a difference is not finite or a vector is zero;
     * ``pairs_differing``: the antithetic pairs whose two members scored differently. With none (a population all
       of whose runs end alike, e.g. on a small training batch of a success rate) the population measured no
       gradient: the slope is 0 and the cosines NaN."""
@@ -54,7 +60,12 @@ def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspa
         na, nb = np.linalg.norm(a), np.linalg.norm(b)
         return float(a @ b / (na * nb)) if na > 0 and nb > 0 and np.isfinite(na * nb) else float("nan")
 
-    return dict(descent_slope=slope, cos_search=cos(g, est), cos_zero_order=cos(g, white),
+    if np.all(np.isfinite(d)):
+        zp = np.linalg.pinv(z[:n])  # (P, n): the sampled span's least squares
+        sampled = cos(zp @ (z[:n] @ g), zp @ (d / 2.0))
+    else:
+        sampled = float("nan")
+    return dict(descent_slope=slope, cos_search=cos(g, est), cos_zero_order=cos(g, white), cos_sampled=sampled,
                 pairs_differing=int(np.sum(d != 0.0)))
 
 

@@ -8,12 +8,13 @@ import numpy as np
 from hyqjax.studies.tune.study import repeats
 
 
-def cosine_summary(log: list) -> dict:
-    """Per guided-ES run: over its generations, the median, mean and share > 0 of ``cos_zero_order`` (surrogate
-    against the unbiased zero-order estimate on the same population) and ``cos_search``, and the mean of the first
-    and last third of generations (does the agreement fade as the search moves away from the windows' gait?)."""
+def cosine_summary(log: list, keys=("cos_zero_order", "cos_search")) -> dict:
+    """Per guided-ES run: over its generations, the median, mean and share > 0 of each cosine of ``keys`` (by
+    default ``cos_zero_order``, the surrogate against the unbiased zero-order estimate on the same population, and
+    ``cos_search``; :func:`hyqjax.studies.tune.guided.guided_cosines`), and the mean of the first and last third of
+    generations (does the agreement fade as the search moves away from the windows' gait?)."""
     out = dict(generations=len(log))
-    for k in ("cos_zero_order", "cos_search"):
+    for k in keys:
         v = np.asarray([r[k] for r in log if k in r], np.float64)
         v = v[np.isfinite(v)]
         if not v.size:
