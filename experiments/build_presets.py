@@ -145,6 +145,29 @@ def clean_fig_0129(value: float, preset: str):  # noqa: ARG001
                 source=NEW_HELDOUT_SOURCE, command=UNRECORDED)
 
 
+TARGETS = f"{R}/tune_default_repeats_h200"
+
+
+def targets_figs(variant: str, chosen_on_it: bool = False) -> list[dict]:
+    """Figures of ``variant`` on the default tuner's held-out targets map (``experiments/tune_default_repeats.py``,
+    :data:`hyqjax.studies.tune.study.targets.HELDOUT`): clean success pooled up to 26 cm and h90 on the wide
+    spread. ``chosen_on_it``: the set was picked as the best run on this very map (its figure is optimistic)."""
+    t = read(f"{TARGETS}/targets.json")
+    m = read(f"{TARGETS}/heldout/reach_map.json")
+    v = t["variants"][variant]
+    h = t["heldout"]
+    held = (f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed {h['seed']}, "
+            f"{h['instances']} runs per height at {', '.join(f'{100 * x:g}' for x in h['heights'])} cm (no "
+            f"training height)" + ("; this set was chosen as the best of five runs on this map, so the figure "
+                                   "is optimistic" if chosen_on_it else ""))
+    base = dict(heldout=held, command=" ".join(t["reach_map_command"]).replace("/tmp/tdr/", "out/tdr/"),
+                device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10],
+                source=f"{TARGETS}/targets.json")
+    return [dict(what="clean success up to 26 cm, held-out step-downs", value=round(v["clean"], 3), unit="share",
+                 interval=[round(x, 3) for x in v["clean_ci95"]], **base),
+            dict(what="h90, wide spread", value=round(100 * v["h90"]), unit="cm", interval=None, **base)]
+
+
 def bound_file(path: str):
     d = read(path)
     return d["amplitudes"], d["gains"], d.get("provenance", {})
@@ -284,7 +307,8 @@ def build() -> dict[str, dict]:
                                                "docs/stepdown.md added")
     add("reach", "crawl", "the recommended reach configuration: reach-trained SNES gains, edge probe and depth gate",
         dict(crawl=dict(crawl, **PROBE), reflex=reflex), reach_prov,
-        [reach_fig("snes_reach_probe_deep"), reach_fig_0129(27, "--preset reach"), clean_fig_0129(0.857, "reach")])
+        [reach_fig("snes_reach_probe_deep"), reach_fig_0129(27, "--preset reach"), clean_fig_0129(0.857, "reach")]
+        + targets_figs("reach"))
     add("tuned_shared", "crawl", "best measured 14-coordinate shared set (SNES, reach-trained, 10 min on one H200)",
         dict(crawl=crawl, reflex=reflex), prov_of(res, REACH_SRC),
         [heldout_fig(res, "snes/shared@10min", "clean success, held-out step-downs", REACH_SRC,
@@ -294,7 +318,17 @@ def build() -> dict[str, dict]:
     add("tuned_per_leg", "crawl", "56-coordinate per-leg set (CMA-ES, 14 coordinates per swing leg, 30 min on one "
         "H200)", dict(crawl=crawl_b, reflex={}, per_leg=per_leg), prov_of(res, PER_LEG_SRC),
         [clean_fig_0129(0.841, "tuned_per_leg"),
-         heldout_fig(res, "cma_es/per_leg@30min", "clean success, held-out step-downs", PER_LEG_SRC, cmd)])
+         heldout_fig(res, "cma_es/per_leg@30min", "clean success, held-out step-downs", PER_LEG_SRC, cmd)]
+        + targets_figs("tuned_per_leg"))
+    src = f"{TARGETS}/run_0/results.json"
+    crawl_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
+    start = res.get("start_base") or {}
+    add("tuned_per_leg_reach", "crawl", "56-coordinate per-leg set: `hyqjax tune` (CMA-ES, 3 min on one H200, "
+        "training spread) from `reach`, whose edge probe and depth gate it keeps",
+        dict(crawl=dict(start.get("crawl", {}), **crawl_b), reflex=dict(start.get("reflex", {})), per_leg=per_leg),
+        prov_of(res, src), targets_figs("run_0", chosen_on_it=True)
+        + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
+                       prov_of(res, src)["command"])])
 
     cond_src = f"{R}/tune_wallclock_h200_10min_68/results.json"
     crawl_c, cond, res = tuned_conditioned(cond_src, "hybrid/per_leg_cond")
