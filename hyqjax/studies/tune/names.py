@@ -30,14 +30,13 @@ ANTITHETIC = ("open_es", "guided_es", "blend")
 #: Parameterisations (:data:`hyqjax.studies.tune.schedule.NAMES` holds what each one means).
 DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: The default tuner (``hyqjax tune`` with no method, parameterisation or budget given): CMA-ES on the 56 per-leg
-#: coordinates for 30 minutes (checkpoints 3, 10, 30), the best set measured. On the project's independent
-#: held-out set (2,400 step-downs at heights between the trained ones, another seed, the wide spread; one H200,
-#: 2026-11-29, issue 58) the 30-minute per-leg run returned 0.735 clean at 10 minutes and 0.841 [0.826, 0.855] at
-#: 30; the 30-minute run on the 14 shared coordinates 0.777 at 10 and 0.735 at 30; eight 10-minute shared runs
-#: 0.677 (0.645-0.714). So at 10 minutes the two parameterisations are not apart, and at 30 only the per-leg one
-#: still gains (on the study's own held-out set: per-leg 0.415 / 0.592 / 0.741 at 3 / 10 / 30 minutes, shared
-#: 0.381 / 0.623 / 0.621; docs/results/tune_cells_h200_30min). One run each at 30 minutes: the spread over runs
-#: of this default is not measured yet.
+#: coordinates for 30 minutes (checkpoints 3, 10, 30), the method and parameterisation of the best set measured from
+#: Table I (0.741 held-out clean at 30 minutes on the study's set, 0.841 on the independent 2,400 step-downs of
+#: 2026-11-29: the preset ``tuned_per_leg``; 14 shared coordinates: 0.621 at 30 minutes). Five runs of it at 3
+#: minutes from ``reach`` on the training spread returned 0.707 [0.585, 0.829] over runs on held-out step-downs,
+#: below their start's 0.814, from starts 10-15 cm before the edge that the training spread never drew; the
+#: default therefore trains on the wide spread (``hyqjax.cli.tune.OBJECTIVES``; docs/tuning.md, "Five default
+#: runs"). Its spread over runs there, and what 10 and 30 minutes add from a preset, are not measured yet.
 DEFAULT_METHOD = "cma_es"
 DEFAULT_DIM = "per_leg"
 DEFAULT_WALL_MINUTES = (3.0, 10.0, 30.0)
