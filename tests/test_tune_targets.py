@@ -77,3 +77,23 @@ def test_repeats_driver_refuses_bad_options_in_one_line(capsys):
         assert tdr.main(argv + ["--out", "/nonexistent/x"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0] and "Traceback" not in err[0], err
+
+
+def test_repeats_driver_stops_before_a_run_that_cannot_finish_and_keeps_finished_ones(tmp_path, capsys, monkeypatch):
+    """With less time left than a run's budget, the driver stops with exit status 75 before starting it (nothing
+    launched), counting the runs to go; a finished run (``complete``) is never run again."""
+    from experiments import tune_default_repeats as tdr
+
+    (tmp_path / "run_0").mkdir()
+    (tmp_path / "run_0" / "results.json").write_text(json.dumps(dict(complete=True)))
+    (tmp_path / "run_1").mkdir()
+    (tmp_path / "run_1" / "results.json").write_text(json.dumps(dict(complete=False)))
+    launched = []
+    monkeypatch.setattr(tdr.subprocess, "call", lambda cmd, **kw: launched.append(cmd) or 0)
+    argv = ["--out", str(tmp_path), "--seeds", "0", "1", "2", "--wall-minutes", "3", "--max-minutes", "4"]
+    assert tdr.main(argv) == 75
+    out = capsys.readouterr().out
+    assert "2 run(s) to go" in out and not launched
+    assert tdr.complete(str(tmp_path / "run_0")) and not tdr.complete(str(tmp_path / "run_1"))
+    assert tdr.tune_argv(tdr.parse(argv), 1)[3:] == ["tune", "--out", str(tmp_path / "run_1"), "--seed", "1",
+                                                     "--impl", "auto", "--wall-minutes", "3"]
