@@ -126,10 +126,16 @@ TINY = ["--impl", "c", "--popsize", "4", "--train-envelope", "2", "--train-corne
 
 
 @pytest.mark.slow
-def test_surrogate_gradient_matches_central_differences_of_its_value():
-    """The guided loop's surrogate (MJX-JAX jacfwd of the mean training cost over a subset of the training batch,
+def test_surrogate_matches_central_differences_and_methods_compare_at_equal_wall_clock(tmp_path, monkeypatch):
+    """(1) The guided loop's surrogate (MJX-JAX jacfwd of the mean training cost over a subset of the training batch,
     0.4 s, all 22 coordinates, at the warm start) along a direction against central differences of its own value;
-    the first call reports its compile, the later ones none."""
+    the first call reports its compile, the later ones none. (2) ``--methods cma_es guided_es`` on a tiny CPU size,
+    with that surrogate (the program the command builds: the same subset and duration) already compiled, so its
+    compile is charged once in this test: both methods train from the same start at the same limit; results.json
+    holds each method's per-generation record (guided ES's with the surrogate's time and the cosines), its budget
+    split into forward and gradient physics steps, every set's held-out rows on the same instances, and the
+    comparison. (That a first call's compile lands in the first generation's time is checked without physics in
+    ``test_the_clock_includes_the_gradient_and_stops_like_cma_es``.)"""
     args = br.parse(TINY)
     train, labels = br.training_batch(args)
     space = rb.RobustSpace.make()
@@ -150,15 +156,11 @@ def test_surrogate_gradient_matches_central_differences_of_its_value():
     assert r0["loss"] > 0 and abs(der) > 1e-3 * r0["loss"]
     assert der == pytest.approx(fd, rel=0.05), (r0["loss"], der, fd)
 
-
-@pytest.mark.slow
-def test_methods_compare_at_equal_wall_clock_end_to_end(tmp_path):
-    """``--methods cma_es guided_es`` on a tiny CPU size: both methods train from the same start at the same limit;
-    results.json holds each method's per-generation record (guided ES's with the surrogate's time and the cosines),
-    its budget split into forward and gradient physics steps, every set's held-out rows on the same instances, and the
-    comparison; guided ES's first generation's recorded time includes the gradient's recorded compile."""
+    built = []
+    monkeypatch.setattr(bg, "make_surrogate", lambda *a, **k: built.append(a) or grad_fn)
     out = tmp_path / "cmp"
     assert br.main(TINY + ["--methods", "cma_es", "guided_es", "--max-wall", "8", "--out", str(out)]) == 0
+    assert len(built) == 1 and len(built[0][1].apex0) == 1 and built[0][2] == 0.4  # the command's surrogate
     res = json.load(open(out / "results.json"))
     tr = res["training"]
     assert set(tr["methods"]) == {"cma_es", "guided_es"} and "history" not in tr  # no default-run fields
@@ -166,9 +168,8 @@ def test_methods_compare_at_equal_wall_clock_end_to_end(tmp_path):
     for m in (g, c):
         assert m["generations"] >= 1 and m["wall_s"] >= 8.0 and len(m["history"]) == m["generations"]
     h0 = g["history"][0]
-    assert h0["new_gradient"] and h0["grad_compile_s"] > 0 and h0["wall_s"] >= h0["grad_compile_s"]
-    assert h0["wall_s"] >= h0["grad_s"] >= h0["grad_compile_s"] and g["grad_compile_s"] == pytest.approx(
-        h0["grad_compile_s"], abs=1e-3)
+    assert h0["new_gradient"] and h0["grad_compile_s"] == 0.0 and g["grad_compile_s"] == 0.0  # compiled above
+    assert h0["wall_s"] >= h0["grad_s"] > 0
     for r in g["history"]:
         for k in ("cos_sampled", "cos_zero_order", "cos_search", "descent_slope", "pairs_differing"):
             assert k in r
