@@ -160,7 +160,7 @@ def targets_figs(variant: str, chosen_on_it: bool = False) -> list[dict]:
             f"{h['instances']} runs per height at {', '.join(f'{100 * x:g}' for x in h['heights'])} cm (no "
             f"training height)" + ("; this set was chosen as the best of five runs on this map, so the figure "
                                    "is optimistic" if chosen_on_it else ""))
-    base = dict(heldout=held, command=" ".join(t["reach_map_command"]).replace("/tmp/tdr/", "out/tdr/"),
+    base = dict(heldout=held, command=t["reach_map_command"].replace("/tmp/tdr/", "out/tdr/"),
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10],
                 source=f"{TARGETS}/targets.json")
     return [dict(what="clean success up to 26 cm, held-out step-downs", value=round(v["clean"], 3), unit="share",

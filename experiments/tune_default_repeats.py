@@ -13,9 +13,9 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
 2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
    same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
    seed and heights the tuner never saw), in ``DIR/heldout``.
-3. ``targets``: per set, clean success pooled up to 26 cm, the worst clean rate at a height up to 24 cm and h90;
-   over the runs, the mean with its 95% t-interval, the range, and the four targets (``DIR/targets.json``,
-   ``DIR/targets.md``).
+3. ``targets``: per set, clean success pooled up to 26 cm, the worst clean rate at a height up to 24 cm, h90 and
+   clean success at the farthest starts (10-15 cm), and the iterate each run returned; over the runs, the mean with its 95% t-interval, the range, and the four targets (``DIR/targets.json``,
+   ``DIR/targets.md``). ``--judge-only`` runs nothing and judges what ``DIR`` holds again.
 """
 from __future__ import annotations
 
@@ -48,6 +48,8 @@ def parse(argv):
     ap.add_argument("--extra-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
                     help="a further set from a tuning results.json (the reach map's --tuned-run)")
     ap.add_argument("--instances", type=int, default=targets.HELDOUT["instances"], help="held-out runs per height")
+    ap.add_argument("--judge-only", action="store_true",
+                    help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop (exit 75) before a run that would not finish in this many minutes of this process")
     args = ap.parse_args(argv)
@@ -106,7 +108,7 @@ def main(argv=None) -> int:
     t0 = time.time()
     os.makedirs(args.out, exist_ok=True)
     budget = args.wall_minutes if args.wall_minutes is not None else names.DEFAULT_WALL_MINUTES[-1]
-    for seed in args.seeds:
+    for seed in ([] if args.judge_only else args.seeds):
         d = run_dir(args, seed)
         if complete(d):
             continue
@@ -129,16 +131,31 @@ def main(argv=None) -> int:
     runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
     heldout = os.path.join(args.out, "heldout")
     rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances)
-    print(f"[{time.strftime('%H:%M:%S')}] held-out: python -m experiments.reach_map {' '.join(rm_argv)}", flush=True)
-    rc = reach_map.main(rm_argv)
-    if rc != 0:
-        return rc
-    with open(os.path.join(heldout, "reach_map.json")) as f:
-        cells = json.load(f)["cells"]
+    if not args.judge_only:
+        print(f"[{time.strftime('%H:%M:%S')}] held-out: python -m experiments.reach_map {' '.join(rm_argv)}",
+              flush=True)
+        rc = reach_map.main(rm_argv)
+        if rc != 0:
+            return rc
+    try:
+        with open(os.path.join(heldout, "reach_map.json")) as f:
+            heldout_map = json.load(f)
+        cells = heldout_map["cells"]
+        stored = [_read(os.path.dirname(p)) for p in runs.values()]
+    except (OSError, ValueError, KeyError) as e:
+        print(f"tune_default_repeats: cannot read the held-out map or a run under {args.out} ({e})", file=sys.stderr)
+        return 2
     summary = targets.judge(cells, list(runs), list(args.references) + [t.split(":", 1)[0] for t in args.extra_run])
-    summary.update(budget_minutes=budget, seeds=args.seeds, reach_map_command=["python", "-m", "experiments.reach_map",
-                                                                              *rm_argv],
-                   run_walls_s={k: _wall(os.path.dirname(p)) for k, p in runs.items()})
+    command = "python -m experiments.reach_map " + " ".join(rm_argv)
+    if args.judge_only:  # the command that made the stored map, where an earlier judgement recorded it
+        try:
+            command = _read_targets(args.out).get("reach_map_command") or command
+        except (OSError, ValueError):
+            pass
+    summary.update(budget_minutes=budget, seeds=args.seeds, reach_map_command=command,
+                   heldout_device=heldout_map.get("device"), heldout_wall_s=heldout_map.get("wall_s"),
+                   run_walls_s={k: r.get("wall_s") for k, r in zip(runs, stored)},
+                   returned={k: _returned(r) for k, r in zip(runs, stored)})
     atomic.write_json(os.path.join(args.out, "targets.json"), summary)
     text = targets.table(summary)
     with open(os.path.join(args.out, "targets.md"), "w") as f:
@@ -147,12 +164,29 @@ def main(argv=None) -> int:
     return 0
 
 
-def _wall(d: str):
-    try:
-        with open(os.path.join(d, "results.json")) as f:
-            return json.load(f).get("wall_s")
-    except (OSError, ValueError):
+def _read_targets(d: str) -> dict:
+    with open(os.path.join(d, "targets.json")) as f:
+        res = json.load(f)
+    cmd = res.get("reach_map_command")
+    if isinstance(cmd, list):  # stored as an argument list
+        res["reach_map_command"] = " ".join(cmd)
+    return res
+
+
+def _read(d: str) -> dict:
+    with open(os.path.join(d, "results.json")) as f:
+        return json.load(f)
+
+
+def _returned(res: dict) -> dict | None:
+    """The returned iterate of a run's one search (its final re-evaluation's choice): iteration, validation and
+    pooled clean rates."""
+    run = next(iter((res.get("runs") or {}).values()), None)
+    fr = (run or {}).get("final_reevaluation") or {}
+    if not fr.get("candidates"):
         return None
+    c = fr["candidates"][fr["chosen"]]
+    return dict(iteration=c["iteration"], validation_clean=c["validation_clean"], pooled_clean=c["pooled_clean"])
 
 
 if __name__ == "__main__":

@@ -53,6 +53,13 @@ def test_stored_targets_are_what_the_stored_map_gives():
     assert s["over_runs"]["clean"] == pytest.approx(stored["over_runs"]["clean"])
     assert {k: v["ok"] for k, v in s["targets"].items()} == {k: v["ok"] for k, v in stored["targets"].items()}
     assert s["diverged"] == 0 and all(v["n"] == 512 * len(targets.HELDOUT["heights"]) for v in s["variants"].values())
+    # docs/tuning.md's cause: the runs that lost, lost at the farthest starts (10-15 cm), which training never drew
+    far = {v: s["variants"][v]["far_start"] for v in s["variants"]}
+    assert far["reach"]["range"] == [pytest.approx(0.10), pytest.approx(0.15)]
+    assert round(far["reach"]["clean"], 2) == 0.68 and round(far["run_0"]["clean"], 2) == 0.82
+    assert [round(far[f"run_{i}"]["clean"], 2) for i in (1, 2, 3, 4)] == [0.17, 0.19, 0.43, 0.32]
+    text = targets.table(dict(s, returned=stored["returned"]))
+    assert text.splitlines()[3].endswith("| 10: 0.851 / 0.820 |")  # run_1's returned iterate
 
 
 def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):

@@ -7,7 +7,9 @@ seed and heights no part of the tuner saw: :data:`HELDOUT`). Per variant (a run'
 * ``clean``: clean success pooled over the heights up to :data:`CLEAN_MAX_HEIGHT` (Wilson 95% interval);
 * ``per_height``: clean success at every height, and ``worst_low``: the lowest clean rate at the heights up to
   :data:`PER_HEIGHT_MAX` (with its height);
-* ``h90``: the tallest height with >= 90 % completed step-downs there and at every lower height (the reach map's).
+* ``h90``: the tallest height with >= 90 % completed step-downs there and at every lower height (the reach map's);
+* ``far_start``: clean success up to :data:`CLEAN_MAX_HEIGHT` in the last third of the spread's start distances
+  (10-15 cm before the edge on the wide spread; the training spread draws 0-10 cm).
 
 Over the runs: the mean of ``clean`` with the 95% Student-t interval over runs (:func:`.repeats.over_runs`), the
 range (max - min), and the issue's four targets, each ``pass`` / ``fail`` with the measured value:
@@ -43,7 +45,11 @@ def variant_summary(cell: dict) -> dict:
     lo, hi = statistics.wilson_interval(int(k), int(n))
     upto = [r for r in rows if r["height"] <= PER_HEIGHT_MAX + 1e-9]
     worst = min(upto, key=lambda r: r["clean_rate"]) if upto else None
+    far = [r["by_factor"]["start_distance"][-1] for r in low if "by_factor" in r]
+    kf, nf = sum(p["n"] * (p["clean"] or 0.0) for p in far), sum(p["n"] for p in far)
     return dict(clean=k / n if n else None, clean_ci95=[lo, hi], n_clean=int(n),
+                far_start=dict(clean=kf / nf if nf else None, n=int(nf),
+                               range=far[0]["range"] if far else None),
                 per_height=[dict(height=r["height"], clean=r["clean_rate"], completed=r["completed_rate"],
                                  n=r["n"]) for r in rows],
                 worst_low=None if worst is None else dict(height=worst["height"], clean=worst["clean_rate"]),
@@ -84,13 +90,19 @@ def table(summary: dict) -> str:
     def cm(h):
         return "-" if h is None else f"{100 * h:.0f} cm"
 
-    lines = ["| set | clean (<= {:.0f} cm) [95%] | worst clean <= {:.0f} cm (height) | h90 | diverged |".format(
-        100 * CLEAN_MAX_HEIGHT, 100 * PER_HEIGHT_MAX), "|---|---|---|---|---|"]
+    returned = summary.get("returned", {})
+    lines = ["| set | clean (<= {:.0f} cm) [95%] | worst clean <= {:.0f} cm (height) | h90 | clean at the farthest "
+             "starts | diverged | returned iterate: validation / pooled clean |".format(
+                 100 * CLEAN_MAX_HEIGHT, 100 * PER_HEIGHT_MAX), "|---|---|---|---|---|---|---|"]
     for v in summary["runs"] + summary["references"]:
         s = summary["variants"][v]
         w = s["worst_low"]
+        far = s.get("far_start") or {}
+        r = returned.get(v)
+        it = "" if not r else f"{r['iteration']}: {f(r['validation_clean'])} / {f(r['pooled_clean'])}"
         lines.append(f"| {v} | {f(s['clean'])} [{f(s['clean_ci95'][0])}, {f(s['clean_ci95'][1])}] | "
-                     f"{f(w and w['clean'])} ({cm(w and w['height'])}) | {cm(s['h90'])} | {s['diverged']} |")
+                     f"{f(w and w['clean'])} ({cm(w and w['height'])}) | {cm(s['h90'])} | "
+                     f"{f(far.get('clean'), 2)} | {s['diverged']} | {it} |")
     o = summary["over_runs"]
     ci = o.get("ci95")
     lines += ["", f"over {o['n']} runs: clean {f(o['mean'])}"
