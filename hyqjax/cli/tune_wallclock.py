@@ -119,6 +119,10 @@ def run(args) -> int:
         print(f"best at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; 95% interval "
               f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
+    if res["complete"] and not args.study:
+        print(f"run what it returned: hyqjax stepdown --params {args.out}/results.json --heights 0.24 --instances 4; "
+              f"on held-out step-downs: python -m experiments.reach_map --tuned-run returned:{args.out}/results.json:"
+              f"{next(iter(res['runs']), '')} --variants returned --spread wide")
     clock.lap("summary")
     print(clock.line(), flush=True)
     return 0
