@@ -158,8 +158,7 @@ def main(argv=None) -> int:
                    returned={k: _returned(r) for k, r in zip(runs, stored)})
     atomic.write_json(os.path.join(args.out, "targets.json"), summary)
     text = targets.table(summary)
-    with open(os.path.join(args.out, "targets.md"), "w") as f:
-        f.write(text + "\n")
+    atomic.atomic_write(os.path.join(args.out, "targets.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
     return 0
 
