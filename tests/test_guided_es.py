@@ -92,7 +92,8 @@ def test_guided_es_and_the_blend_on_the_step_down_record_finite_agreement(tmp_pa
     method. (On this CPU size, 0.5 s training runs, every member of a population may score alike: the population
     then measured no gradient, its slope along the surrogate is 0 and the cosines are undefined, stored as null.)
     Budgets of 15 s per method: every row is checked, and a row takes about 2 s after the first generation's
-    compile (alone on 2 cores: 4 guided-ES generations and 7 blend steps in 15 s; 12 and 15 in the 30 s it had)."""
+    compile (alone on 2 cores, rows of a 30 s run: 12 guided-ES generations and 15 blend steps, of which 4 and 8
+    started within the first 15 s)."""
     from experiments import tune_study
 
     out = tmp_path / "g"
