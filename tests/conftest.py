@@ -23,7 +23,7 @@ import warnings
 #: 101.0 / 91.8 s against 111.9 / 102.5 s (96 / 90 s of user CPU against 107 / 99 s); test_tune.py's three
 #: largest closed-loop tests 151.0 s against 160.8 s (152 against 167 s of user CPU; XLA of the reverse-mode program
 #: 31.8 against 37.4 s); test_model, test_sim, test_stepdown and test_cpu_backend 240.6 s against 229.6 s of wall
-#: under a higher load, 207 against 217 s of user CPU. Every test of those files passes with it. (An earlier pair of
+#: under a higher load, 207 against 217 s of user CPU; every test run there passes with it. (An earlier pair of
 #: whole-suite runs, benchmarks/RESULTS.md "XLA's codegen split", was inside the machine's drift.)
 #: What a user's process compiles with (XLA's defaults) still runs here: the two-device rollout of
 #: tests/test_sim.py, compared with the session's run of the same scenario, and its batch-512 deadlock regression
