@@ -42,10 +42,11 @@ GUIDED_COMPARISON = dict(methods=("guided_es", "cma_es", "snes"), dims=("per_leg
 def build_parser() -> argparse.ArgumentParser:
     from hyqjax.cli import tune
     from hyqjax.cli.app import Parser
+    from hyqjax.cli.common import HelpFormatter
 
     H = tune.HIDDEN
     p = Parser(prog="python -m experiments.tune_study", description=__doc__,
-               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+               formatter_class=HelpFormatter)
     p.add_argument("--debug", action="store_true", help="show the traceback of an error")
     p.add_argument("--no-cache", action="store_true", help="do not use JAX's persistent compilation cache")
     tune.add_arguments(p)

@@ -17,10 +17,19 @@ import warnings
 #: COMPILER_OPTIONS``), and LLVM's optimisation level 0 for the compiled code. The suite is nearly all XLA compiling
 #: MJX programs on the CPU and running them for a few hundred ticks; the first option takes about a quarter off the
 #: suite's CPU time, the second a further tenth (benchmarks/RESULTS.md), and every test passes unchanged with both.
+#: The third compiles each program's LLVM module in one piece instead of XLA:CPU's default 32 parts on a thread
+#: pool: with two xdist workers on 2 cores the pool finds no idle core, and the split itself costs CPU. Alone, the
+#: same files with and without it, alternated on the shared 2-core VM (2026-11-29, load 1-4): test_bounding.py
+#: 101.0 / 91.8 s against 111.9 / 102.5 s (96 / 90 s of user CPU against 107 / 99 s); test_tune.py's three
+#: largest closed-loop tests 151.0 s against 160.8 s (152 against 167 s of user CPU; XLA of the reverse-mode program
+#: 31.8 against 37.4 s); test_model, test_sim, test_stepdown and test_cpu_backend 240.6 s against 229.6 s of wall
+#: under a higher load, 207 against 217 s of user CPU; every test run there passes with it. (An earlier pair of
+#: whole-suite runs, benchmarks/RESULTS.md "XLA's codegen split", was inside the machine's drift.)
 #: What a user's process compiles with (XLA's defaults) still runs here: the two-device rollout of
 #: tests/test_sim.py, compared with the session's run of the same scenario, and its batch-512 deadlock regression
 #: (:func:`user_xla_flags`).
-SESSION_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
+SESSION_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0",
+                     "--xla_cpu_parallel_codegen_split_count=1")
 if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):  # a choice of the user's is kept
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *SESSION_XLA_FLAGS]).strip()
     os.environ["HYQJAX_TEST_XLA_FLAG"] = " ".join(SESSION_XLA_FLAGS)  # added here (the xdist workers inherit both)

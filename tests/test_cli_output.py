@@ -41,6 +41,45 @@ def test_help_names_each_default_once_and_has_an_example(cmd, capsys):
     assert "hyqjax " + cmd in text.split("options:")[0] or cmd == "view" and "hyqjax view" in text
 
 
+def _subcommand_parsers():
+    """Every ``hyqjax`` subcommand's parser (found in the parser, not listed by hand) and the tuning study's, which
+    shares ``hyqjax tune``'s options."""
+    import argparse
+
+    from experiments import tune_study
+
+    sub = next(a for a in app.build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return {**sub.choices, "experiments.tune_study": tune_study.build_parser()}
+
+
+def option_entries(help_text: str) -> dict[str, str]:
+    """The options section(s) of an argparse help text as {first option string: its entry, whitespace collapsed};
+    an entry is the line that starts with the option and its indented continuation lines."""
+    entries, key = {}, None
+    for line in help_text.splitlines():
+        m = re.match(r"^  (-[-\w]+)", line)
+        if m:
+            key = m.group(1)
+            entries[key] = line
+        elif key and line.startswith("   "):
+            entries[key] += " " + line
+        else:
+            key = None
+    return {k: re.sub(r"\s+", " ", v) for k, v in entries.items()}
+
+
+@pytest.mark.parametrize("name", sorted(_subcommand_parsers()))
+def test_every_help_states_each_option_default_at_most_once(name, monkeypatch):
+    """``--help`` of every subcommand (and of the tuning study): no option entry carries "(default:" twice (the
+    formatter adds a default only where the help text does not state one), and none says "(default: None)"."""
+    monkeypatch.setenv("COLUMNS", "100")
+    entries = option_entries(_subcommand_parsers()[name].format_help())
+    assert "--debug" in entries and "--no-cache" in entries and len(entries) > 3, sorted(entries)
+    for opt, entry in entries.items():
+        assert entry.count("(default") <= 1, f"{name} {opt}: {entry}"
+        assert "(default: None)" not in entry, f"{name} {opt}: {entry}"
+
+
 def test_sweep_help_keeps_the_toml_example_lines(capsys):
     text = help_text("sweep", capsys)
     assert "\n    [grid]\n    height = [0.16, 0.21, 0.24]\n    reflex = [false, true]\n" in text

@@ -88,11 +88,17 @@ def test_one_step_value_unchanged_derivative_gains_the_spring():
         @jax.jit
         def run(q):
             d = d0.replace(qpos=q)
-            hard = lambda q: mjx.step(mx, d.replace(qpos=q)).qvel  # noqa: E731
-            soft = lambda q: cfdm.apply(cfd, mx, ci, bodies, mjx.step(mx, d.replace(qpos=q)), dt).qvel  # noqa: E731
+
+            def hard_and_soft(q):
+                # MJX's step, traced once: its next velocity (hard) and the same step with the spring applied
+                # (soft); the two share the step, so what differs between them is ``cfdm.apply`` alone.
+                stepped = mjx.step(mx, d.replace(qpos=q))
+                return stepped.qvel, cfdm.apply(cfd, mx, ci, bodies, stepped, dt).qvel
+
             dv = lambda q: cfdm.velocity_change(cfd, mx, ci, bodies, mjx.forward(mx, d.replace(qpos=q)), dt)  # noqa: E731
             e = jnp.zeros_like(q).at[2].set(1.0)
-            return jax.jvp(hard, (q,), (e,)), jax.jvp(soft, (q,), (e,)), jax.jvp(dv, (q,), (e,))[1]
+            (vh, vs), (th, ts) = jax.jvp(hard_and_soft, (q,), (e,))
+            return (vh, th), (vs, ts), jax.jvp(dv, (q,), (e,))[1]
 
         q0 = jnp.asarray(m.qpos0, jnp.float64)
         # One program for both heights, compiled at XLA's backend optimisation level 0 (it runs two steps; the

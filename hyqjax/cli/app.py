@@ -34,7 +34,7 @@ os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 import hyqjax  # noqa: E402
 from hyqjax.cli.common import (  # noqa: E402
-    USAGE_EXIT, UsageError, apply_devices, discard_created_out, enable_compilation_cache)
+    USAGE_EXIT, HelpFormatter, UsageError, apply_devices, discard_created_out, enable_compilation_cache)
 from hyqjax.io.cache import StderrFilter  # noqa: E402
 
 
@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=Parser)
     for mod in _command_modules():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.__doc__, parents=[common],
-                           formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                           formatter_class=HelpFormatter)
         mod.add_arguments(p)
         p.set_defaults(run_command=mod.run, validate_command=getattr(mod, "validate", None))
     return parser
