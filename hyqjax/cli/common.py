@@ -97,12 +97,12 @@ def check_out_free(path: str, option: str = "--out") -> None:
 class HelpFormatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Help as written: the description keeps its line breaks (examples stay readable), and an option's default
     is appended once, only where it says something: not where the help text already names its default, not for
-    an on/off flag (default off), an unset (None) default or an empty list (a repeatable option)."""
+    an on/off flag (default off), an unset (None) default, an empty string or an empty list (a repeatable option)."""
 
     def _get_help_string(self, action):
         text = action.help or ""
         if ("default" in text.lower() or any(action.default is v for v in (None, False, argparse.SUPPRESS))
-                or action.default == []
+                or action.default in ([], "")
                 or isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction))):
             return text
         return super()._get_help_string(action)

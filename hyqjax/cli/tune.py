@@ -81,9 +81,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "spread: friction 0.4-1.0, payload 0-15 kg, start 0-15 cm before the edge)")
     p.add_argument("--preset", default=None,
                    help="start point: a crawl preset of hyqjax.presets (hyqjax presets lists them), or none for "
-                        "Table I with the shin remedy; default: the best measured preset the parameterisation can "
-                        "start from (" + ", ".join(f"{d} {p}" for (o, d), p in names.DEFAULT_PRESETS.items()
-                                                   if o == "clean") + "; reach: shared reach)")
+                        "Table I with the shin remedy; default: the best measured preset, "
+                        + ", ".join(sorted(set(names.DEFAULT_PRESETS.values())))
+                        + " (a per-leg parameterisation starts from it on every leg; its values of the coordinates "
+                          "no parameterisation tunes, such as an edge probe, stay fixed)")
     p.add_argument("--start-from", default="",
                    help="warm start: a results.json of an earlier run; its last iterate of the same method and "
                         "parameterisation is the start")
