@@ -654,28 +654,12 @@ def _standing_obs(extra_kg: float = 0.0):
                        tau=jnp.zeros(12, jnp.float32), time=jnp.asarray(0.0, jnp.float32))
 
 
-class _FakeClock:
-    """A clock that advances by a fixed cost per evaluation (tests of the checkpoint semantics)."""
+def _FakeClock():
+    """A clock that advances by a fixed cost per evaluation (tests of the checkpoint semantics): the analytic
+    studies' evaluation clock."""
+    from hyqjax.studies.tune.study.analytic import EvalClock
 
-    def __init__(self):
-        self.now, self.charged, self.physics_steps = 0.0, 0.0, 0
-
-    def elapsed(self):
-        return self.now + self.charged
-
-    def charge(self, s):
-        self.charged += s
-
-    def state(self):
-        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=self.physics_steps)
-
-    def restore(self, st):
-        self.now, self.charged, self.physics_steps = st["elapsed"] - st["charged"], st["charged"], st["physics_steps"]
-
-    def paused(self):
-        import contextlib
-
-        return contextlib.nullcontext()
+    return EvalClock()
 
 
 def test_checkpoints_get_the_iterate_finished_before_them():

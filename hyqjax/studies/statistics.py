@@ -61,6 +61,21 @@ def mean_interval(values, confidence: float = 0.95) -> tuple[float, float]:
     return (float(v.mean()) - half, float(v.mean()) + half)
 
 
+def series_summary(values, share_positive: bool = False) -> dict[str, Any] | None:
+    """Over the finite entries of a per-step series (in order): their count ``n``, ``median``, ``mean`` (and the
+    ``share_positive`` > 0 when asked), and the mean of the first and last third (``first_third``, ``last_third``:
+    does the quantity drift over a run?); None without a finite entry."""
+    v = np.asarray(values, np.float64)
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return None
+    t = max(1, v.size // 3)
+    out = dict(n=int(v.size), median=float(np.median(v)), mean=float(v.mean()))
+    if share_positive:
+        out["share_positive"] = float(np.mean(v > 0))
+    return dict(out, first_third=float(v[:t].mean()), last_third=float(v[-t:].mean()))
+
+
 def success_curve(x, success, levels=None, confidence: float = 0.95, key: str = "height") -> list[dict[str, Any]]:
     """Per level of ``x`` (sorted), ``{key, n, successes, rate, ci95}``.
 

@@ -49,6 +49,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from hyqjax.studies.statistics import series_summary
+
 Z_DELTA = 1.96
 
 
@@ -174,13 +176,6 @@ def summary(log: list) -> dict:
     first- and zeroth-order estimates, with the first and last third of steps."""
     out = dict(steps=len(log))
     for k in ("alpha", "alpha_var", "cos", "var0", "var1"):
-        v = np.asarray([r.get(k, np.nan) for r in log], np.float64)
-        v = v[np.isfinite(v)]
-        if not v.size:
-            out[k] = None
-            continue
-        t = max(1, v.size // 3)
-        out[k] = dict(n=int(v.size), median=float(np.median(v)), mean=float(v.mean()),
-                      first_third=float(v[:t].mean()), last_third=float(v[-t:].mean()))
+        out[k] = series_summary([r.get(k, np.nan) for r in log])
     out["guard_share"] = float(np.mean([bool(r.get("guard")) for r in log])) if log else None
     return out

@@ -193,26 +193,22 @@ def _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progres
             if name in charges.seconds:
                 charge(charges.seconds[name])  # compiled by an earlier method: charged as if compiled here
         trace.begin(clock)  # with a selection: the start point's validation (compiles it here if no method did)
-    if method in search.GUIDED_METHODS:
+    if method in search.GUIDED_METHODS + search.BLEND_METHODS:  # the gradient inside a population search
         step_fn, _, _ = grad.programs(param, line_search=False)
         if stored is None:
             for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
                 charge(charges.seconds[name])
-        guided.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                          alpha=cfg.guided_alpha, subspace=cfg.guided_subspace, lr=cfg.guided_lr,
-                          grad_every=cfg.guided_grad_every, grad_cost=grad.step_costs[param.name],
-                          progress=progress, resume=state, checkpoint=hook(phase))
-        return
-    if method in search.BLEND_METHODS:
-        from hyqjax.studies.tune import blend
+        common = dict(grad_cost=grad.step_costs[param.name], progress=progress, resume=state,
+                      checkpoint=hook(phase))
+        if method in search.GUIDED_METHODS:
+            guided.run_guided(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                              alpha=cfg.guided_alpha, subspace=cfg.guided_subspace, lr=cfg.guided_lr,
+                              grad_every=cfg.guided_grad_every, **common)
+        else:
+            from hyqjax.studies.tune import blend
 
-        step_fn, _, _ = grad.programs(param, line_search=False)
-        if stored is None:
-            for name in grad.charge_names(param)[:2]:  # the windows and the tuning step (no line search)
-                charge(charges.seconds[name])
-        blend.run_blend(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
-                        lr=cfg.blend_lr, gamma=cfg.blend_gamma, grad_cost=grad.step_costs[param.name],
-                        progress=progress, resume=state, checkpoint=hook(phase))
+            blend.run_blend(f_gen, step_fn, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,
+                            lr=cfg.blend_lr, gamma=cfg.blend_gamma, **common)
         return
     if method in search.SEARCH_METHODS:
         search.run_search(method, f_gen, theta0, cfg.popsize, cfg.sigma, clock, trace, seed=cfg.seed,

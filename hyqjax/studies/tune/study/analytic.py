@@ -33,6 +33,9 @@ class EvalClock:
     def elapsed(self):
         return self.now + self.charged
 
+    def charge(self, s):
+        self.charged += s
+
     def state(self):
         return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=self.physics_steps)
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from hyqjax.studies.statistics import series_summary
 from hyqjax.studies.tune.study import repeats
 
 
@@ -15,15 +16,7 @@ def cosine_summary(log: list, keys=("cos_zero_order", "cos_search")) -> dict:
     generations (does the agreement fade as the search moves away from the windows' gait?)."""
     out = dict(generations=len(log))
     for k in keys:
-        v = np.asarray([r[k] for r in log if k in r], np.float64)
-        v = v[np.isfinite(v)]
-        if not v.size:
-            out[k] = None
-            continue
-        t = max(1, v.size // 3)
-        out[k] = dict(n=int(v.size), median=float(np.median(v)), mean=float(v.mean()),
-                      share_positive=float(np.mean(v > 0)), first_third=float(v[:t].mean()),
-                      last_third=float(v[-t:].mean()))
+        out[k] = series_summary([r[k] for r in log if k in r], share_positive=True)
     return out
 
 
