@@ -145,7 +145,12 @@ def main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         print(f"tune_default_repeats: cannot read the held-out map or a run under {args.out} ({e})", file=sys.stderr)
         return 2
-    summary = targets.judge(cells, list(runs), list(args.references) + [t.split(":", 1)[0] for t in args.extra_run])
+    try:
+        summary = targets.judge(cells, list(runs),
+                                list(args.references) + [t.split(":", 1)[0] for t in args.extra_run])
+    except ValueError as e:
+        print(f"tune_default_repeats: {heldout}/reach_map.json: {e}", file=sys.stderr)
+        return 2
     command = "python -m experiments.reach_map " + " ".join(rm_argv)
     if args.judge_only:  # the command that made the stored map, where an earlier judgement recorded it
         try:
@@ -160,6 +165,9 @@ def main(argv=None) -> int:
     text = targets.table(summary)
     atomic.atomic_write(os.path.join(args.out, "targets.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
+    walls = [w for w in summary["run_walls_s"].values() if w]
+    print(f"wall {time.time() - t0:.1f} s in all (this process: the runs it launched, the held-out map, the "
+          f"judgement); the runs' own walls {sum(walls):.0f} s over {len(walls)} runs; wrote {args.out}/targets.md")
     return 0
 
 
