@@ -513,8 +513,10 @@ def check(args) -> dict:
         params = scheduled.common_structure(params)
     except ValueError as e:
         raise UsageError(f"--variants: {e}") from None
-    return dict(impl=args.impl, instances=args.instances, heights=[float(h) for h in args.heights],
-                spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
+    from hyqjax.studies.stepdown import START_POSE
+
+    return dict(start_pose=START_POSE, impl=args.impl, instances=args.instances,
+                heights=[float(h) for h in args.heights], spreads={s: SPREADS[s] for s in args.spread}, variants=args.variants, params=described,
                 seed=args.seed, duration=args.duration, terminate=not args.no_terminate,
                 tuned=os.path.abspath(args.tuned) if "tuned" in args.variants else None,
                 tuned_method=args.tuned_method if "tuned" in args.variants else None, custom=args.custom,

@@ -187,6 +187,23 @@ def test_layout_recorded_and_other_layout_refused(tmp_path, spec):
     assert not os.path.exists(tmp_path / ".lock") or DirLock(str(tmp_path)).acquire().release() is None
 
 
+def test_store_of_another_start_pose_read_but_never_resumed(tmp_path, spec):
+    """A store written before the step-down's start pose was recorded (``hip-line``: a heading could put a front foot
+    over the edge) reads as it is; a writer is refused in one message naming both poses."""
+    from hyqjax.studies.stepdown import START_POSE
+
+    fill(tmp_path / "s", spec, chunks=[0])
+    path = tmp_path / "s" / "manifest.json"
+    man = json.loads(path.read_text())
+    assert man["start_pose"] == START_POSE == "leading-foot"
+    del man["start_pose"]
+    path.write_text(json.dumps(man))
+    with sweep.SweepStore(str(tmp_path / "s"), spec) as st:
+        assert len(st.load()["index"]) == 5
+    with pytest.raises(sweep.StoreMismatch, match="'hip-line' start pose .* 'leading-foot'"):
+        sweep.SweepStore(str(tmp_path / "s"), spec, 5, LAYOUT, writer=True)
+
+
 def test_strict_json_summary(tmp_path, spec):
     st = fill(tmp_path, spec)
     s = sweep.write_outputs(st)

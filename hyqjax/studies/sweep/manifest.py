@@ -40,8 +40,10 @@ def sha256_bytes(b: bytes) -> str:
 
 def new_manifest(spec, chunk_size: int, layout: dict | None) -> dict:
     """The manifest of an empty store of ``spec`` in chunks of ``chunk_size`` on the device ``layout``."""
+    from hyqjax.studies.stepdown import START_POSE
+
     cs = int(chunk_size)
-    return dict(schema=SCHEMA, spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=spec.n_instances,
+    return dict(schema=SCHEMA, start_pose=START_POSE, spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=spec.n_instances,
                 chunk_size=cs, n_chunks=-(-spec.n_instances // cs),
                 layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=now())
 
@@ -67,7 +69,8 @@ def check_manifest(man: dict, out_dir: str, spec_hash: str, writer: bool, chunk_
                    layout: dict | None) -> None:
     """Raise :class:`StoreMismatch` unless the manifest ``man`` of ``out_dir`` is of this schema, this sweep
     (``spec_hash``) and the device ``layout`` (None: not checked); a writer is also refused on a converted
-    store. An old schema's store of the same sweep passes (read as it is, never resumed)."""
+    store and on one of another start pose (:data:`hyqjax.studies.stepdown.START_POSE`; ``hip-line`` when not
+    recorded). An old schema's store of the same sweep passes (read as it is, never resumed)."""
     path = os.path.join(out_dir, MANIFEST)
     if man.get("schema") in OLD_SCHEMAS:  # same spec, read as is, never resumed
         why = legacy.v1_refusal(out_dir, man, spec_hash, writer)
@@ -82,6 +85,15 @@ def check_manifest(man: dict, out_dir: str, spec_hash: str, writer: bool, chunk_
             f"{spec_hash[:12]}); use another --out directory or remove {out_dir}")
     if writer and man.get("converted_from"):
         raise StoreMismatch(legacy.read_only_message(out_dir, man["converted_from"], converted=True))
+    if writer:
+        from hyqjax.studies.stepdown import START_POSE
+
+        pose = man.get("start_pose", "hip-line")  # stores written before the start pose was recorded
+        if pose != START_POSE:
+            raise StoreMismatch(
+                f"{out_dir} was computed with the {pose!r} start pose (this hyqjax starts the step-down with the "
+                f"{START_POSE!r} pose: hyqjax.studies.stepdown.start_qpos), so it is not resumed (a store never "
+                f"mixes two start poses); its rows read as they are: use another --out")
     if chunk_size is not None and chunk_size != man["chunk_size"]:
         print(f"note: resuming with the stored chunk size {man['chunk_size']} (ignoring {chunk_size})")
     stored = man.get("layout")
