@@ -6,7 +6,7 @@ the same held-out instances. One command, one GPU, everything under ``--out``:
     python -m experiments.bounding_refine --impl c --popsize 4 --train-envelope 2 --train-corners 2 \\
         --train-duration 0.8 --duration 0.8 --instances 2 --broad 4 --max-wall 20 --out /tmp/br   # CPU check
     python -m experiments.bounding_refine --impl warp --methods cma_es guided_es --max-wall 150 --instances 256 \\
-        --out out/bounding_guided                                          # guided ES vs CMA-ES, one H200, ~8 min
+        --out out/bounding_guided                                          # guided ES vs CMA-ES, one H200, ~6.5 min
 
 1. ``training``: evosax CMA-ES (:func:`hyqjax.bounding.robust.cma_es`) on the robust study's coordinates
    (:class:`hyqjax.bounding.robust.RobustSpace` around the paper's gains, the same scales and bounds), started at

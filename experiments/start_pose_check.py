@@ -1,6 +1,6 @@
 """The held-out instances whose start once put a front foot over the edge, run again with today's start pose.
 
-    python -m experiments.start_pose_check --out out/start_pose_check                   # C MuJoCo, ~5 min on 2 cores
+    python -m experiments.start_pose_check --out out/start_pose_check                   # C MuJoCo, ~4 min on 2 cores
     python -m experiments.start_pose_check --impl warp --instances 512 --out DIR      # every such instance, one GPU
 
 Until the ``leading-foot`` start pose (:data:`hyqjax.studies.stepdown.START_POSE`), :func:`start_qpos` placed the
@@ -8,8 +8,9 @@ front hips ``start_distance`` before the edge and then turned the trunk by its h
 one front foot forward by :func:`hyqjax.studies.stepdown.leading_foot_advance` (up to 3.0 cm at 0.1 rad). This script
 draws the tuner's held-out map (:data:`hyqjax.studies.tune.study.targets.HELDOUT`: the wide spread, seed 60613, the
 first ``--instances`` draws), finds the draws whose leading front foot centre was then past the edge (x > 0, from
-MuJoCo's kinematics of the old pose), and runs them with today's pose for every ``--presets`` set at ``--heights``:
-per set and height, the number of such draws and how many run clean and strike a shin. Written to ``DIR/check.json``.
+MuJoCo's kinematics of the old pose), and runs them with the old start and with today's pose for every ``--presets``
+set at ``--heights``: per pose, set and height, the number of such draws and how many run clean, complete and strike
+a shin. Written to ``DIR/check.json``.
 """
 from __future__ import annotations
 
@@ -96,26 +97,31 @@ def main(argv=None) -> int:
     x_old = hip_line_front_feet_x(stepdown.setup(cfg).m, draws)
     over = np.flatnonzero(x_old > 0)
     print(f"{len(over)} of {a.instances} held-out draws had a front foot centre past the edge at the start "
-          f"(up to {100 * x_old.max():.1f} cm); running them with the {stepdown.START_POSE!r} pose", flush=True)
-    rows = {k: np.concatenate([v[over]] * (len(a.heights) * len(a.presets))) for k, v in draws.items()}
+          f"(up to {100 * x_old.max():.1f} cm); running them with that start and with the {stepdown.START_POSE!r} pose", flush=True)
+    reps = 2 * len(a.heights) * len(a.presets)
     n = len(over)
-    rows["height"] = np.tile(np.repeat(np.asarray(a.heights, float), n), len(a.presets))
-    rows["variant"] = np.repeat(np.asarray(a.presets), n * len(a.heights))
+    rows = {k: np.concatenate([v[over]] * reps) for k, v in draws.items()}
+    rows["pose"] = np.repeat(np.asarray(["hip-line", stepdown.START_POSE]), n * len(a.heights) * len(a.presets))
+    rows["variant"] = np.tile(np.repeat(np.asarray(a.presets), n * len(a.heights)), 2)
+    rows["height"] = np.tile(np.repeat(np.asarray(a.heights, float), n), 2 * len(a.presets))
+    old = rows["pose"] == "hip-line"  # today's pose of a start distance less the advance is the hip-line start
+    rows["start_distance"] = np.where(old, rows["start_distance"] - stepdown.leading_foot_advance(rows["yaw"]),
+                                      rows["start_distance"])
     params = scheduled.common_structure({p: presets.load(p) for p in a.presets})
     out, _ = stepdown.make_stepdown_rollout(cfg).run(reach_map.scenario_of(rows, np.arange(len(rows["height"])),
                                                                           params))
     cols = so.to_columns(jax.block_until_ready(out))
     cells = []
-    for p in a.presets:
-        for h in a.heights:
-            k = (rows["variant"] == p) & np.isclose(rows["height"], h)
-            cells.append(dict(preset=p, height=h, n=int(k.sum()), clean=int(cols["clean"][k].sum()),
-                              completed=int(cols["completed"][k].sum()),
-                              shin_strike=int(cols["shin_strike"][k].sum()),
-                              diverged=int(cols["diverged"][k].sum())))
-            c = cells[-1]
-            print(f"  {p:22s} {h:.2f} m: clean {c['clean']}/{c['n']}, completed {c['completed']}, "
-                  f"shin strike {c['shin_strike']}, diverged {c['diverged']}")
+    for pose in ("hip-line", stepdown.START_POSE):
+        for p in a.presets:
+            for h in a.heights:
+                k = (rows["pose"] == pose) & (rows["variant"] == p) & np.isclose(rows["height"], h)
+                c = dict(pose=pose, preset=p, height=h, n=int(k.sum()), clean=int(cols["clean"][k].sum()),
+                         completed=int(cols["completed"][k].sum()), shin_strike=int(cols["shin_strike"][k].sum()),
+                         diverged=int(cols["diverged"][k].sum()))
+                cells.append(c)
+                print(f"  {pose:12s} {p:22s} {h:.2f} m: clean {c['clean']}/{c['n']}, completed {c['completed']}, "
+                      f"shin strike {c['shin_strike']}, diverged {c['diverged']}")
     os.makedirs(a.out, exist_ok=True)
     path = os.path.join(a.out, "check.json")
     atomic.write_json(path, dict(provenance=atomic.provenance(seed=targets.HELDOUT["seed"]), impl=a.impl,
