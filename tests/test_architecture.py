@@ -24,7 +24,9 @@ IMPL_NAMES = {"auto", "jax", "warp", "c"}
 IMPL_ONLY = {"auto", "warp", "c"}
 #: An expression naming an implementation: ``impl``, ``st.impl``, ``args.impl``, ``SUPPORTED_IMPLS``, ...
 IMPL_IDENT = re.compile(r"(^|_)impls?(_|$)", re.IGNORECASE)
-BACKEND_IMPLEMENTATIONS = ("hyqjax.sim.mjx_backend", "hyqjax.sim.cpu_backend")
+#: The backend implementations and the modules of the C MuJoCo backend's parts (its models, runner, host programs).
+BACKEND_IMPLEMENTATIONS = ("hyqjax.sim.mjx_backend", "hyqjax.sim.cpu_backend", "hyqjax.sim.cpu_models",
+                           "hyqjax.sim.cpu_runner", "hyqjax.sim.host_jit")
 
 
 def modules() -> dict[str, tuple[str, bool]]:

@@ -1,7 +1,10 @@
 """Impulse-based bounding and turning (Orsolino et al., "Turning maneuvers strategy for quadrupedal bounding gait").
 
 Modules, one concept each:
-  params      parameters (gait, gains, switches, command, the cycle) with declared ranges; the apex state ``Apex``
+  params      the bound's parameters in one import, and the parameter sets on the stored cycle (``paper_params``,
+              ``default_params``, ``params_of_values``)
+  param_types the parameter classes (gait, gains, switches, command, the cycle) with declared ranges
+  apex        the apex state ``Apex``
   gait        clock, stance phases, impulse profiles, Park & Kim's impulse balance (Eqs. B1-B2)
   estimator   IMU attitude and rates, leg-odometry height and velocity
   kinematic   touchdown targets (B8), kinematic adjustment (Eqs. 1-2), joint references

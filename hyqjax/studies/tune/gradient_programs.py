@@ -7,7 +7,7 @@ objective, :mod:`.objective`: ``jax.jacfwd`` with ``P`` tangents, or with ``grad
 through a fixed-length constraint solver and a checkpointed scan; or the forward-gradient estimate with
 ``grad_directions`` random tangents)
 and the forward evaluation of a batch of candidates on the same windows (the line search). Their one-off costs
-(compile and, for the windows, the forward run) go into the study's compile charges (:class:`.search.Charges`),
+(compile and, for the windows, the forward run) go into the study's compile charges (:class:`.clock.Charges`),
 so a gradient method pays them as a stand-alone run would.
 
 :func:`gradient_diagnostics`, outside every clock: the gradient's signal-to-noise ratio across windows at the

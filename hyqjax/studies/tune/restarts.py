@@ -16,7 +16,7 @@ ceil(30 P / lambda)``, Hansen's stagnation length):
 * ``condition``: the covariance's condition number above ``max_condition`` (*ConditionCov*);
 * ``stagnation``: the run's best score has not improved for ``G`` generations. The score is the run's own best
   validated clean success when the search has a validation batch (the tuner: a fixed batch, so scores of
-  different generations compare; :class:`hyqjax.studies.tune.search.Selection`), else the run's best training
+  different generations compare; :class:`hyqjax.studies.tune.selection.Selection`), else the run's best training
   fitness (an analytic objective);
 * ``non_finite``: the mean or the covariance left the floats (a numerical breakdown ends the run, not the search).
 

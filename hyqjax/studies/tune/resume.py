@@ -4,16 +4,16 @@ start.
 
 What a method's run is at an iteration boundary, and all that is stored:
 
-* its :class:`.search.Clock` (seconds elapsed, compile charged, physics steps);
-* its :class:`.search.Trace` (checkpoints passed with their iterates, the log, the iterate it would return) and
-  :class:`.search.Selection` (the validations, the selected iterate);
+* its :class:`.clock.Clock` (seconds elapsed, compile charged, physics steps);
+* its :class:`.trace.Trace` (checkpoints passed with their iterates, the log, the iterate it would return) and
+  :class:`.selection.Selection` (the validations, the selected iterate);
 * the method's own state: the ``evosax`` strategy's state and random key, or random search's generator state and
   incumbent, or the gradient's iterate and Adam state, and the hybrid's phase.
 
 Resuming restores all of it exactly (arrays bit for bit, the generator's state, the key), so a resumed run takes
 the same iterates as an uninterrupted one given the same evaluations. Its clock goes on from the stored seconds:
 the work done after the last checkpoint file and before the kill is lost and done again, uncounted; compiling the
-programs again in the new process runs with the clock paused (:meth:`.search.Clock.paused`), since the run paid
+programs again in the new process runs with the clock paused (:meth:`.clock.Clock.paused`), since the run paid
 its compile once already.
 
 The file, ``DIR/partial/<method>__<dim>.json``, is written atomically (:func:`hyqjax.io.atomic.atomic_write`)

@@ -1,15 +1,15 @@
-"""Tuning methods under a wall-clock budget: success-driven search (CMA-ES, SNES, OpenES, random search), the
-closed-loop gradient, and the hybrid (search, then gradient polish).
+"""Tuning methods under a wall-clock budget: success-driven search (CMA-ES, SNES, OpenES, random search) and the
+closed-loop gradient; the hybrid (search, then gradient polish) runs the two one after the other
+(:mod:`.wallclock_run`).
 
-Every method runs against a :class:`Clock` and returns, for each checkpoint ``c`` (seconds), the iterate it would
-hand back had it been stopped at ``c``: the last iterate it had finished by then (the start point if it had
-finished none, e.g. while compiling), or with a :class:`Selection` the best of the iterates it had validated by
-then on a fixed validation batch (closed-loop clean success; the validations paid from its clock). The clock
-counts everything a stand-alone run would pay: the compile of each program the method uses (:class:`Charges`,
-measured once per process and *charged* to every method that uses the program, so that a method run after
-another does not profit from its compile), the snapshot windows of the gradient, every evaluation and every
-optimiser update. Physics steps are counted next to it (tangents of
-forward-mode derivatives included).
+Every method runs against a :class:`.clock.Clock` and records in a :class:`.trace.Trace`, for each checkpoint ``c``
+(seconds), the iterate it would hand back had it been stopped at ``c``: the last iterate it had finished by then
+(the start point if it had finished none, e.g. while compiling), or with a :class:`.selection.Selection` the best
+of the iterates it had validated by then on a fixed validation batch (closed-loop clean success; the validations
+paid from its clock). The clock counts everything a stand-alone run would pay: the compile of each program the
+method uses (:class:`.clock.Charges`, measured once per process and *charged* to every method that uses the
+program), the snapshot windows of the gradient, every evaluation and every optimiser update. Physics steps are
+counted next to it (tangents of forward-mode derivatives included).
 
 Success-driven methods (:func:`run_search`) maximise the fitness of :mod:`.forward` (clean success plus
 ``w_c`` times completed, on ``M`` training scenarios per generation, the same for every member: common random
@@ -25,278 +25,26 @@ batch (``N = popsize + 1``), so the returned iterate's fitness is logged on the 
 
 The gradient (:func:`run_gradient`) is Adam with the batched line search of :mod:`.optimize` on the closed-loop
 window objective of :mod:`.objective` (``jax.jacfwd`` on MJX-JAX; snapshot windows at the start point). The
-hybrid (:func:`run_hybrid`) runs CMA-ES for ``split`` of the budget and then the gradient from its mean.
+hybrid runs CMA-ES for ``split`` of the budget and then the gradient from its mean.
+
+The clock, trace and selection are importable from here too (``search.Clock``, ``search.Charges``,
+``search.Trace``, ``search.Selection``, ``search.final_choice``): the methods' callers name them with the methods.
 """
 from __future__ import annotations
 
-import contextlib
-import dataclasses
 import math
-import time
 from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hyqjax.studies.tune.clock import COMPILE_EVENTS, Charges, Clock  # noqa: F401  (re-exported)
 from hyqjax.studies.tune.names import (ANTITHETIC, BLEND_METHODS, GRADIENT_METHODS, GUIDED_METHODS, METHODS,  # noqa: F401
                                        RESTART_METHODS, SEARCH_METHODS, STUDY_METHODS, USES_GRADIENT)
 from hyqjax.studies.tune.resume import tree_like
-
-
-class Clock:
-    """Wall seconds since ``start()`` plus the compile time charged so far (:class:`Charges`)."""
-
-    def __init__(self):
-        self.t0 = time.perf_counter()
-        self.charged = 0.0
-        self.physics_steps = 0
-
-    def charge(self, seconds: float) -> None:
-        self.charged += float(seconds)
-
-    def elapsed(self) -> float:
-        return time.perf_counter() - self.t0 + self.charged
-
-    def state(self) -> dict:
-        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=int(self.physics_steps))
-
-    def restore(self, state: dict) -> None:
-        """Go on from a stored :meth:`state` (:mod:`.resume`): :meth:`elapsed` continues from its seconds."""
-        self.charged, self.physics_steps = float(state["charged"]), int(state["physics_steps"])
-        self.t0 = time.perf_counter() - (float(state["elapsed"]) - self.charged)
-
-    @contextlib.contextmanager
-    def paused(self):
-        """Time inside the block is not counted (a resumed run compiling again what it paid for once)."""
-        t = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.t0 += time.perf_counter() - t
-
-
-#: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.
-COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration", "/jax/core/compile/jaxpr_to_mlir_module_duration",
-                  "/jax/core/compile/backend_compile_duration")
-_TRACKING: list = []
-
-
-def _on_event(name, secs, **_):
-    if name in COMPILE_EVENTS:
-        for acc in _TRACKING:
-            acc[0] += secs
-
-
-jax.monitoring.register_event_duration_secs_listener(_on_event)
-
-
-class Charges:
-    """Compile seconds per program name: :meth:`track` adds up JAX's compile events (:data:`COMPILE_EVENTS`;
-    tracing of nested functions counts once per level) during a program's first use in this process, so no run
-    is spent on measuring; :meth:`one_off` keeps the whole time of a one-off setup (e.g. the gradient's snapshot
-    windows: compile and forward run)."""
-
-    def __init__(self, known: dict | None = None):
-        self.seconds: dict[str, float] = dict(known or {})
-
-    @contextlib.contextmanager
-    def track(self, name: str):
-        if name in self.seconds:
-            yield
-            return
-        acc = [0.0]
-        _TRACKING.append(acc)
-        try:
-            yield
-        finally:
-            _TRACKING.remove(acc)
-        self.seconds[name] = acc[0]
-
-    def one_off(self, name: str, fn: Callable):
-        t = time.perf_counter()
-        out = fn()
-        self.seconds.setdefault(name, time.perf_counter() - t)
-        return out
-
-
-class Selection:
-    """Closed-loop validation selection: the iterate a method returns is the best, by clean success on a FIXED
-    validation batch, of the iterates it has validated so far (the start point first).
-
-    ``evaluate(thetas (1, P)) -> dict(clean (1, V), completed (1, V), physics_steps)`` runs one iterate on the
-    ``V`` validation scenarios (the forward program of :mod:`.forward`; the study draws them like the training
-    scenarios from a seed of their own, never the held-out set). An iterate is validated when it is *due*:
-    ``every`` iterations (0: not by iterations) or ``every_s`` seconds of the method's clock (0: not by time) have
-    passed since the last validation, and it differs from the last validated iterate (an unchanged incumbent of
-    random search is not run again; it stays due until it changes). Its wall time runs on the method's clock and
-    its physics steps are added to the clock's, so the selection is paid from the method's budget.
-
-    Score: (clean rate, completed rate) on the validation batch; an iterate replaces the selected one when its
-    score is at least as high (ties go to the later iterate, the one with more optimisation behind it)."""
-
-    def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0, keep: int = 1):
-        if every <= 0 and every_s <= 0:
-            raise ValueError("a selection needs every > 0 iterations or every_s > 0 seconds")
-        self.evaluate, self.every, self.every_s = evaluate, int(every), float(every_s)
-        #: the ``keep`` best validated iterates, best first: ``[score, iteration, theta]`` (a final re-evaluation
-        #: of the top candidates chooses among them, :func:`final_choice`)
-        self.keep, self.top = int(keep), []
-        self.log: list = []
-        self.best: tuple | None = None  # (score, theta)
-        self._since, self._t_last, self._theta_last = 0, -math.inf, None
-
-    def due(self, clock: Clock, theta) -> bool:
-        self._since += 1
-        if self._theta_last is not None and np.array_equal(np.asarray(theta, np.float64), self._theta_last):
-            return False
-        return bool((self.every > 0 and self._since >= self.every)
-                    or (self.every_s > 0 and clock.elapsed() - self._t_last >= self.every_s))
-
-    def validate(self, clock: Clock, theta, iteration: int) -> bool:
-        """Run ``theta`` on the validation batch (on ``clock``); True when it becomes the selected iterate."""
-        theta = np.asarray(theta, np.float64).copy()
-        t0, s0 = clock.elapsed(), clock.physics_steps
-        r = self.evaluate(theta[None])
-        clock.physics_steps += int(r["physics_steps"])
-        score = (float(np.mean(r["clean"][0])), float(np.mean(r["completed"][0])))
-        better = self.best is None or score >= self.best[0]
-        if better:
-            self.best = (score, theta)
-        self.top = sorted(self.top + [[list(score), int(iteration), theta]],
-                          key=lambda t: (t[0][0], t[0][1], t[1]), reverse=True)[:self.keep]
-        self._since, self._t_last, self._theta_last = 0, clock.elapsed(), theta
-        self.log.append(dict(iteration=int(iteration), wall_s=round(clock.elapsed(), 3),
-                             physics_steps=int(clock.physics_steps), clean=score[0], completed=score[1],
-                             selected=bool(better), wall_s_run=round(clock.elapsed() - t0, 3),
-                             physics_steps_run=int(clock.physics_steps - s0)))
-        return better
-
-    def state(self) -> dict:
-        return dict(log=self.log, best=None if self.best is None else [list(self.best[0]), self.best[1]],
-                    since=self._since, t_last=self._t_last, theta_last=self._theta_last, top=self.top)
-
-    def restore(self, s: dict) -> None:
-        self.top = [[list(t[0]), int(t[1]), np.asarray(t[2], np.float64)] for t in s.get("top", [])]
-        self.log = list(s["log"])
-        self.best = None if s["best"] is None else (tuple(s["best"][0]), np.asarray(s["best"][1], np.float64))
-        self._since, self._t_last = int(s["since"]), float(s["t_last"])
-        self._theta_last = None if s["theta_last"] is None else np.asarray(s["theta_last"], np.float64)
-
-
-@dataclasses.dataclass
-class Trace:
-    """What a method did: per generation / step a log row; per checkpoint the iterate it would return (with the
-    physics steps spent by the last work finished before the checkpoint). With a :class:`Selection`, the iterate
-    it would return is the selected one (:meth:`begin` validates the start point)."""
-
-    checkpoints: tuple
-    theta0: np.ndarray
-    select: Selection | None = None
-    log: list = dataclasses.field(default_factory=list)
-    points: list = dataclasses.field(default_factory=list)
-    _last: tuple = None
-
-    def __post_init__(self):
-        self._last = (np.asarray(self.theta0, np.float64).copy(), None)
-        self._spent, self._iterations = 0, 0
-
-    def done(self, clock: Clock) -> bool:
-        return clock.elapsed() >= self.checkpoints[-1]
-
-    def _pass(self, clock: Clock) -> None:
-        """Checkpoints that passed during the work just finished get the iterate from before it."""
-        now = clock.elapsed()
-        for c in self.checkpoints[len(self.points):]:
-            if now < c:
-                break
-            pt = dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._spent))
-            pt.update(self._last[1] or {})
-            self.points.append(pt)
-        self._spent = int(clock.physics_steps)
-
-    def _validate(self, clock: Clock, theta, iteration: int) -> None:
-        better = self.select.validate(clock, theta, iteration)
-        self._pass(clock)  # checkpoints passed while validating get the iterate selected before
-        if better:
-            row = self.select.log[-1]
-            self._last = (np.asarray(theta, np.float64).copy(),
-                          dict(selected_iteration=iteration, validation_clean=row["clean"],
-                               validation_completed=row["completed"]))
-
-    @property
-    def returned(self) -> np.ndarray:
-        """The iterate the method would return now."""
-        return self._last[0].copy()
-
-    def begin(self, clock: Clock) -> None:
-        """With a selection: validate the start point (on ``clock``), so that an iterate is returned only when it
-        validates at least as well as the start. Without one: nothing."""
-        if self.select is not None and self.select.best is None:
-            self._validate(clock, self.theta0, 0)
-
-    def advance(self, clock: Clock, theta, row: dict | None = None) -> None:
-        """Record that ``theta`` is the iterate after the work just finished (``clock`` now); checkpoints that
-        passed during that work get the iterate from before it. With a selection, ``theta`` becomes the returned
-        iterate only once validated (when due) at least as well as the selected one."""
-        self._pass(clock)
-        self._iterations += 1
-        if row is not None:
-            row.update(wall_s=round(clock.elapsed(), 3), physics_steps=int(clock.physics_steps))
-            self.log.append(row)
-        if self.select is None:
-            self._last = (np.asarray(theta, np.float64).copy(), None)
-        elif self.select.due(clock, theta):
-            self._validate(clock, theta, self._iterations)
-
-    def state(self) -> dict:
-        """Everything :meth:`restore` needs to go on as if never stopped (:mod:`.resume`)."""
-        return dict(checkpoints=list(self.checkpoints), log=self.log, points=self.points, last=list(self._last),
-                    spent=self._spent, iterations=self._iterations,
-                    select=None if self.select is None else self.select.state())
-
-    def restore(self, s: dict) -> None:
-        if [float(c) for c in s["checkpoints"]] != [float(c) for c in self.checkpoints]:
-            raise ValueError(f"stored checkpoints {s['checkpoints']} differ from {list(self.checkpoints)}")
-        if (s["select"] is None) != (self.select is None):
-            raise ValueError("stored run and this one differ in their selection")
-        self.log, self.points = list(s["log"]), list(s["points"])
-        self._last = (np.asarray(s["last"][0], np.float64), s["last"][1])
-        self._spent, self._iterations = int(s["spent"]), int(s["iterations"])
-        if self.select is not None:
-            self.select.restore(s["select"])
-
-    def finish(self, clock: Clock) -> list:
-        """Checkpoints not reached (the budget ran out at the last one): the iterate returned at the end."""
-        for c in self.checkpoints[len(self.points):]:
-            pt = dict(seconds=float(c), theta=self._last[0].tolist(), physics_steps=int(self._spent))
-            pt.update(self._last[1] or {})
-            self.points.append(pt)
-        return self.points
-
-
-def final_choice(top: list, validation_n: int, evaluate: Callable) -> dict:
-    """The final re-evaluation of the top candidates of a selection (``top``: ``[score, iteration, theta]``, best
-    first, ``score[0]`` the clean rate on ``validation_n`` validation runs): ``evaluate(thetas (K, P)) ->
-    dict(clean (K, F), completed (K, F), physics_steps)`` runs them all on ``F`` further scenarios, and the one with
-    the best clean rate pooled over both batches (``(n_v c_v + F c_f) / (n_v + F)``, completed breaking ties, then
-    the earlier rank) is chosen: a larger validation set than the selection's, so that the returned set is less
-    the luck of one batch. Returns ``chosen`` (its index in ``top``), ``theta``, per candidate the rates, and the
-    physics steps spent."""
-    thetas = np.stack([np.asarray(t[2], np.float64) for t in top])
-    r = evaluate(thetas)
-    f_clean = np.asarray(r["clean"], np.float64).mean(axis=1)
-    f_done = np.asarray(r["completed"], np.float64).mean(axis=1)
-    n_f = np.asarray(r["clean"]).shape[1]
-    rows = []
-    for i, t in enumerate(top):
-        pooled = (validation_n * t[0][0] + n_f * f_clean[i]) / (validation_n + n_f)
-        pooled_c = (validation_n * t[0][1] + n_f * f_done[i]) / (validation_n + n_f)
-        rows.append(dict(iteration=int(t[1]), validation_clean=float(t[0][0]), final_clean=float(f_clean[i]),
-                         final_completed=float(f_done[i]), pooled_clean=float(pooled), pooled_completed=float(pooled_c)))
-    chosen = max(range(len(rows)), key=lambda i: (rows[i]["pooled_clean"], rows[i]["pooled_completed"], -i))
-    return dict(chosen=int(chosen), theta=thetas[chosen], candidates=rows, instances=int(n_f),
-                physics_steps=int(r["physics_steps"]))
+from hyqjax.studies.tune.selection import Selection, final_choice  # noqa: F401  (re-exported)
+from hyqjax.studies.tune.trace import Trace
 
 
 def make_strategy(method: str, size: int, popsize: int, sigma: float, lr: float = 0.05):

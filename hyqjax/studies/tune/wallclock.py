@@ -2,7 +2,7 @@
 
 :func:`run_wallclock_study` (``hyqjax tune`` with one method, ``python -m experiments.tune_study``):
 
-1. **compile charges** (:class:`.search.Charges`): the forward success program (population ``N = popsize + 1``
+1. **compile charges** (:class:`.clock.Charges`): the forward success program (population ``N = popsize + 1``
    members x ``M`` training scenarios, :class:`.forward.SuccessEvaluator`, ``impl`` warp on a GPU) compiles in the
    first search method's clock (JAX's compile events are added up); the gradient's snapshot windows (compile and
    forward run), its ``jacfwd`` step and forward window program (MJX-JAX) are built before a gradient method's
@@ -14,7 +14,7 @@
    objective; ``hybrid`` is CMA-ES for ``hybrid_split`` of the budget, then the gradient from its mean) until its
    clock reaches the last of ``wall_minutes``; at every checkpoint the iterate it would return is kept with the
    physics steps spent by then (tangents of the ``jacfwd`` counted). With ``select_instances > 0`` (the
-   default) every method returns the best of its validated iterates (:class:`.search.Selection`: the start
+   default) every method returns the best of its validated iterates (:class:`.selection.Selection`: the start
    point, then the iterate every ``select_every`` iterations / ``select_every_s`` seconds, by clean success on
    one fixed batch of ``select_instances`` validation scenarios drawn like training from ``select_seed``, on the
    forward program), the validations paid from its clock and physics steps; the hybrid's gradient starts from

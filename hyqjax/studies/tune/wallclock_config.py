@@ -92,7 +92,7 @@ class WallClockConfig:
     #: compile every program cold: JAX's persistent compilation cache and Warp's kernel cache in fresh empty
     #: directories of this process (:func:`hyqjax.io.cache.use_cold_caches`), so no process profits from another's
     cold_compile: bool = False
-    #: closed-loop validation selection (:class:`.search.Selection`): every method returns its best iterate by
+    #: closed-loop validation selection (:class:`.selection.Selection`): every method returns its best iterate by
     #: clean success on ``select_instances`` fixed validation scenarios (drawn like training from ``select_seed``),
     #: validated every ``select_every`` iterations and / or ``select_every_s`` seconds, paid from its clock.
     #: The default, (16 + 1) x 32 = 544, is the rows of a default generation: the selection runs on the forward
@@ -101,7 +101,7 @@ class WallClockConfig:
     select_every: int = 5
     select_every_s: float = 0.0
     select_seed: int = 5555
-    #: the final re-evaluation (:func:`.search.final_choice`): after the budget, the ``final_candidates`` best
+    #: the final re-evaluation (:func:`.selection.final_choice`): after the budget, the ``final_candidates`` best
     #: validated iterates run on ``final_instances`` further scenarios (drawn like the validation batch, from its
     #: seed's next draw) and the best pooled over both batches is returned; 0: off (the selected iterate)
     final_instances: int = 0
