@@ -249,7 +249,9 @@ def test_start_qpos_numpy_and_jax_agree(hyq):
                               sc.terrain.platform_height, xp=jnp)
     np.testing.assert_allclose(np.asarray(q_j), q_np, atol=1e-6)
     np.testing.assert_allclose(np.linalg.norm(q_np[:, 3:7], axis=1), 1.0, atol=1e-6)
-    front_feet_x = q_np[:, 0] + float(robot.B_P_HIP[0, 0])
-    np.testing.assert_allclose(front_feet_x, -np.asarray(sc.start_distance), atol=1e-6)
+    # the front hips' line at zero heading, moved back by the leading front foot's advance under the heading
+    # (tests/test_start_pose.py checks the feet themselves on MuJoCo's kinematics)
+    front_line_x = q_np[:, 0] + float(robot.B_P_HIP[0, 0]) + stepdown.leading_foot_advance(np.asarray(sc.yaw))
+    np.testing.assert_allclose(front_line_x, -np.asarray(sc.start_distance), atol=1e-6)
 
 
