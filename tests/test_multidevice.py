@@ -81,6 +81,9 @@ def test_one_and_two_host_devices_give_bitwise_the_same_rollouts_and_sweep_rows(
     assert res["n_leaves"] > 50 and res["rollout_differ"] == 0, res
     assert res["outcomes_differ"] == 0 and len(res["completed"]) == 18, res
     assert res["sweep_cols"] > 10 and res["sweep_differ"] == [], res
+    # the rollout's program traced once for the one-device run and both devices of the split, compiled once per
+    # device (device 0's program serves the one-device run and device 0's passes; JAX's trace and compile events)
+    assert res["programs"]["traced advance"] == 1 and res["programs"]["compiled advance"] == N_DEVICES, res
 
 
 TUNE_CODE = r"""
@@ -114,6 +117,9 @@ def test_tuner_generation_over_two_host_devices_gives_the_same_objective(two_dev
     assert res["fitness1"] == res["fitness4"] and len(res["fitness1"]) == 3, res
     assert res["n_columns"] > 10 and res["columns_differ"] == [], res
     assert res["differs_between_members"] and res["steps"] == [3 * 4 * 200] * 2, res
+    # the second evaluator (same parameterisation and configuration) reuses the first one's programs: one trace,
+    # one compile per device
+    assert res["programs"]["traced advance"] == 1 and res["programs"]["compiled advance"] == N_DEVICES, res
 
 
 BOUND_CODE = r"""
@@ -136,19 +142,31 @@ def test_bounding_envelope_batch_on_one_and_two_host_devices_is_the_same(two_dev
     rows, one on each device) on 1 and on 2 host devices: every column equal."""
     res = two_device_runs("bound")
     assert res["n"] == 10 and res["cols"] > 10 and res["differ"] == [], res
+    assert res["programs"]["traced advance"] == 1 and res["programs"]["compiled advance"] == N_DEVICES, res
 
 
 #: The driver of the multi-device process: each part's code runs in its own namespace and leaves its ``RESULT``
 #: (or its traceback), printed as one JSON line per part.
 DRIVER = r"""
-import json, traceback
+import collections, json, traceback
 import numpy as np, jax
 N = %d
 assert len(jax.local_devices()) == N, jax.local_devices()
+COUNTS = collections.Counter()  # (what, function name) -> times, from JAX's own events
+
+def count(event, duration, **kw):
+    what = {"/jax/core/compile/jaxpr_trace_duration": "traced",
+            "/jax/core/compile/backend_compile_duration": "compiled"}.get(event)
+    if what is not None:  # the function's name ("advance"; "jit(advance)" in the compile event)
+        COUNTS[f"{what} {str(kw.get('fun_name')).removeprefix('jit(').removesuffix(')')}"] += 1
+
+jax.monitoring.register_event_duration_secs_listener(count)
 for name, code in %r:
     ns = dict(N=N, np=np, jax=jax, json=json)
+    before = COUNTS.copy()
     try:
         exec(code, ns)
+        ns["RESULT"]["programs"] = {k: v for k, v in (COUNTS - before).items() if k.split()[1] in ("init", "advance")}
         print("RESULT " + json.dumps(dict(part=name, result=ns["RESULT"])), flush=True)
     except Exception:
         print("RESULT " + json.dumps(dict(part=name, error=traceback.format_exc()[-3000:])), flush=True)

@@ -346,6 +346,26 @@ def test_simconfig_derived_values():
     assert runner_mod.pad_batch(5, 4) == 8 and runner_mod.pad_batch(8, 4) == 8
 
 
+def test_a_runner_placed_on_a_device_shares_its_programs_kept_per_device():
+    """The runner of a device's slice of a split batch (BatchRunner.placed) is the one-device runner's static setup on
+    that device: kept, with the one-device runner's jitted functions, compiled programs and compiler options; its
+    programs are kept by the devices they run on (compile_phase.signature): an uncommitted input's is the default
+    device, a committed one's its own. (tests/test_multidevice.py counts the traces and compiles on 2 devices.)"""
+    cfg = sim.SimConfig(control_dt=0.002, duration=0.02)
+    base = runner_mod.BatchRunner(None, None, cfg)
+    dev = jax.devices()[0]
+    r = base.placed(dev)
+    assert base.placed(dev) is r and r.placed(dev) is r and r.device == dev and base.device is None
+    assert r._executables is base._executables and r._programs is base._programs and r.n_compiles == 0
+    base.compiler_options = {"xla_backend_optimization_level": 0}
+    assert r.compiler_options == {"xla_backend_optimization_level": 0}
+    with pytest.raises(ValueError, match="mesh"):
+        runner_mod.BatchRunner(None, None, cfg, mesh=runner_mod.batch_mesh(jax.devices()[:1])).placed(dev)
+    x = np.zeros(3, np.float32)
+    assert compile_phase.placement([x]) == frozenset([dev]) == compile_phase.placement([jax.device_put(x, dev)])
+    assert compile_phase.signature((x,))[2] == frozenset([dev])
+
+
 # ---------------------------------------------------------------- sharding and the CPU traps
 
 

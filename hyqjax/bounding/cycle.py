@@ -174,6 +174,16 @@ def data_apex(d: mjx.Data) -> Apex:
     return Apex(z=d.qpos[robot.QPOS_BASE_POS][2], pitch=rpy[1], vx=vx, vz=v[2], pitch_rate=rates[1])
 
 
+#: The bounding controller of the programs that differentiate a rollout (the return map's residual and its
+#: Levenberg-Marquardt Jacobians, the stability Jacobian, :func:`hyqjax.bounding.robust.make_value_and_jac`): its
+#: rollout ties the scan's initial carry to the parameters (:func:`hyqjax.core.scan_carry.tie_carry`, values bit for
+#: bit), so ``lax.scan``'s forward-mode and batching rules reach their fixed point without transforming the tick
+#: three times each. ``jacfwd`` of the robust training cost (4 tangents, 0.4 s): traced in 7.1-7.3 s instead of
+#: 11.9-12.0 s, XLA unchanged (6.8-7.1 s), the same value and gradient (benchmarks/RESULTS.md). The batch runner's
+#: forward programs keep the untied controller (tied, their compile phase took 0.2 s longer).
+DIFFERENTIATED_CONTROLLER = bctrl.bounding_controller._replace(tie_rollout_carry=True)
+
+
 def return_map(mx, m, ids, params: BoundingParams, s: jax.Array, n_periods: int = 1,
                control_dt: float = 0.002, period: float | None = None, displacement: bool = False):
     """``P(s)`` (5,) (Eq. C1): apex state after ``n_periods`` gait periods of the closed loop from apex state ``s``.
@@ -187,7 +197,7 @@ def return_map(mx, m, ids, params: BoundingParams, s: jax.Array, n_periods: int 
     d0 = apex_data(mx, m, p, s)
     period = float(params.gait.period) if period is None else period
     cfg = sim.SimConfig(control_dt=control_dt, duration=n_periods * period, record_every=0)
-    res = sim.rollout(mx, ids, d0, bctrl.bounding_controller, p, cfg)
+    res = sim.rollout(mx, ids, d0, DIFFERENTIATED_CONTROLLER, p, cfg)
     s1 = data_apex(res.data).array()
     if displacement:
         return s1, res.data.qpos[robot.QPOS_BASE_POS][0] - d0.qpos[robot.QPOS_BASE_POS][0]

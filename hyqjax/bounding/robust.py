@@ -226,7 +226,6 @@ def make_instance_cost(space: RobustSpace, duration: float, spec: tracking.CostS
                        control_dt: float = 0.002) -> Callable:
     """``f(theta, params, terrain, apex0, roll0, yaw_rate0) -> (L, TrackingMetrics, diverged)`` of ONE instance
     under MJX's JAX implementation (pure; ``vmap`` over instances, ``jacfwd`` over ``theta``)."""
-    from hyqjax.bounding import controller as bctrl
     from hyqjax.bounding import rollout as brollout
     from hyqjax.sim import model as hmodel
     from hyqjax.sim import rollout as sim
@@ -239,7 +238,7 @@ def make_instance_cost(space: RobustSpace, duration: float, spec: tracking.CostS
         p = space.apply(theta, params)
         mx1 = hmodel.instance_model(st.mx, st.ids, terrain)
         d0 = bc.apex_data(st.mx_jax, st.m, p, apex0, roll=roll0, yaw_rate=yaw_rate0)
-        res = sim.rollout(mx1, st.ids, d0, bctrl.bounding_controller, p, cfg, metrics)
+        res = sim.rollout(mx1, st.ids, d0, bc.DIFFERENTIATED_CONTROLLER, p, cfg, metrics)
         return tracking.total_cost(res.metrics, spec), res.metrics, res.diverged
 
     return f

@@ -220,6 +220,8 @@ def _runner(sim_cfg: sim.SimConfig, spec: CostSpec, impl: str, where=None):
 
     _, _, ids = bc.model()
     mesh = where if where is not None and hasattr(where, "axis_names") else None
+    if where is not None and mesh is None and hasattr(_runner(sim_cfg, spec, impl, None), "placed"):
+        return _runner(sim_cfg, spec, impl, None).placed(where)  # the one-device runner there: one trace for all
     return backend.get(impl).make_runner(ids, bctrl.bounding_controller, sim_cfg,
                                          tracking_metrics(spec, sim_cfg.control_dt), None, mesh=mesh)
 

@@ -169,6 +169,19 @@ class AheadOfTime:
 
 
 def signature(args) -> tuple:
-    """The pytree structure and abstract values of ``args``: what a compiled program is kept by."""
+    """What a compiled program is kept by: the pytree structure and abstract values of ``args``, and the devices
+    it runs on (:func:`placement`: a program compiled for one device does not run on another)."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    return treedef, tuple(jax.typeof(x) for x in leaves)
+    return treedef, tuple(jax.typeof(x) for x in leaves), placement(leaves)
+
+
+def placement(leaves) -> frozenset:
+    """The devices a jitted program of ``leaves`` runs on: those of its first committed array (``jax.device_put``
+    to a device or sharding), else the default device (where JAX puts uncommitted inputs)."""
+    for x in leaves:
+        if getattr(x, "committed", False):
+            return frozenset(x.sharding.device_set)
+    dev = jax.config.jax_default_device
+    if dev is None or isinstance(dev, str):
+        dev = jax.devices(dev)[0]
+    return frozenset((dev,))

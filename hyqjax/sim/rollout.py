@@ -118,6 +118,8 @@ def _physics(mx: mjx.Model, d: mjx.Data, tau: jax.Array, ids: hmodel.ModelIds, s
         on = (d.time >= push.t_start) & (d.time < push.t_start + push.duration)
         wrench = jnp.concatenate([jnp.where(on, push.force, 0.0), jnp.zeros(3, push.force.dtype)])
         d = d.replace(xfrc_applied=d.xfrc_applied.at[ids.trunk_body].set(wrench.astype(d.xfrc_applied.dtype)))
+    if substeps == 1:  # (static) one step, called: a loop of one would be a scan, whose derivative and batching
+        return mjx.step(mx, d)  # rules retrace mjx.step until its carry's tangents / batch axes stop changing
     return jax.lax.fori_loop(0, substeps, lambda _, dd: mjx.step(mx, dd), d)
 
 

@@ -135,16 +135,21 @@ class Rollout:
 
     def runner(self, mesh=None):
         """The simulator's batch runner for ``mesh`` (None: one device; a ``jax.Device``: the runner of that
-        device's slice of a split batch, :func:`hyqjax.sim.runner.run_on`), built once and kept."""
+        device's slice of a split batch, :func:`hyqjax.sim.runner.run_on`: the one-device runner placed on it,
+        :meth:`hyqjax.sim.runner.BatchRunner.placed`, one trace for every device), built once and kept."""
         if mesh is None:
             key = None
         elif hasattr(mesh, "axis_names"):
             key = (tuple(mesh.devices.flat), mesh.axis_names)
         else:
-            key, mesh = ("device", mesh.id), None
+            key = ("device", mesh.id)
         if key not in self._runners:
-            self._runners[key] = self.setup.backend.make_runner(self.setup.ids, self.controller, self.sim_config,
-                                                                self.metrics, self.record, params_axes=0, mesh=mesh)
+            if key is not None and key[0] == "device" and hasattr(self.runner(None), "placed"):
+                self._runners[key] = self.runner(None).placed(mesh)
+            else:
+                self._runners[key] = self.setup.backend.make_runner(
+                    self.setup.ids, self.controller, self.sim_config, self.metrics, self.record, params_axes=0,
+                    mesh=mesh if key is not None and key[0] != "device" else None)
         return self._runners[key]
 
     def run(self, batch: Any, mesh=None, progress: Callable[[float, float], None] | None = None,

@@ -78,9 +78,8 @@ def run_rows(rows: dict[str, np.ndarray], spec: SweepSpec, pad_to: int, devices=
             mb, d0 = stepdown.batch_inputs(st, sc)
             return mb, d0, (sc.params if se is None else SensedParams(sc.params, se)), sc.push
 
-        res = srunner.run_on(list(devices), pad_to, inputs_of,
-                             lambda dev: _runner(cfg, spec.sensed, spec.max_delay, (dev,))[0], st.impl,
-                             progress or _no_progress, 1.0)
+        one = _runner(cfg, spec.sensed, spec.max_delay, devices[:1])[0]  # placed on each device: one trace for all
+        res = srunner.run_on(list(devices), pad_to, inputs_of, one.placed, st.impl, progress or _no_progress, 1.0)
     else:
         mb, d0 = stepdown.batch_inputs(st, scenario)
         params = scenario.params if sensor is None else SensedParams(scenario.params, sensor)

@@ -21,6 +21,7 @@ another seed), ordered round-robin over heights so that every prefix covers all 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 
@@ -74,6 +75,16 @@ def _tile(tree, n):
     return jax.tree_util.tree_map(lambda x: jnp.tile(x, (n,) + (1,) * (jnp.ndim(x) - 1)), tree)
 
 
+@functools.lru_cache(maxsize=8)
+def _runners(param: Parameterisation, cfg: stepdown.StepdownConfig, x64: bool) -> srunner.RunnersByPlace:
+    """The runners (one per placement) of the evaluators of ``param`` under ``cfg`` (``x64``: the setup's float
+    width, :func:`hyqjax.studies.stepdown.setup`)."""
+    st = stepdown.setup(cfg)
+    return srunner.RunnersByPlace(lambda mesh: st.backend.make_runner(
+        st.ids, param.controller(cfg.control_dt), cfg.sim_config(), stepdown.make_metrics(st.ids, cfg), None,
+        params_axes=0, mesh=mesh))
+
+
 class SuccessEvaluator:
     """``evaluator(thetas (N, P), scenario (M)) -> dict(clean (N, M), completed (N, M), fitness (N,), ...)``
     (module docstring). ``bases`` (optional, one ``CrawlParams`` per member) replace the common ``base``
@@ -89,9 +100,9 @@ class SuccessEvaluator:
         #: where a generation runs (hyqjax.sim.devices.resolve; None: the process's selection, every local device):
         #: its N x M rows split over the devices, one program per device (hyqjax.sim.runner.run_on)
         self.devices = devices
-        self.runners = srunner.RunnersByPlace(lambda mesh: st.backend.make_runner(
-            st.ids, param.controller(self.cfg.control_dt), self.cfg.sim_config(), stepdown.make_metrics(st.ids, self.cfg),
-            None, params_axes=0, mesh=mesh))
+        #: the runners of the evaluator's static setup (its parameterisation and configuration), shared by every
+        #: evaluator of the same setup in this process: a second one neither traces nor compiles them again
+        self.runners = _runners(param, self.cfg, bool(jax.config.jax_enable_x64))
         self.runner = self.runners(None)
         cfg = self.cfg
         self._outcome = jax.jit(jax.vmap(lambda r: so.outcome(r, st.ids, cfg.max_tilt, cfg.min_progress)))
