@@ -62,8 +62,9 @@ class Controller(NamedTuple):
     (:func:`hyqjax.core.scan_carry.tie_carry`; values unchanged, bit for bit), so that ``lax.scan``'s forward-mode
     and batching rules reach their fixed point without transforming the tick again and again. Measured on
     ``jax.jacfwd`` of the crawl's step-down through MJX-JAX (docs/api.md's example, 5 parameters, float64, 1,200
-    ticks, 2 cores): tracing and lowering 19.5-24.4 s -> 11.1-12.3 s, the same derivative. Not set for the bound,
-    whose programs it made slower to compile; never applied on a Warp model (forward only)."""
+    ticks, 2 cores): tracing and lowering 19.5-24.4 s -> 11.1-12.3 s, the same derivative. Not set for the bound's
+    batch runs (their compile phase took 0.2 s longer tied); its differentiated rollouts use it
+    (:data:`hyqjax.bounding.cycle.DIFFERENTIATED_CONTROLLER`); never applied on a Warp model (forward only)."""
 
     init: Callable[[Any, Observation], Any]
     step: Callable[[Any, Any, Observation], tuple[Any, jax.Array, Any]]
