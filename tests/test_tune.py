@@ -1074,7 +1074,7 @@ def test_wallclock_study_end_to_end_resumes_and_uses_common_random_numbers(tmp_p
             first = wallclock.run_wallclock_study(dataclasses_replace(cfg, methods=(m,)), str(tmp_path), log=logs.append,
                                                   checkpoint_every_s=0.0, segment_minutes=3.0 / 60)
             assert first["paused"] == "cma_es/shared" and "cma_es/shared" not in first["runs"] and not first["complete"]
-            store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(cfg.to_dict()))
+            store = resume.RunCheckpoint(str(tmp_path), "cma_es/shared", wallclock._fingerprint(wallclock._config(cfg)))
             stored = store.load()
             gens_before, t_stop = len(stored["trace"]["log"]), stored["clock"]["elapsed"]
             assert gens_before >= 1 and 0.0 < t_stop < cfg.checkpoints_s[-1]
@@ -1143,7 +1143,7 @@ def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
 
     a = wallclock.WallClockConfig(methods=("random_search",), dims=("shared",))
     write_json(str(tmp_path / "results.json"),
-               dict(kind="wallclock", config=a.to_dict(), runs={"random_search/shared": {}}))
+               dict(kind="wallclock", config=wallclock._config(a), runs={"random_search/shared": {}}))
     b = wallclock.WallClockConfig(methods=("cma_es", "gradient"), dims=("shared",))
     prev = wallclock.previous(str(tmp_path), b)
     assert set(prev["runs"]) == {"random_search/shared"}
@@ -1152,6 +1152,11 @@ def test_study_runs_of_other_methods_compose_into_one_results_file(tmp_path):
                   dataclasses_replace(b, wall_minutes=(1.0, 10.0))):
         with pytest.raises(RuntimeError, match="another configuration"):
             wallclock.previous(str(tmp_path), other)
+    # a study run with the hip-line start (its stored config predates the start pose) is not resumed either
+    write_json(str(tmp_path / "results.json"),
+               dict(kind="wallclock", config=a.to_dict(), runs={"random_search/shared": {}}))
+    with pytest.raises(RuntimeError, match="'hip-line' step-down start .*'leading-foot'"):
+        wallclock.previous(str(tmp_path), b)
 
 
 def dataclasses_replace(obj, **kw):
@@ -1401,7 +1406,9 @@ def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(ch
     base = ["--out", str(out), "--methods", "guided_es,cma_es", "--dims", "shared", "--impl", "c", "--no-cache"]
     args = tune_study.build_parser().parse_args(base)
     args.validate_command(args)
-    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=args.wallclock_config.to_dict(),
+    from hyqjax.studies.tune import wallclock
+
+    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=wallclock._config(args.wallclock_config),
                                                       runs={}, heldout={})))
     before = sorted(p.name for p in out.iterdir())
     traced = len(TRACED)

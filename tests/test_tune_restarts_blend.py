@@ -240,7 +240,9 @@ def test_a_resume_with_other_settings_is_refused(tmp_path, capsys):
     base = ["--out", str(out), "--methods", "ipop_cma_es,blend", "--dims", "shared", "--impl", "c", "--no-cache"]
     args = tune_study.build_parser().parse_args(base)
     args.validate_command(args)
-    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=args.wallclock_config.to_dict(),
+    from hyqjax.studies.tune import wallclock
+
+    (out / "results.json").write_text(json.dumps(dict(kind="wallclock", config=wallclock._config(args.wallclock_config),
                                                       runs={"ipop_cma_es/shared": {}}, heldout={})))
     for change in (["--blend-gamma", "3"], ["--popsize", "8"]):
         assert tune_study.main(base + change) == 2
@@ -299,8 +301,13 @@ def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
     log = run["log"]
     assert [r["generation"] for r in log] == list(range(len(log))) and len(log) > n_before
     assert log[:n_before] == json.loads(json.dumps(stored["trace"]["log"])) and log[n_before]["wall_s"] >= t_stop
-    assert all(r["run"] == 0 and r["regime"] == "first" and r["popsize"] == 4 for r in log)
-    assert restarts.summary(log)["runs"][0]["generations"] == len(log)
+    # every row carries its run, regime and population: the first run at popsize 4, each IPOP restart (a warm
+    # process may fit one into the budget) in the large regime at twice the population, runs never going back
+    assert all(r["run"] == 0 and r["regime"] == "first" and r["popsize"] == 4 for r in log[:n_before])
+    assert all(r["popsize"] == 4 * 2 ** r["run"] and r["regime"] == ("first" if r["run"] == 0 else "large")
+               for r in log)
+    assert [r["run"] for r in log] == sorted(r["run"] for r in log)
+    assert sum(x["generations"] for x in restarts.summary(log)["runs"]) == len(log)
     from hyqjax.studies.tune.wallclock_results import member_key
 
     assert res["heldout"][member_key("ipop_cma_es", "shared", 24.0)]["n"] == 4

@@ -51,6 +51,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
+from hyqjax.studies.stepdown import START_POSE
 from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
@@ -83,16 +84,27 @@ def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
             prev = json.load(f)
     except (OSError, ValueError):
         return None
-    if prev.get("kind") != "wallclock" or _fingerprint(prev.get("config", {})) != _fingerprint(cfg.to_dict()):
+    old, new = _fingerprint(prev.get("config", {})), _fingerprint(_config(cfg))
+    if prev.get("kind") == "wallclock" and old["start_pose"] != new["start_pose"]:
+        raise RuntimeError(f"{out_dir} holds a tuning study run with the {old['start_pose']!r} step-down start "
+                           f"(this hyqjax starts with {new['start_pose']!r}: hyqjax.studies.stepdown.start_qpos), so "
+                           f"it is not resumed; use another --out or remove it")
+    if prev.get("kind") != "wallclock" or old != new:
         raise RuntimeError(f"{out_dir} holds a tuning study of another configuration; use another --out or remove it")
     return prev
 
 
+def _config(cfg: WallClockConfig) -> dict:
+    """What ``results.json`` stores as ``config``: the settings and the step-down's start pose."""
+    return dict(cfg.to_dict(), start_pose=START_POSE)
+
+
 def _fingerprint(config: dict) -> dict:
     """The settings that must agree for runs to share one results file: all but ``methods`` (one process per
-    method composes into one study; each run is stored under its own method's key). A setting a stored study
-    predates counts at its default."""
-    return {k: v for k, v in {**WallClockConfig.defaults(), **config}.items() if k != "methods"}
+    method composes into one study; each run is stored under its own method's key), and the step-down's start pose
+    (``hip-line`` for a study that predates it). A setting a stored study predates counts at its default."""
+    fp = {k: v for k, v in {**WallClockConfig.defaults(), **config}.items() if k != "methods"}
+    return dict(fp, start_pose=config.get("start_pose", "hip-line"))
 
 
 def _methods_union(*lists) -> list:
@@ -116,7 +128,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         from hyqjax.io.cache import use_cold_caches
 
         log(f"cold compile: JAX's persistent cache and Warp's kernel cache in {use_cold_caches()} (empty)")
-    config = dict(cfg.to_dict(), methods=_methods_union(prev.get("config", {}).get("methods", []), cfg.methods))
+    config = dict(_config(cfg), methods=_methods_union(prev.get("config", {}).get("methods", []), cfg.methods))
     res = dict(kind="wallclock", complete=False, provenance=provenance(seed=cfg.seed),
                device=str(jax.devices()[0].device_kind), config=config,
                charges=dict(prev.get("charges", {})), runs=dict(prev.get("runs", {})),
@@ -156,7 +168,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         return res
 
     for m, d in todo:
-        store = resume.RunCheckpoint(out_dir, run_key(m, d), _fingerprint(cfg.to_dict()), checkpoint_every_s,
+        store = resume.RunCheckpoint(out_dir, run_key(m, d), _fingerprint(_config(cfg)), checkpoint_every_s,
                                      segment_s, log, t_process)
         if resume.segment_over(segment_s, t_process):
             return pause(run_key(m, d))
