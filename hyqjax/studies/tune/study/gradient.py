@@ -138,13 +138,23 @@ KINEMATIC_SCENARIOS = 64
 def fingerprint(cfg: StudyConfig) -> dict:
     """Every setting that changes a study's results: the configuration without ``adam.checkpoint_every`` (when
     checkpoints are written changes nothing), plus the kinematic surrogate's fixed settings (scenario count,
-    objective weights) when it runs (``objective="kinematic"`` or a warm start)."""
-    return settings_of(cfg.to_dict())
+    objective weights) when it runs (``objective="kinematic"`` or a warm start), and the step-down's start pose
+    (:data:`hyqjax.studies.stepdown.START_POSE`)."""
+    return settings_of(stored_config(cfg))
+
+
+def stored_config(cfg: StudyConfig) -> dict:
+    """What results.json stores as ``config``: the settings and the step-down's start pose."""
+    from hyqjax.studies.stepdown import START_POSE
+
+    return dict(cfg.to_dict(), start_pose=START_POSE)
 
 
 def settings_of(config: dict) -> dict:
-    """:func:`fingerprint` of a configuration as stored (``StudyConfig.to_dict()``, e.g. in results.json)."""
+    """:func:`fingerprint` of a configuration as stored (:func:`stored_config`, e.g. in results.json; a study
+    stored before the start pose was recorded ran the ``hip-line`` start)."""
     s = json.loads(json.dumps(config))
+    s["start_pose"] = s.get("start_pose", "hip-line")
     s.get("adam", {}).pop("checkpoint_every", None)
     if not (s.get("loss", {}).get("contacts_from_distance") or {}).get("stiffness"):  # off: as runs before it
         s.get("loss", {}).pop("contacts_from_distance", None)
@@ -214,7 +224,7 @@ def run_study(cfg: StudyConfig, out_dir: str, progress: bool = True, log=print, 
     sel_cost = len(sel_steps) * _full_runs_cost(per_sel * len(cfg.train_heights), cfg.success_duration)
     budget = cfg.adam.steps * step_cost + sel_cost
     res: dict = dict(complete=False, provenance=provenance(seed=cfg.seed), device=str(jax.devices()[0].device_kind),
-                     config=cfg.to_dict(), params=list(space.names), theta_start=theta0.tolist(),
+                     config=stored_config(cfg), params=list(space.names), theta_start=theta0.tolist(),
                      start_point="Table I, default crawl" + (", shin remedy" if cfg.remedy else ""),
                      windows=dict(n=n_win, valid=int(valid.sum()), legs=np.asarray(win.leg)[valid].tolist(),
                                   heights=np.asarray(win.height)[valid].tolist()),
