@@ -1,7 +1,8 @@
 """Names whose code lives in a module of its own stay importable from the module that gathers them (fast lane):
 ``hyqjax.studies.tune.search`` (the clock, trace and selection beside the methods), ``hyqjax.sim.cpu_backend``
-(the C MuJoCo backend's runner, models and host programs) and ``hyqjax.bounding.params`` (the parameter classes and
-the apex state beside the parameter sets). Each name is the very object of its home, so a class check, a patched
+(the C MuJoCo backend's runner, models and host programs), ``hyqjax.bounding.params`` (the parameter classes and
+the apex state beside the parameter sets), ``hyqjax.bounding.robust`` (the coordinates and the stored sets beside the
+optimisers) and ``hyqjax.sim.runner`` (the batch buckets and the multi-device run beside the runner). Each name is the very object of its home, so a class check, a patched
 class attribute or a shared registry (the runner's active batches) is one and the same through either path."""
 from __future__ import annotations
 
@@ -23,6 +24,11 @@ HOMES = [
     ("hyqjax.bounding.params", "hyqjax.bounding.param_types",
      ("FRONT", "HIND", "LEG_PAIR", "LEG_SIDE", "PROFILES", "NOMINAL_FOOT_XY", "LATERAL_SPEED_LIMIT", "check_range",
       "check_field", "GaitParams", "BoundingGains", "Switches", "BoundingCommand", "BoundingParams")),
+    ("hyqjax.bounding.robust", "hyqjax.bounding.robust_params",
+     ("AMPLITUDE_NAMES", "COORDS", "FORMAT", "PRESETS", "load_params", "params_from_values", "preset_params",
+      "preset_path", "save_params")),
+    ("hyqjax.sim.runner", "hyqjax.sim.buckets", ("BatchPlan", "batch_plan", "bucket", "host_physics_plan", "pad_batch")),
+    ("hyqjax.sim.runner", "hyqjax.sim.multidevice", ("run_on", "run_split", "RunnersByPlace", "run_tree_on", "batch_mesh")),
 ]
 
 

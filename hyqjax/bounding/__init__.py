@@ -23,6 +23,7 @@ Modules, one concept each:
               batched forward runs with them
   envelope    the command envelope: fall rate and yaw error per command (Wilson intervals), the safe area
   robust      robust baseline optimisation over commands / friction / payload: jacfwd + Adam, CMA-ES (evosax)
+  robust_params  the robust study's coordinates and its stored parameter sets (kept importable from robust)
   plots       figures
 """
 from hyqjax.bounding.controller import bounding_controller, bounding_init, bounding_step
