@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-import time
 
 import numpy as np
 
@@ -74,6 +73,9 @@ def hip_line_front_feet_x(m, rows) -> np.ndarray:
 
 
 def main(argv=None) -> int:
+    from hyqjax.io import phases
+
+    clock = phases.Clock.from_process_start()
     try:
         a = parse(argv)
     except UsageError as e:
@@ -89,7 +91,6 @@ def main(argv=None) -> int:
     from hyqjax.studies import stepdown_outcome as so
     from hyqjax.studies.tune.study import targets
 
-    t0 = time.time()
     draws = reach_map.draws(targets.HELDOUT["spread"], [a.heights[0]], targets.HELDOUT["instances"],
                             targets.HELDOUT["seed"])
     draws = {k: np.asarray(v)[: a.instances] for k, v in draws.items()}
@@ -101,18 +102,20 @@ def main(argv=None) -> int:
     reps = 2 * len(a.heights) * len(a.presets)
     n = len(over)
     rows = {k: np.concatenate([v[over]] * reps) for k, v in draws.items()}
-    rows["pose"] = np.repeat(np.asarray(["hip-line", stepdown.START_POSE]), n * len(a.heights) * len(a.presets))
+    rows["pose"] = np.repeat(np.asarray([stepdown.EARLIER_START_POSE, stepdown.START_POSE]), n * len(a.heights) * len(a.presets))
     rows["variant"] = np.tile(np.repeat(np.asarray(a.presets), n * len(a.heights)), 2)
     rows["height"] = np.tile(np.repeat(np.asarray(a.heights, float), n), 2 * len(a.presets))
-    old = rows["pose"] == "hip-line"  # today's pose of a start distance less the advance is the hip-line start
+    old = rows["pose"] == stepdown.EARLIER_START_POSE  # today's pose of a start distance less the advance is the hip-line start
     rows["start_distance"] = np.where(old, rows["start_distance"] - stepdown.leading_foot_advance(rows["yaw"]),
                                       rows["start_distance"])
     params = scheduled.common_structure({p: presets.load(p) for p in a.presets})
+    clock.lap("startup")
     out, _ = stepdown.make_stepdown_rollout(cfg).run(reach_map.scenario_of(rows, np.arange(len(rows["height"])),
                                                                           params))
     cols = so.to_columns(jax.block_until_ready(out))
+    clock.lap("simulation")  # the C batch's compile included
     cells = []
-    for pose in ("hip-line", stepdown.START_POSE):
+    for pose in (stepdown.EARLIER_START_POSE, stepdown.START_POSE):
         for p in a.presets:
             for h in a.heights:
                 k = (rows["pose"] == pose) & (rows["variant"] == p) & np.isclose(rows["height"], h)
@@ -128,8 +131,10 @@ def main(argv=None) -> int:
                                  start_pose=stepdown.START_POSE, heldout=dict(targets.HELDOUT),
                                  instances_searched=a.instances, over_the_edge=over.tolist(),
                                  hip_line_front_foot_x=x_old[over].tolist(), duration=a.duration, cells=cells,
-                                 wall_s=time.time() - t0))
-    print(f"wall {time.time() - t0:.1f} s; wrote {path}")
+                                 wall_s=clock.wall(), phases=clock.to_dict()))
+    clock.lap("summary")
+    print(f"wrote {path}")
+    print(clock.line())
     return 0
 
 

@@ -165,6 +165,14 @@ def _setup_cached(layout: hmodel.TerrainLayout, control_dt: float, impl: str, x6
 #: pose are never mixed): ``leading-foot``, the leading front foot never nearer the edge than at zero heading.
 #: Before it (``hip-line``), a heading moved one front foot forward, over the edge at the smallest start distances.
 START_POSE = "leading-foot"
+#: The start pose of results that record none: the front hips' line alone under every heading.
+EARLIER_START_POSE = "hip-line"
+
+
+def recorded_start_pose(record: dict) -> str:
+    """The start pose a stored configuration or manifest ran: its ``start_pose``, or :data:`EARLIER_START_POSE`
+    when it records none (it was written before the pose was recorded)."""
+    return record.get("start_pose", EARLIER_START_POSE)
 
 
 @functools.cache

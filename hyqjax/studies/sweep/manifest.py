@@ -86,9 +86,9 @@ def check_manifest(man: dict, out_dir: str, spec_hash: str, writer: bool, chunk_
     if writer and man.get("converted_from"):
         raise StoreMismatch(legacy.read_only_message(out_dir, man["converted_from"], converted=True))
     if writer:
-        from hyqjax.studies.stepdown import START_POSE
+        from hyqjax.studies.stepdown import START_POSE, recorded_start_pose
 
-        pose = man.get("start_pose", "hip-line")  # stores written before the start pose was recorded
+        pose = recorded_start_pose(man)
         if pose != START_POSE:
             raise StoreMismatch(
                 f"{out_dir} was computed with the {pose!r} start pose (this hyqjax starts the step-down with the "

@@ -51,7 +51,7 @@ import numpy as np
 
 from hyqjax.crawl import controller as crawl
 from hyqjax.io.atomic import provenance, write_json
-from hyqjax.studies.stepdown import START_POSE
+from hyqjax.studies.stepdown import START_POSE, recorded_start_pose
 from hyqjax.studies.tune import forward, resume, schedule, search
 from hyqjax.studies.tune.wallclock_run import heartbeat, run_key, run_method
 from hyqjax.studies.tune.gradient_programs import (GradientPrograms,
@@ -104,7 +104,7 @@ def _fingerprint(config: dict) -> dict:
     method composes into one study; each run is stored under its own method's key), and the step-down's start pose
     (``hip-line`` for a study that predates it). A setting a stored study predates counts at its default."""
     fp = {k: v for k, v in {**WallClockConfig.defaults(), **config}.items() if k != "methods"}
-    return dict(fp, start_pose=config.get("start_pose", "hip-line"))
+    return dict(fp, start_pose=recorded_start_pose(config))
 
 
 def _methods_union(*lists) -> list:

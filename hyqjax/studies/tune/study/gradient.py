@@ -153,8 +153,10 @@ def stored_config(cfg: StudyConfig) -> dict:
 def settings_of(config: dict) -> dict:
     """:func:`fingerprint` of a configuration as stored (:func:`stored_config`, e.g. in results.json; a study
     stored before the start pose was recorded ran the ``hip-line`` start)."""
+    from hyqjax.studies.stepdown import recorded_start_pose
+
     s = json.loads(json.dumps(config))
-    s["start_pose"] = s.get("start_pose", "hip-line")
+    s["start_pose"] = recorded_start_pose(s)
     s.get("adam", {}).pop("checkpoint_every", None)
     if not (s.get("loss", {}).get("contacts_from_distance") or {}).get("stiffness"):  # off: as runs before it
         s.get("loss", {}).pop("contacts_from_distance", None)
