@@ -45,10 +45,7 @@ def parse(argv=None) -> argparse.Namespace:
     if not 2.0 <= a.duration <= 60.0:
         raise UsageError(f"--duration must be in [2, 60] s, got {a.duration}")
     for p in a.presets:
-        try:
-            presets.check_kind(p, "crawl", "--presets")
-        except ValueError as e:
-            raise UsageError(str(e)) from None
+        presets.check_kind(p, "crawl", "--presets")  # PresetError: a ValueError of one line
     return a
 
 
@@ -78,7 +75,7 @@ def main(argv=None) -> int:
     clock = phases.Clock.from_process_start()
     try:
         a = parse(argv)
-    except UsageError as e:
+    except (UsageError, ValueError) as e:
         print(f"start_pose_check: {e}", file=sys.stderr)
         return 2
     import jax
