@@ -146,26 +146,59 @@ def clean_fig_0129(value: float, preset: str):  # noqa: ARG001
 
 
 TARGETS = f"{R}/tune_default_repeats_h200"
+#: The five default runs trained with the leading-foot start (``hyqjax.studies.stepdown.START_POSE``), their
+#: targets map (seed 60613) and a confirmation map of four sets on fresh instances (seed 31415).
+TARGETS_LF = f"{R}/tune_default_repeats_leading_foot_h200"
+CONFIRM_LF = f"{TARGETS_LF}/confirm_31415/reach_map.json"
+#: The start pose of each stored targets map (``experiments/start_pose_check.py``, docs/stepdown.md).
+POSE = {TARGETS: "the earlier hip-line start", TARGETS_LF: "the leading-foot start"}
 
 
-def targets_figs(variant: str, chosen_on_it: bool = False) -> list[dict]:
-    """Figures of ``variant`` on the default tuner's held-out targets map (``experiments/tune_default_repeats.py``,
-    :data:`hyqjax.studies.tune.study.targets.HELDOUT`): clean success pooled up to 26 cm and h90 on the wide
-    spread. ``chosen_on_it``: the set was picked as the best run on this very map (its figure is optimistic)."""
-    t = read(f"{TARGETS}/targets.json")
-    m = read(f"{TARGETS}/heldout/reach_map.json")
+def targets_figs(variant: str, chosen_on_it: bool = False, root: str = TARGETS) -> list[dict]:
+    """Figures of ``variant`` on a default tuner's held-out targets map (``experiments/tune_default_repeats.py``,
+    :data:`hyqjax.studies.tune.study.targets.HELDOUT`) stored under ``root``: clean success pooled up to 26 cm and h90
+    on the wide spread (with the map's start pose named). ``chosen_on_it``: the set was picked as the best run on
+    this very map (its figure is optimistic)."""
+    t = read(f"{root}/targets.json")
+    m = read(f"{root}/heldout/reach_map.json")
     v = t["variants"][variant]
     h = t["heldout"]
     held = (f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed {h['seed']}, "
             f"{h['instances']} runs per height at {', '.join(f'{100 * x:g}' for x in h['heights'])} cm (no "
-            f"training height)" + ("; this set was chosen as the best of five runs on this map, so the figure "
-                                   "is optimistic" if chosen_on_it else ""))
+            f"training height), {POSE[root]}" + ("; this set was chosen as the best of five runs on this map, so the "
+                                                 "figure is optimistic" if chosen_on_it else ""))
     base = dict(heldout=held, command=t["reach_map_command"].replace("/tmp/tdr/", "out/tdr/"),
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10],
-                source=f"{TARGETS}/targets.json")
+                source=f"{root}/targets.json")
     return [dict(what="clean success up to 26 cm, held-out step-downs", value=round(v["clean"], 3), unit="share",
                  interval=[round(x, 3) for x in v["clean_ci95"]], **base),
             dict(what="h90, wide spread", value=round(100 * v["h90"]), unit="cm", interval=None, **base)]
+
+
+def confirm_figs(variant: str) -> list[dict]:
+    """Figures of ``variant`` on the confirmation map :data:`CONFIRM_LF` (fresh instances, seed 31415; the
+    leading-foot start; no part of any tuner or of the choice of the ``clean`` preset saw it): clean success pooled
+    up to 26 cm, the worst clean rate at a height up to 24 cm, clean at the farthest starts (10-15 cm) and h90."""
+    from hyqjax.studies.tune.study import targets
+
+    m = read(CONFIRM_LF)
+    s = targets.variant_summary(next(c for c in m["cells"] if c["variant"] == variant))
+    n = s["per_height"][0]["n"]
+    hs = ", ".join(f"{100 * p['height']:g}" for p in s["per_height"])
+    base = dict(heldout=(f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed "
+                         f"{m['provenance']['seed']}, {n} runs per height at {hs} cm, the leading-foot start; "
+                         f"{s['diverged']} diverged of {s['n']:,}"),
+                command=("python -m experiments.reach_map "
+                         + m["provenance"]["command"][len("hyqjax "):].replace("/root/out/", "out/")),
+                device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=CONFIRM_LF)
+    w, far = s["worst_low"], s["far_start"]
+    return [dict(what="clean success up to 26 cm, held-out step-downs (confirmation map)", value=round(s["clean"], 3),
+                 unit="share", interval=[round(x, 3) for x in s["clean_ci95"]], **base),
+            dict(what=f"worst clean success at a height up to 24 cm ({100 * w['height']:g} cm)",
+                 value=round(w["clean"], 3), unit="share", interval=None, **base),
+            dict(what="clean success from the farthest starts (10-15 cm, beyond the training range)",
+                 value=round(far["clean"], 3), unit=f"share of {far['n']:,}", interval=None, **base),
+            dict(what="h90, wide spread", value=round(100 * s["h90"]), unit="cm", interval=None, **base)]
 
 
 def bound_file(path: str):
@@ -308,7 +341,7 @@ def build() -> dict[str, dict]:
     add("reach", "crawl", "the recommended reach configuration: reach-trained SNES gains, edge probe and depth gate",
         dict(crawl=dict(crawl, **PROBE), reflex=reflex), reach_prov,
         [reach_fig("snes_reach_probe_deep"), reach_fig_0129(27, "--preset reach"), clean_fig_0129(0.857, "reach")]
-        + targets_figs("reach"))
+        + targets_figs("reach") + targets_figs("reach", root=TARGETS_LF) + confirm_figs("reach"))
     add("tuned_shared", "crawl", "best measured 14-coordinate shared set (SNES, reach-trained, 10 min on one H200)",
         dict(crawl=crawl, reflex=reflex), prov_of(res, REACH_SRC),
         [heldout_fig(res, "snes/shared@10min", "clean success, held-out step-downs", REACH_SRC,
@@ -327,6 +360,26 @@ def build() -> dict[str, dict]:
         "training spread) from `reach`, whose edge probe and depth gate it keeps",
         dict(crawl=dict(start.get("crawl", {}), **crawl_b), reflex=dict(start.get("reflex", {})), per_leg=per_leg),
         prov_of(res, src), targets_figs("run_0", chosen_on_it=True)
+        + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
+                       prov_of(res, src)["command"])]
+        + targets_figs("tuned_per_leg_reach", root=TARGETS_LF) + confirm_figs("tuned_per_leg_reach"))
+
+    src = f"{TARGETS_LF}/run_1/results.json"
+    crawl_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
+    start = res.get("start_base") or {}
+    returned = read(f"{TARGETS_LF}/targets.json")["returned"]
+    chosen = max(sorted(returned), key=lambda v: returned[v]["validation_clean"])
+    assert chosen == "run_1", f"the highest validation score is {chosen}'s"
+    add("clean", "crawl", "the highest clean success measured: `hyqjax tune` (CMA-ES on 56 per-leg coordinates, 3 min "
+        "on one H200, the wide spread, the leading-foot start) from `reach`, whose edge probe and depth gate it keeps",
+        dict(crawl=dict(start.get("crawl", {}), **crawl_b), reflex=dict(start.get("reflex", {})), per_leg=per_leg),
+        prov_of(res, src, selection=(
+            "the run of the five of `python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 "
+            "--heldout 256` (seeds 0-4) with the highest validation score of the tuner itself "
+            f"({returned['run_1']['validation_clean']:.3f}; the others "
+            + ", ".join(f"{returned[v]['validation_clean']:.3f}" for v in sorted(returned) if v != "run_1")
+            + "); no held-out map took part in the choice")),
+        confirm_figs("run_1") + targets_figs("run_1", root=TARGETS_LF)
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])])
 

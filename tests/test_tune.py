@@ -1421,7 +1421,7 @@ def test_tune_study_resume_with_other_new_settings_refused_before_any_compile(ch
 
 
 def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
-    """The default start of ``hyqjax tune`` (per_leg) is the preset ``reach``; the 30-minute per-leg CMA-ES set
+    """The default start of ``hyqjax tune`` (per_leg) is the preset ``clean`` (``reach`` for the shared coordinates); the 30-minute per-leg CMA-ES set
     ``tuned_per_leg`` starts at the stored run's returned ``theta`` (float32 storage); a conditioned preset starts its
     own parameterisation at its own ``theta``."""
     import json
@@ -1442,7 +1442,11 @@ def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
     from hyqjax.cli import tune as tune_cli
 
     tune_cli._fill_hidden(args)
+    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "clean"
+    assert tune_cli._start_preset(args, ("cma_es",), ("shared",)) == "reach"
+    args.objective = "reach"
     assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "reach"
+    args.objective = "clean"
     args.preset = "none"
     assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == ""
     c = presets.get("tuned_per_leg_cond").values["conditioned"]

@@ -3,11 +3,13 @@ spread of ``hyqjax tune``."""
 import json
 import os
 
+import numpy as np
 import pytest
 
 from hyqjax.studies.tune.study import targets
 
 STORED = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_h200")
+STORED_LF = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_leading_foot_h200")
 STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_wide_h200")
 
 
@@ -96,6 +98,50 @@ def test_stored_wide_spread_runs_and_the_cause_of_their_worst_height():
     assert np.all(np.abs(t["yaw"][over]) > 0.01)
 
 
+def test_stored_leading_foot_runs_their_targets_and_the_clean_preset():
+    """The five default runs with the leading-foot start (docs/results/tune_default_repeats_leading_foot_h200):
+    recomputed from their map, one target met of four; the near-edge shin strikes of the hip-line start are gone
+    (at most 3 of 155 starts 0-5 cm before the edge, against at least 34 before); the preset ``clean`` is the run
+    with the highest validation score of its own, and on the confirmation map (fresh instances) it is the set that
+    map calls ``run_1``, with the figures the registry states."""
+    from hyqjax import presets
+    from hyqjax.studies.tune import tuned
+
+    with open(os.path.join(STORED_LF, "heldout", "reach_map.json")) as f:
+        m = json.load(f)
+    with open(os.path.join(STORED_LF, "targets.json")) as f:
+        stored = json.load(f)
+    assert m["config"]["start_pose"] == "leading-foot"
+    s = targets.judge(m["cells"], stored["runs"], stored["references"])
+    assert round(s["over_runs"]["mean"], 3) == 0.863 and round(s["over_runs"]["range"], 3) == 0.130
+    assert [round(x, 3) for x in s["over_runs"]["ci95"]] == [0.796, 0.930]
+    assert {k: v["ok"] for k, v in s["targets"].items()} == dict(clean_lower=False, per_height=False, h90=True,
+                                                                  spread=False)
+    assert s["diverged"] == 0
+    for c in m["cells"]:
+        for p in c["per_height"]:
+            if p["height"] <= 0.24:
+                near = p["by_factor"]["start_distance"][0]
+                assert near["n"] == 155 and round(near["shin_strike"] * near["n"]) <= 3, (c["variant"], p["height"])
+    returned = stored["returned"]
+    assert max(returned, key=lambda v: returned[v]["validation_clean"]) == "run_1"
+    # the preset's values are run_1's returned set, read back as the reach map read it
+    want = tuned.crawl_params(os.path.join(STORED_LF, "run_1", "results.json"), "cma_es/per_leg")
+    got = presets.load("clean")
+    for k, v in want.legs.items():
+        np.testing.assert_allclose(np.asarray(got.legs[k]), np.asarray(v), rtol=1e-6)
+    with open(os.path.join(STORED_LF, "confirm_31415", "reach_map.json")) as f:
+        conf = json.load(f)
+    assert conf["provenance"]["seed"] not in (targets.HELDOUT["seed"], 7777) and conf["config"]["start_pose"] == \
+        "leading-foot"
+    c = {x["variant"]: targets.variant_summary(x) for x in conf["cells"]}
+    fig = presets.get("clean").figures[0]
+    assert fig["value"] == round(c["run_1"]["clean"], 3) == 0.925
+    assert c["run_1"]["clean"] > max(c["reach"]["clean"], c["tuned_per_leg_reach"]["clean"]) + 0.08
+    assert c["run_1"]["worst_low"]["clean"] >= 0.85 and c["run_1"]["h90"] == pytest.approx(0.27)
+    assert sum(v["diverged"] for v in c.values()) == 0
+
+
 def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):
     from experiments import tune_study
 
@@ -104,7 +150,7 @@ def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(t
 
     a = build_parser().parse_args(["tune", "--out", str(tmp_path / "t")])
     tune.validate(a)
-    assert a.wallclock_config.train_spread == "wide" and a.wallclock_config.start_preset == "reach"
+    assert a.wallclock_config.train_spread == "wide" and a.wallclock_config.start_preset == "clean"
     a = tune_study.build_parser().parse_args(["--out", str(tmp_path / "s")])
     tune_study.validate(a)
     assert a.wallclock_config.train_spread == "train"

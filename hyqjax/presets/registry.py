@@ -90,7 +90,7 @@ def names(kind: str | None = None) -> list[str]:
 BOUND_ALIASES = {"robust": "bound_robust_grad", "robust_8s": "bound_robust_8s"}
 
 #: Listing order: the paper's sets, then what beats them.
-ORDER = ("paper", "remedy", "reach", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach", "tuned_per_leg_cond",
+ORDER = ("paper", "remedy", "reach", "clean", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach", "tuned_per_leg_cond",
          "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
 
 

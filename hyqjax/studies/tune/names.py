@@ -36,19 +36,29 @@ DIMS = ("shared", "per_leg", "per_leg_cond", "per_leg_cond_all")
 #: minutes from ``reach`` on the training spread returned 0.707 [0.585, 0.829] over runs on held-out step-downs,
 #: below their start's 0.814, from starts 10-15 cm before the edge that the training spread never drew; the
 #: default therefore trains on the wide spread (``hyqjax.cli.tune.OBJECTIVES``; docs/tuning.md, "Five default
-#: runs"). Five 3-minute runs trained on the wide spread returned 0.838 [0.810, 0.867] over runs, range 0.049 (two
-#: returned the start). What 10 and 30 minutes add from a preset is not measured yet.
+#: runs"). With the leading-foot start (``hyqjax.studies.stepdown.START_POSE``) five 3-minute runs from ``reach``
+#: returned 0.863 [0.796, 0.930] over runs, range 0.130, against ``reach``'s 0.777 on the same map; the one with the
+#: highest validation score of its own is the preset ``clean`` (0.925 on fresh held-out instances). What 10 and 30
+#: minutes add is not measured yet.
 DEFAULT_METHOD = "cma_es"
 DEFAULT_DIM = "per_leg"
 DEFAULT_WALL_MINUTES = (3.0, 10.0, 30.0)
 #: The equal-wall-clock study's default checkpoints (``python -m experiments.tune_study``).
 STUDY_WALL_MINUTES = (1.0, 3.0, 10.0)
 #: The default start point of ``hyqjax tune`` per (objective, parameterisation): the best measured crawl preset of
-#: :mod:`hyqjax.presets`, ``reach`` (SNES gains trained on the reach, the edge probe and the depth gate: 0.857
-#: clean on the 2,400 held-out step-downs of 2026-11-29, against 0.841 for ``tuned_per_leg``, and the only preset
-#: with a measured ``h90`` of 27 cm on the wide spread). A per-leg parameterisation starts from it on every leg;
-#: its edge probe, which no parameterisation tunes, stays as the preset has it (``WallClockConfig.start_preset``).
-#: A pair not listed starts from Table I with the shin remedy; ``--preset none`` starts there too.
-DEFAULT_PRESETS = {("clean", "shared"): "reach", ("clean", "per_leg"): "reach",
-                   ("clean", "per_leg_cond"): "reach", ("clean", "per_leg_cond_all"): "reach",
+#: :mod:`hyqjax.presets` for that objective that the parameterisation can start from.
+#:
+#: * objective ``clean`` on a per-leg parameterisation: ``clean`` (0.925 clean up to 26 cm on fresh held-out
+#:   step-downs of the wide spread with the leading-foot start, against 0.837 for ``tuned_per_leg_reach`` and
+#:   0.787 for ``reach`` on the same instances; docs/tuning.md). A conditioned parameterisation starts from its
+#:   four rows with zero conditioning weights.
+#: * objective ``clean`` on the 14 shared coordinates (a per-leg set cannot start them) and objective ``reach``:
+#:   ``reach`` (SNES gains trained on the reach, the edge probe and the depth gate). At 29 cm ``clean`` completes
+#:   0.57-0.59 of the step-downs against ``reach``'s 0.75-0.77, so the reach objective keeps ``reach``.
+#:
+#: Coordinates no parameterisation tunes (the edge probe) stay as the preset has them
+#: (``WallClockConfig.start_preset``). A pair not listed starts from Table I with the shin remedy; ``--preset none``
+#: starts there too.
+DEFAULT_PRESETS = {("clean", "shared"): "reach", ("clean", "per_leg"): "clean",
+                   ("clean", "per_leg_cond"): "clean", ("clean", "per_leg_cond_all"): "clean",
                    ("reach", "shared"): "reach", ("reach", "per_leg"): "reach"}
