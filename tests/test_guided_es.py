@@ -199,3 +199,43 @@ def test_final_choice_pools_the_validation_and_the_further_scenarios():
     assert out["chosen"] == 1 and out["theta"][0] == 1.0 and out["instances"] == 12 and out["physics_steps"] == 36
     pooled = [c["pooled_clean"] for c in out["candidates"]]
     np.testing.assert_allclose(pooled, [(4 * 1.0 + 3) / 16, (4 * 0.75 + 11) / 16, (4 * 0.5 + 6) / 16])
+
+
+def test_final_choice_weighs_the_start_point_against_lucky_iterates():
+    """The start point (the first validated iterate) joins the final re-evaluation when three iterates outrank it
+    on the validation batch: here each of them scored above it by the luck of one small batch, the further runs say
+    the start is best, and the run returns the start. The start survives a stored state; a state stored before it
+    was kept restores without it (no start candidate)."""
+    def evaluate(th):  # 8 validation runs: the start 4 clean, the three iterates 5, 6 and 7
+        k = {0.0: 4, 1.0: 5, 2.0: 6, 3.0: 7}[float(th[0][0])]
+        return dict(clean=np.array([[1.0] * k + [0.0] * (8 - k)]), completed=np.ones((1, 8)), physics_steps=8)
+
+    sel = search.Selection(evaluate, every=1, keep=3)
+    clock = search.Clock()
+    for i, x in enumerate((0.0, 1.0, 2.0, 3.0)):
+        sel.validate(clock, np.full(2, x), i)
+    assert [t[1] for t in sel.top] == [3, 2, 1]
+    cands = sel.candidates()
+    assert [t[1] for t in cands] == [3, 2, 1, 0] and np.array_equal(cands[-1][2], np.zeros(2))
+
+    def further(th):  # 40 further runs: the start 30 clean, the iterates 12, 14 and 16
+        n = {0.0: 30, 1.0: 16, 2.0: 14, 3.0: 12}
+        clean = np.array([[1.0] * n[float(t[0])] + [0.0] * (40 - n[float(t[0])]) for t in th])
+        return dict(clean=clean, completed=np.ones_like(clean), physics_steps=40 * len(th))
+
+    out = search.final_choice(cands, 8, further)
+    assert out["candidates"][out["chosen"]]["iteration"] == 0 and np.array_equal(out["theta"], np.zeros(2))
+    assert out["candidates"][-1]["pooled_clean"] == pytest.approx((4 + 30) / 48)
+    # without the start the best of the three lucky iterates would have been returned
+    assert search.final_choice(sel.top, 8, further)["candidates"][0]["iteration"] == 3
+    again = search.Selection(evaluate, every=1, keep=3)
+    again.restore(sel.state())
+    assert [t[1] for t in again.candidates()] == [3, 2, 1, 0]
+    old = {k: v for k, v in sel.state().items() if k != "start"}
+    again.restore(old)
+    assert again.start is None and [t[1] for t in again.candidates()] == [3, 2, 1]
+    # a start among the best validated iterates is not added twice
+    top = search.Selection(evaluate, every=1, keep=3)
+    for i, x in enumerate((3.0, 1.0, 2.0)):
+        top.validate(clock, np.full(2, x), i)
+    assert [t[1] for t in top.candidates()] == [0, 2, 1]

@@ -97,8 +97,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--heldout", type=int, default=None,
                    help="held-out closed-loop instances per parameter set (default 2000)")
     p.add_argument("--final-instances", type=int, default=None,
-                   help="after the budget, the 3 best validated iterates run on this many further scenarios and the "
-                        "best over both validation batches is returned (0: off; default twice the validation batch, "
+                   help="after the budget, the 3 best validated iterates (and the start point when it is not one of "
+                        "them) run on this many further scenarios and the best over both validation batches is returned (0: off; default twice the validation batch, "
                         "1,088 runs; python -m experiments.tune_study: 0)")
     p.add_argument("--seed", type=int, default=0, help="training seed")
     p.add_argument("--quick", action="store_true",

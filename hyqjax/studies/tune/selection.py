@@ -28,7 +28,12 @@ class Selection:
     its physics steps are added to the clock's, so the selection is paid from the method's budget.
 
     Score: (clean rate, completed rate) on the validation batch; an iterate replaces the selected one when its
-    score is at least as high (ties go to the later iterate, the one with more optimisation behind it)."""
+    score is at least as high (ties go to the later iterate, the one with more optimisation behind it).
+
+    The first validated iterate is the start point (:meth:`.trace.Trace.begin`); it is kept as ``start`` so that
+    the final re-evaluation always weighs it against the best validated iterates (:meth:`candidates`): a run
+    returns another set only when that set beats its start on the larger pooled batch, not on the luck of one
+    validation batch among many iterates."""
 
     def __init__(self, evaluate: Callable, every: int = 5, every_s: float = 0.0, keep: int = 1):
         if every <= 0 and every_s <= 0:
@@ -39,6 +44,8 @@ class Selection:
         self.keep, self.top = int(keep), []
         self.log: list = []
         self.best: tuple | None = None  # (score, theta)
+        #: the first validated iterate (the start point): ``[score, iteration, theta]``
+        self.start: list | None = None
         self._since, self._t_last, self._theta_last = 0, -math.inf, None
 
     def due(self, clock: Clock, theta) -> bool:
@@ -56,6 +63,8 @@ class Selection:
         clock.physics_steps += int(r["physics_steps"])
         score = (float(np.mean(r["clean"][0])), float(np.mean(r["completed"][0])))
         better = self.best is None or score >= self.best[0]
+        if self.start is None:
+            self.start = [list(score), int(iteration), theta]
         if better:
             self.best = (score, theta)
         self.top = sorted(self.top + [[list(score), int(iteration), theta]],
@@ -67,12 +76,23 @@ class Selection:
                              physics_steps_run=int(clock.physics_steps - s0)))
         return better
 
+    def candidates(self) -> list:
+        """The candidates of the final re-evaluation: the ``keep`` best validated iterates (best first) and the start
+        point after them when it is not one of them."""
+        s = self.start
+        if s is None or any(t[1] == s[1] and np.array_equal(t[2], s[2]) for t in self.top):
+            return list(self.top)
+        return list(self.top) + [s]
+
     def state(self) -> dict:
         return dict(log=self.log, best=None if self.best is None else [list(self.best[0]), self.best[1]],
-                    since=self._since, t_last=self._t_last, theta_last=self._theta_last, top=self.top)
+                    since=self._since, t_last=self._t_last, theta_last=self._theta_last, top=self.top,
+                    start=self.start)
 
     def restore(self, s: dict) -> None:
         self.top = [[list(t[0]), int(t[1]), np.asarray(t[2], np.float64)] for t in s.get("top", [])]
+        st = s.get("start")  # absent in a state stored before the start was kept: no start candidate
+        self.start = None if st is None else [list(st[0]), int(st[1]), np.asarray(st[2], np.float64)]
         self.log = list(s["log"])
         self.best = None if s["best"] is None else (tuple(s["best"][0]), np.asarray(s["best"][1], np.float64))
         self._since, self._t_last = int(s["since"]), float(s["t_last"])

@@ -109,14 +109,16 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
         _run(method, param, cfg, charges, grad, clock, trace, theta0, f_gen, progress, log, stored, hook)
     points = trace.finish(clock)
     final = None
-    if selection is not None and cfg.final_instances and len(selection.top) > 1:
+    cands = selection.candidates() if selection is not None and cfg.final_instances else []
+    if len(cands) > 1:
         t0, s0 = time.perf_counter(), clock.physics_steps
         sc = forward.train_scenarios(cfg.final_instances, cfg.select_seed, 1, cfg.train_heights, cfg.train_spread)
+        extra = len(cands) - len(selection.top)
         log(f"  {run_key(method, param.name)}: final re-evaluation of the {len(selection.top)} best validated "
-            f"iterates on {cfg.final_instances} further scenarios (after the budget)")
-        with charges.track(f"forward/final_{len(selection.top)}x{cfg.final_instances}"):
-            final = search.final_choice(selection.top, cfg.select_instances,
-                                        lambda th: evaluator(th, sc, param=param))
+            f"iterates" + (" and the start point" if extra else "") + f" on {cfg.final_instances} further "
+            f"scenarios (after the budget)")
+        with charges.track(f"forward/final_{len(cands)}x{cfg.final_instances}"):
+            final = search.final_choice(cands, cfg.select_instances, lambda th: evaluator(th, sc, param=param))
         final.update(wall_s=time.perf_counter() - t0, after_budget=True)
         clock.physics_steps = s0 + final["physics_steps"]
         row = final["candidates"][final["chosen"]]
