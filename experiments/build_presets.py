@@ -179,6 +179,7 @@ def confirm_figs(variant: str) -> list[dict]:
     """Figures of ``variant`` on the confirmation map :data:`CONFIRM_LF` (fresh instances, seed 31415; the
     leading-foot start; no part of any tuner or of the choice of the ``clean`` preset saw it): clean success pooled
     up to 26 cm, the worst clean rate at a height up to 24 cm, clean at the farthest starts (10-15 cm) and h90."""
+    from hyqjax.studies import statistics
     from hyqjax.studies.tune.study import targets
 
     m = read(CONFIRM_LF)
@@ -192,13 +193,17 @@ def confirm_figs(variant: str) -> list[dict]:
                          + m["provenance"]["command"][len("hyqjax "):].replace("/root/out/", "out/")),
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=CONFIRM_LF)
     w, far = s["worst_low"], s["far_start"]
+    tall = next(p for p in s["per_height"] if abs(p["height"] - 0.29) < 1e-9)
     return [dict(what="clean success up to 26 cm, held-out step-downs (confirmation map)", value=round(s["clean"], 3),
                  unit="share", interval=[round(x, 3) for x in s["clean_ci95"]], **base),
             dict(what=f"worst clean success at a height up to 24 cm ({100 * w['height']:g} cm)",
                  value=round(w["clean"], 3), unit="share", interval=None, **base),
             dict(what="clean success from the farthest starts (10-15 cm, beyond the training range)",
                  value=round(far["clean"], 3), unit=f"share of {far['n']:,}", interval=None, **base),
-            dict(what="h90, wide spread", value=round(100 * s["h90"]), unit="cm", interval=None, **base)]
+            dict(what="h90, wide spread", value=round(100 * s["h90"]), unit="cm", interval=None, **base),
+            dict(what="completed step-downs at 29 cm (confirmation map)", value=round(tall["completed"], 3),
+                 unit="share", interval=[round(x, 3) for x in statistics.wilson_interval(
+                     int(round(tall["completed"] * tall["n"])), int(tall["n"]))], **base)]
 
 
 def bound_file(path: str):
