@@ -43,8 +43,9 @@ def parse(argv):
     ap.add_argument("--heldout", type=int, default=None, help="the tuner's own held-out instances (its --heldout)")
     ap.add_argument("--tune-option", action="append", default=[], metavar="OPTION",
                     help="a further option of hyqjax tune, e.g. --tune-option=--quick (repeatable)")
-    ap.add_argument("--references", nargs="*", default=["reach", "tuned_per_leg", "paper"],
-                    help="crawl presets evaluated beside the runs")
+    ap.add_argument("--references", nargs="*", default=["clean", "reach"],
+                    help="crawl presets evaluated beside the runs (default: the tuner's default start, clean, and "
+                         "reach)")
     ap.add_argument("--extra-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
                     help="a further set from a tuning results.json (the reach map's --tuned-run)")
     ap.add_argument("--instances", type=int, default=targets.HELDOUT["instances"], help="held-out runs per height")
