@@ -15,8 +15,8 @@ interval (``hyqjax.studies.statistics.wilson_interval``), the shares of shin str
 ``DIR/profile.json``, ``DIR/profile.md`` (one row per bin, one column pair per variant) and ``DIR/profile.png``
 (clean rate against start distance per variant, Wilson band, the tuner's training range 0-10 cm shaded).
 
-``--mode mechanism`` runs the step-down of one crawl preset (``--preset``, ``reach`` by default) on C MuJoCo at each
-of ``--heights`` for start distances ``--starts FROM TO STEP`` (8-15 cm in 0.5 cm steps by default) with zero
+``--mode mechanism`` runs the step-down of one crawl preset (``--preset``, ``reach`` by default; or a tuning study's
+set, ``--tuned-run NAME:PATH:METHOD``) on C MuJoCo at each of ``--heights`` for start distances ``--starts FROM TO STEP`` (8-15 cm in 0.5 cm steps by default) with zero
 heading, no lateral offset, friction ``--friction`` (0.7) and no payload, records every control tick (2 ms) the feet,
 the shins' contact forces and the crawl's swing, touchdown, limit and edge-probe state, and reports per run: clean,
 shin strike, the legs whose shin force passed the strike threshold (100 N) and when, and for each FRONT foot its
@@ -57,6 +57,10 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--max-height", type=float, default=0.26, help="profile: tallest height pooled (m)")
     ap.add_argument("--variants", nargs="+", default=None, help="profile: the map's variants shown (default all)")
     ap.add_argument("--preset", default="reach", help="mechanism: the crawl preset")
+    ap.add_argument("--tuned-run", default=None, metavar="NAME:PATH:METHOD",
+                    help="mechanism: run a tuning study's set instead of --preset (results.json and method, as "
+                         "experiments.reach_map's --tuned-run, e.g. run_1:docs/results/tune_default_repeats_leading_"
+                         "foot_h200/run_1/results.json:cma_es/per_leg)")
     ap.add_argument("--heights", nargs="+", type=float, default=[0.18, 0.23], help="mechanism: platform heights (m)")
     ap.add_argument("--starts", nargs=3, type=float, default=[0.08, 0.15, 0.005], metavar=("FROM", "TO", "STEP"),
                     help="mechanism: start distances (m), FROM to TO inclusive in steps of STEP")
@@ -83,6 +87,15 @@ def check(a: argparse.Namespace) -> None:
     from hyqjax import presets
 
     presets.check_kind(a.preset, "crawl", "--preset")  # a PresetError: one ValueError line
+    a.variant, a.params = a.preset, None
+    if a.tuned_run is not None:
+        from experiments import reach_map
+
+        try:
+            name, (path, method, settings) = reach_map.parse_tuned_run(a.tuned_run)
+            a.variant, a.params = name, reach_map.tuned_params(path, method, "--tuned-run", settings)
+        except reach_map.UsageError as e:
+            raise UsageError(str(e)) from None
     if any(not 0.0 < h <= 0.4 for h in a.heights):
         raise UsageError(f"--heights must be in (0, 0.4] m, got {a.heights}")
     lo, hi, step = a.starts
@@ -458,16 +471,17 @@ def run_mechanism(a: argparse.Namespace) -> int:
     starts = np.round(lo + step * np.arange(int(np.floor((hi - lo) / step + 1e-6)) + 1), 6)
     heights = np.asarray(a.heights, float)
     n = len(starts) * len(heights)
-    rows = dict(variant=np.full(n, a.preset), height=np.repeat(heights, len(starts)),
+    rows = dict(variant=np.full(n, a.variant), height=np.repeat(heights, len(starts)),
                 start_distance=np.tile(starts, len(heights)), friction=np.full(n, a.friction),
                 payload_mass=np.full(n, a.payload), payload_com=np.zeros((n, 3)), lateral_offset=np.zeros(n),
                 yaw=np.full(n, a.yaw))
     cfg = stepdown.StepdownConfig(duration=a.duration, impl="c", record_every=1)
     ro = simtask.Rollout(probe_task(cfg))
     clock.lap("startup")
-    print(f"{n} step-downs of {a.duration:g} s with {a.preset!r} on C MuJoCo (heights {list(heights)} m, starts "
+    print(f"{n} step-downs of {a.duration:g} s with {a.variant!r} on C MuJoCo (heights {list(heights)} m, starts "
           f"{100 * starts[0]:g}-{100 * starts[-1]:g} cm)", flush=True)
-    out, res = ro.run(reach_map.scenario_of(rows, np.arange(n), {a.preset: presets.load(a.preset)}))
+    params = a.params if a.params is not None else presets.load(a.preset)
+    out, res = ro.run(reach_map.scenario_of(rows, np.arange(n), {a.variant: params}))
     cols = so.to_columns(jax.block_until_ready(out))
     trace = jax.tree_util.tree_map(np.asarray, res.trace)
     clock.lap("simulation")  # the C batch's compile included
@@ -485,12 +499,13 @@ def run_mechanism(a: argparse.Namespace) -> int:
               f"{r['shin_strike']} {list(r['strikes'])}; " + "; ".join(_swing_text(s) for s in r["front_swings"]),
               flush=True)
     os.makedirs(a.out, exist_ok=True)
-    md = mechanism_markdown(runs, a.preset, a.friction, a.yaw, a.payload)
+    md = mechanism_markdown(runs, a.variant, a.friction, a.yaw, a.payload)
     with open(os.path.join(a.out, "mechanism.md"), "w", encoding="utf-8") as f:
         f.write(md)
     path = os.path.join(a.out, "mechanism.json")
     atomic.write_json(path, dict(provenance=atomic.provenance(), impl="c", start_pose=stepdown.START_POSE,
-                                 preset=a.preset, heights=heights.tolist(), starts=starts.tolist(),
+                                 preset=None if a.tuned_run else a.preset, tuned_run=a.tuned_run,
+                                 heights=heights.tolist(), starts=starts.tolist(),
                                  friction=a.friction, yaw=a.yaw, payload=a.payload, duration=a.duration,
                                  strike_force=cfg.strike_force,
                                  control_dt=cfg.control_dt, runs=runs, wall_s=clock.wall(), phases=clock.to_dict()))

@@ -101,6 +101,9 @@ def test_profile_writes_its_table_and_figure(tmp_path):
     (["--mode", "mechanism", "--preset", "bound_paper"], "--preset"),
     (["--mode", "mechanism", "--starts", "0.15", "0.08", "0.005"], "--starts"),
     (["--mode", "mechanism", "--heights", "0.5"], "--heights"),
+    (["--mode", "mechanism", "--yaw", "0.5"], "--yaw"),
+    (["--mode", "mechanism", "--tuned-run", "nocolons"], "--tuned-run"),
+    (["--mode", "mechanism", "--tuned-run", "x:no/such/results.json:cma_es"], "--tuned-run"),
 ])
 def test_bad_input_is_refused_in_one_line(tmp_path, capsys, argv, names):
     out = tmp_path / "out"
@@ -147,3 +150,23 @@ def test_a_far_start_strikes_a_shin_where_a_near_one_is_clean(tmp_path):
     assert far["shin_strike"] and not far["clean"]
     assert set(far["strikes"]) & {"LF", "RF"}
     assert far["peak_shin_force"] > 100.0
+
+
+def test_the_stored_mechanism_runs_say_what_the_docs_say():
+    """docs/stepdown.md "Starts beyond the training range", read back from the stored ``reach`` runs: at 18 cm the
+    shin strikes are RF's, in every run from 13 cm and in none before; from 9.5 cm on LF's probe finds ground and
+    RF's smallest shin clearance shrinks as the start grows."""
+    with open(os.path.join(STORED, "mechanism", "mechanism.json"), encoding="utf-8") as f:
+        stored = json.load(f)
+    assert stored["preset"] == "reach" and stored["impl"] == "c" and stored["yaw"] == 0.0
+    runs = [r for r in stored["runs"] if r["height"] == 0.18]
+    assert len(runs) == 15
+    for r in runs:
+        far = r["start_distance"] >= 0.13 - 1e-9
+        assert r["shin_strike"] == far and (list(r["strikes"]) == ["RF"]) == far
+        rf = [s for s in r["front_swings"] if s["leg"] == "RF"][0]
+        assert rf["end"] == "touchdown" and rf["x_end"] > 0.27 and rf["z_end"] < -0.15  # on the lower ground
+    probe = [r for r in runs if r["start_distance"] >= 0.095 - 1e-9]
+    assert all(r["front_swings"][1]["end"] == "probe: touchdown" for r in probe)
+    clearance = [r["shin_clearance"]["RF"]["min"] for r in probe]
+    assert all(a > b for a, b in zip(clearance[:7], clearance[1:8])) and clearance[7] <= 0.0 < clearance[6]
