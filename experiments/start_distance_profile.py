@@ -56,6 +56,8 @@ def parse(argv=None) -> argparse.Namespace:
     ap.add_argument("--min-height", type=float, default=0.0, help="profile: lowest height pooled (m)")
     ap.add_argument("--max-height", type=float, default=0.26, help="profile: tallest height pooled (m)")
     ap.add_argument("--variants", nargs="+", default=None, help="profile: the map's variants shown (default all)")
+    ap.add_argument("--split-yaw", type=int, default=0, metavar="N",
+                    help="profile: also split every bin into N equal bins of the spread's heading range (0: no split)")
     ap.add_argument("--preset", default="reach", help="mechanism: the crawl preset")
     ap.add_argument("--tuned-run", default=None, metavar="NAME:PATH:METHOD",
                     help="mechanism: run a tuning study's set instead of --preset (results.json and method, as "
@@ -80,6 +82,8 @@ def check(a: argparse.Namespace) -> None:
             raise UsageError(f"instances: no such file {a.instances!r} (a reach map's reach_instances.npz)")
         if not (np.isfinite(a.bin_width) and 0.001 <= a.bin_width <= 0.15):
             raise UsageError(f"--bin-width must be in [0.001, 0.15] m, got {a.bin_width}")
+        if a.split_yaw not in (0, *range(2, 9)):
+            raise UsageError(f"--split-yaw must be 0 (no split) or 2-8 heading bins, got {a.split_yaw}")
         if not (0.0 <= a.min_height <= a.max_height <= 0.4):
             raise UsageError(f"--min-height and --max-height must satisfy 0 <= MIN <= MAX <= 0.4 (m), got "
                              f"{a.min_height} {a.max_height}")
@@ -130,19 +134,20 @@ def load_instances(path: str) -> dict[str, np.ndarray]:
     return cols
 
 
-def spread_range(path: str, inst: dict) -> tuple[float, float]:
-    """The start-distance range of the map's spread: its ``config.json`` beside the npz (the spread of its rows),
-    else 0 to the largest start distance."""
+def spread_range(path: str, inst: dict, key: str = "start_distance") -> tuple[float, float]:
+    """The range of the map's spread of ``key`` (``start_distance`` or ``yaw``): its ``config.json`` beside the npz (the
+    spread of its rows), else 0 (the smallest heading) to the largest value."""
     cfg = os.path.join(os.path.dirname(path), "config.json")
     if os.path.isfile(cfg):
         with open(cfg, encoding="utf-8") as f:
             spreads = json.load(f).get("config", {}).get("spreads", {})
         names = set(np.asarray(inst["spread"]).tolist()) if "spread" in inst else set(spreads)
-        ranges = {tuple(spreads[s]["start_distance"]) for s in names if s in spreads}
+        ranges = {tuple(spreads[s][key]) for s in names if s in spreads and key in spreads[s]}
         if len(ranges) == 1:
             lo, hi = ranges.pop()
             return float(lo), float(hi)
-    return 0.0, float(np.max(inst["start_distance"]))
+    x = np.asarray(inst[key])
+    return (0.0 if key == "start_distance" else float(np.min(x))), float(np.max(x))
 
 
 def bin_edges(lo: float, hi: float, width: float) -> np.ndarray:
@@ -154,28 +159,42 @@ def bin_edges(lo: float, hi: float, width: float) -> np.ndarray:
     return np.append(lo + width * np.arange(int(np.floor(k)) + 1), hi)
 
 
-def profile(inst: dict, edges: np.ndarray, min_height: float, max_height: float, variants=None) -> list[dict]:
-    """Per variant (map order) and start-distance bin of ``edges``: ``n``, clean runs, clean rate and its Wilson 95%
-    interval, shin strike and completed shares, over the runs with ``min_height <= height <= max_height``."""
+def _part(x: np.ndarray, edges) -> np.ndarray:
+    """The bin of every value of ``x`` among ``edges`` (``[lo, hi)``, the last closed, values outside in the end bins),
+    compared in the inputs' own precision (``experiments.reach_map.factor_shares``): no run is dropped."""
+    return np.searchsorted(np.asarray(edges[1:-1]).astype(x.dtype), x, side="right")
+
+
+def profile(inst: dict, edges: np.ndarray, min_height: float, max_height: float, variants=None,
+            yaw_edges=None) -> list[dict]:
+    """Per variant (map order) and start-distance bin of ``edges`` (and, with ``yaw_edges``, per heading bin within
+    it: ``yaw_lo``, ``yaw_hi``): ``n``, clean runs, clean rate and its Wilson 95% interval, shin strike and completed
+    shares, over the runs with ``min_height <= height <= max_height``."""
     from hyqjax.studies import statistics
 
-    x = np.asarray(inst["start_distance"])
+    part = _part(np.asarray(inst["start_distance"]), edges)
     h = np.asarray(inst["height"])
-    # the bin of every run, compared in the inputs' own precision (experiments.reach_map.factor_shares); none dropped
-    part = np.searchsorted(np.asarray(edges[1:-1]).astype(x.dtype), x, side="right")
     in_h = (h >= min_height - 1e-9) & (h <= max_height + 1e-9)
+    if yaw_edges is None:
+        yaw_bins, ypart = [None], np.zeros(len(h), int)
+    else:
+        yaw_bins, ypart = list(range(len(yaw_edges) - 1)), _part(np.asarray(inst["yaw"]), yaw_edges)
     names = list(dict.fromkeys(np.asarray(inst["variant"]).tolist()))
     rows = []
     for v in (variants or names):
         for i in range(len(edges) - 1):
-            m = in_h & (inst["variant"] == v) & (part == i)
-            n, k = int(m.sum()), int(inst["out_clean"][m].sum())
-            ci = statistics.wilson_interval(k, n)
-            rows.append(dict(variant=v, lo=float(edges[i]), hi=float(edges[i + 1]), n=n, clean=k,
-                             clean_rate=(k / n if n else None), clean_ci95=([ci[0], ci[1]] if n else None),
-                             shin_strike=int(inst["out_shin_strike"][m].sum()),
-                             shin_strike_rate=(float(inst["out_shin_strike"][m].mean()) if n else None),
-                             completed_rate=(float(inst["out_completed"][m].mean()) if n else None)))
+            for j in yaw_bins:
+                m = in_h & (inst["variant"] == v) & (part == i) & (ypart == (0 if j is None else j))
+                n, k = int(m.sum()), int(inst["out_clean"][m].sum())
+                ci = statistics.wilson_interval(k, n)
+                row = dict(variant=v, lo=float(edges[i]), hi=float(edges[i + 1]))
+                if j is not None:
+                    row.update(yaw_lo=float(yaw_edges[j]), yaw_hi=float(yaw_edges[j + 1]))
+                rows.append(dict(row, n=n, clean=k, clean_rate=(k / n if n else None),
+                                 clean_ci95=([ci[0], ci[1]] if n else None),
+                                 shin_strike=int(inst["out_shin_strike"][m].sum()),
+                                 shin_strike_rate=(float(inst["out_shin_strike"][m].mean()) if n else None),
+                                 completed_rate=(float(inst["out_completed"][m].mean()) if n else None)))
     return rows
 
 
@@ -187,16 +206,19 @@ def profile_markdown(rows: list[dict], heights: list[float]) -> str:
     """One row per bin: the start distance (cm), ``n`` (per variant where they differ), then per variant its clean
     rate with the Wilson interval and its shin-strike share (%)."""
     variants = list(dict.fromkeys(r["variant"] for r in rows))
-    bins = sorted({(r["lo"], r["hi"]) for r in rows})
-    by = {(r["variant"], r["lo"]): r for r in rows}
-    same_n = all(len({by[(v, lo)]["n"] for v in variants}) == 1 for lo, _ in bins)
-    head = ["start (cm)"] + (["n"] if same_n else []) + [c for v in variants for c in (f"`{v}` clean % [95%]", "shin %")]
+    split = "yaw_lo" in rows[0]
+    bins = sorted({(r["lo"], r["hi"], r.get("yaw_lo"), r.get("yaw_hi")) for r in rows})
+    by = {(r["variant"], r["lo"], r.get("yaw_lo")): r for r in rows}
+    same_n = all(len({by[(v, lo, ylo)]["n"] for v in variants}) == 1 for lo, _, ylo, _ in bins)
+    head = (["start (cm)"] + (["heading (rad)"] if split else []) + (["n"] if same_n else [])
+            + [c for v in variants for c in (f"`{v}` clean % [95%]", "shin %")])
     lines = [f"Heights pooled: {', '.join(f'{100 * x:g}' for x in heights)} cm.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for lo, hi in bins:
-        cells = [f"{100 * lo:.3g}-{100 * hi:.3g}"] + ([str(by[(variants[0], lo)]["n"])] if same_n else [])
+    for lo, hi, ylo, yhi in bins:
+        cells = ([f"{100 * lo:.3g}-{100 * hi:.3g}"] + ([f"{ylo:+.3g} to {yhi:+.3g}"] if split else [])
+                 + ([str(by[(variants[0], lo, ylo)]["n"])] if same_n else []))
         for v in variants:
-            r = by[(v, lo)]
+            r = by[(v, lo, ylo)]
             ci = "" if r["clean_ci95"] is None else f" [{_pct(r['clean_ci95'][0])}, {_pct(r['clean_ci95'][1])}]"
             cells += [("" if same_n else f"n {r['n']}: ") + _pct(r["clean_rate"]) + ci, _pct(r["shin_strike_rate"])]
         lines.append("| " + " | ".join(cells) + " |")
@@ -209,19 +231,33 @@ def profile_figure(rows: list[dict], path: str, title: str) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7.5, 4.2))
-    ax.axvspan(100 * TRAINING_RANGE[0], 100 * TRAINING_RANGE[1], color="0.9", label="tuner's training range")
-    for v in dict.fromkeys(r["variant"] for r in rows):
-        rr = [r for r in rows if r["variant"] == v and r["n"]]
-        x = np.asarray([50 * (r["lo"] + r["hi"]) for r in rr])
-        ax.plot(x, [r["clean_rate"] for r in rr], "o-", ms=3, label=v)
-        ax.fill_between(x, [r["clean_ci95"][0] for r in rr], [r["clean_ci95"][1] for r in rr], alpha=0.15)
-    ax.set_xlabel("start distance of the front feet before the edge (cm)")
-    ax.set_ylabel("clean success (Wilson 95%)")
-    ax.set_ylim(0, 1.02)
-    ax.set_title(title, fontsize=9)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower left")
+    variants = list(dict.fromkeys(r["variant"] for r in rows))
+    split = "yaw_lo" in rows[0]
+    # one panel for every variant split by heading (a line per heading bin), else one panel (a line per variant)
+    panels = variants if split else [None]
+    fig, axes = plt.subplots(1, len(panels), figsize=(7.5 if not split else 4.0 * len(panels), 4.2), squeeze=False,
+                             sharey=True)
+    for ax, pv in zip(axes[0], panels):
+        ax.axvspan(100 * TRAINING_RANGE[0], 100 * TRAINING_RANGE[1], color="0.9", label="tuner's training range")
+        if split:
+            lines = [(f"heading {ylo:+.3g} to {yhi:+.3g} rad", [r for r in rows if r["variant"] == pv
+                                                                and r["yaw_lo"] == ylo and r["n"]])
+                     for ylo, yhi in sorted({(r["yaw_lo"], r["yaw_hi"]) for r in rows})]
+            ax.set_title(pv, fontsize=9)
+        else:
+            lines = [(v, [r for r in rows if r["variant"] == v and r["n"]]) for v in variants]
+            ax.set_title(title, fontsize=9)
+        for label, rr in lines:
+            x = np.asarray([50 * (r["lo"] + r["hi"]) for r in rr])
+            ax.plot(x, [r["clean_rate"] for r in rr], "o-", ms=3, label=label)
+            ax.fill_between(x, [r["clean_ci95"][0] for r in rr], [r["clean_ci95"][1] for r in rr], alpha=0.15)
+        ax.set_xlabel("start distance of the front feet before the edge (cm)", fontsize=8 if split else 10)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7 if split else 8, loc="lower left")
+    axes[0, 0].set_ylabel("clean success (Wilson 95%)")
+    if split:
+        fig.suptitle(title, fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -247,7 +283,13 @@ def run_profile(a: argparse.Namespace) -> int:
         raise UsageError(f"--bin-width must be at most the spread's range of start distances, {hi - lo:g} m, "
                          f"got {a.bin_width}")
     edges = bin_edges(lo, hi, a.bin_width)
-    rows = profile(inst, edges, a.min_height, a.max_height, a.variants)
+    yaw_edges = None
+    if a.split_yaw:
+        if "yaw" not in inst:
+            raise UsageError(f"--split-yaw: {a.instances!r} has no yaw column")
+        ylo, yhi = spread_range(a.instances, inst, "yaw")
+        yaw_edges = np.linspace(ylo, yhi, a.split_yaw + 1)
+    rows = profile(inst, edges, a.min_height, a.max_height, a.variants, yaw_edges)
     os.makedirs(a.out, exist_ok=True)
     src = {}
     rm = os.path.join(os.path.dirname(a.instances), "reach_map.json")
@@ -259,10 +301,12 @@ def run_profile(a: argparse.Namespace) -> int:
         f.write(md)
     png = profile_figure(rows, os.path.join(a.out, "profile.png"),
                          f"{os.path.relpath(a.instances)}\nheights {100 * heights[0]:g}-{100 * heights[-1]:g} cm "
-                         f"pooled, bins of {100 * a.bin_width:g} cm")
+                         f"pooled, bins of {100 * a.bin_width:g} cm"
+                         + (f", {a.split_yaw} heading bins" if a.split_yaw else ""))
     atomic.write_json(os.path.join(a.out, "profile.json"), dict(
         provenance=atomic.provenance(), instances=os.path.relpath(a.instances), source_provenance=src,
-        bin_width=a.bin_width, edges=edges.tolist(), heights=heights, training_range=list(TRAINING_RANGE),
+        bin_width=a.bin_width, edges=edges.tolist(), yaw_edges=(None if yaw_edges is None else yaw_edges.tolist()),
+        heights=heights, training_range=list(TRAINING_RANGE),
         rows=rows, figure=os.path.basename(png)))
     print(md)
     print(f"wrote {os.path.join(a.out, 'profile.json')}, profile.md, profile.png")

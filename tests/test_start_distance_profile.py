@@ -63,6 +63,21 @@ def test_one_cm_bins_cover_every_run_and_their_intervals_hold_their_rates(inst):
     assert reach[-1]["clean_rate"] < 0.2 and reach[0]["clean_rate"] > 0.95
 
 
+def test_heading_bins_split_every_start_bin_without_losing_a_run(inst):
+    edges = sdp.bin_edges(0.0, 0.15, 0.02)
+    whole = sdp.profile(inst, edges, 0.0, 0.26, ["reach", "run_1"])
+    ylo, yhi = sdp.spread_range(NPZ, inst, "yaw")
+    assert (ylo, yhi) == (-0.1, 0.1)
+    split = sdp.profile(inst, edges, 0.0, 0.26, ["reach", "run_1"], np.linspace(ylo, yhi, 5))
+    assert len(split) == 4 * len(whole)
+    for i, w in enumerate(whole):
+        part = split[4 * i: 4 * i + 4]
+        assert {(p["variant"], p["lo"]) for p in part} == {(w["variant"], w["lo"])}
+        assert [p["yaw_lo"] for p in part] == pytest.approx([-0.1, -0.05, 0.0, 0.05])
+        assert sum(p["n"] for p in part) == w["n"] and sum(p["clean"] for p in part) == w["clean"]
+        assert sum(p["shin_strike"] for p in part) == w["shin_strike"]
+
+
 def test_a_bin_width_that_does_not_divide_the_range_keeps_a_narrower_last_bin():
     e = sdp.bin_edges(0.0, 0.15, 0.04)
     assert np.allclose(e, [0.0, 0.04, 0.08, 0.12, 0.15])
@@ -97,6 +112,7 @@ def test_profile_writes_its_table_and_figure(tmp_path):
     (["--min-height", "0.3", "--max-height", "0.2"], "--min-height"),
     (["--min-height", "0.35", "--max-height", "0.38"], "--min-height"),
     (["--variants", "reach", "nosuch"], "--variants"),
+    (["--split-yaw", "1"], "--split-yaw"),
     (["--mode", "nosuch"], "--mode"),
     (["--mode", "mechanism", "--preset", "bound_paper"], "--preset"),
     (["--mode", "mechanism", "--starts", "0.15", "0.08", "0.005"], "--starts"),
