@@ -13,7 +13,8 @@ variant into bins of ``--bin-width`` of the start distance (from 0 to the top of
 ``experiments.reach_map.factor_shares`` does). Per variant and bin: ``n``, clean runs and rate with its Wilson 95%
 interval (``hyqjax.studies.statistics.wilson_interval``), the shares of shin strikes and of completed runs. Writes
 ``DIR/profile.json``, ``DIR/profile.md`` (one row per bin, one column pair per variant) and ``DIR/profile.png``
-(clean rate against start distance per variant, Wilson band, the tuner's training range 0-10 cm shaded).
+(clean rate against start distance per variant, Wilson band; shaded: the starts of the tuner's ``train`` spread,
+0-10 cm, which ``experiments.tune_study`` trains on by default; ``hyqjax tune`` trains on the wide spread's 0-15 cm).
 
 ``--mode mechanism`` runs the step-down of one crawl preset (``--preset``, ``reach`` by default; or a tuning study's
 set, ``--tuned-run NAME:PATH:METHOD``) on C MuJoCo at each of ``--heights`` for start distances ``--starts FROM TO STEP`` (8-15 cm in 0.5 cm steps by default) with zero
@@ -40,8 +41,9 @@ DEFAULT_NPZ = os.path.join("docs", "results", "tune_default_repeats_leading_foot
                            "reach_instances.npz")
 #: Columns a ``reach_instances.npz`` must have for the profile.
 REQUIRED = ("variant", "height", "start_distance", "out_clean", "out_shin_strike", "out_completed")
-#: The tuner's training range of start distances (m): ``hyqjax.studies.tune`` trains on starts 0-10 cm.
-TRAINING_RANGE = (0.0, 0.10)
+#: The start distances (m) of the tuner's ``train`` spread (``hyqjax.studies.tune.forward.TRAIN_RANGES``), the
+#: default of ``experiments.tune_study``; ``hyqjax tune`` trains on the wide spread (0-15 cm) by default.
+TRAIN_SPREAD_STARTS = (0.0, 0.10)
 LEGS = ("LF", "RF", "LH", "RH")
 
 
@@ -238,7 +240,8 @@ def profile_figure(rows: list[dict], path: str, title: str) -> str:
     fig, axes = plt.subplots(1, len(panels), figsize=(7.5 if not split else 4.0 * len(panels), 4.2), squeeze=False,
                              sharey=True)
     for ax, pv in zip(axes[0], panels):
-        ax.axvspan(100 * TRAINING_RANGE[0], 100 * TRAINING_RANGE[1], color="0.9", label="tuner's training range")
+        ax.axvspan(100 * TRAIN_SPREAD_STARTS[0], 100 * TRAIN_SPREAD_STARTS[1], color="0.9",
+                   label="starts of the tuner's train spread")
         if split:
             lines = [(f"heading {ylo:+.3g} to {yhi:+.3g} rad", [r for r in rows if r["variant"] == pv
                                                                 and r["yaw_lo"] == ylo and r["n"]])
@@ -306,7 +309,7 @@ def run_profile(a: argparse.Namespace) -> int:
     atomic.write_json(os.path.join(a.out, "profile.json"), dict(
         provenance=atomic.provenance(), instances=os.path.relpath(a.instances), source_provenance=src,
         bin_width=a.bin_width, edges=edges.tolist(), yaw_edges=(None if yaw_edges is None else yaw_edges.tolist()),
-        heights=heights, training_range=list(TRAINING_RANGE),
+        heights=heights, train_spread_starts=list(TRAIN_SPREAD_STARTS),
         rows=rows, figure=os.path.basename(png)))
     print(md)
     print(f"wrote {os.path.join(a.out, 'profile.json')}, profile.md, profile.png")

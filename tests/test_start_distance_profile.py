@@ -78,6 +78,12 @@ def test_heading_bins_split_every_start_bin_without_losing_a_run(inst):
         assert sum(p["shin_strike"] for p in part) == w["shin_strike"]
 
 
+def test_the_shaded_starts_are_the_tuners_train_spread():
+    from hyqjax.studies.tune import forward
+
+    assert sdp.TRAIN_SPREAD_STARTS == forward.TRAIN_RANGES["start_distance"]
+
+
 def test_a_bin_width_that_does_not_divide_the_range_keeps_a_narrower_last_bin():
     e = sdp.bin_edges(0.0, 0.15, 0.04)
     assert np.allclose(e, [0.0, 0.04, 0.08, 0.12, 0.15])
@@ -169,7 +175,7 @@ def test_a_far_start_strikes_a_shin_where_a_near_one_is_clean(tmp_path):
 
 
 def test_the_stored_mechanism_runs_say_what_the_docs_say():
-    """docs/stepdown.md "Starts beyond the training range", read back from the stored ``reach`` runs: at 18 cm the
+    """docs/stepdown.md "Far starts", read back from the stored ``reach`` runs: at 18 cm the
     shin strikes are RF's, in every run from 13 cm and in none before; from 9.5 cm on LF's probe finds ground and
     RF's smallest shin clearance shrinks as the start grows."""
     with open(os.path.join(STORED, "mechanism", "mechanism.json"), encoding="utf-8") as f:
