@@ -3,27 +3,31 @@
     python -m experiments.start_distance_profile --out DIR                            # the profile (seconds)
     python -m experiments.start_distance_profile --out DIR --bin-width 0.02 --max-height 0.26 \\
         docs/results/tune_default_repeats_leading_foot_h200/confirm_31415/reach_instances.npz
-    python -m experiments.start_distance_profile --mode mechanism --out DIR         # C MuJoCo, a CPU minute or two
+    python -m experiments.start_distance_profile --mode mechanism --out DIR         # C MuJoCo, a CPU half-minute
 
 ``--mode profile`` (the default) reads a stored reach map's per-instance outcomes (``reach_instances.npz``, written
 by ``experiments.tune_default_repeats``: one row per run with its variant, height, start distance, ... and its
 ``out_*`` outcome columns), pools the heights in ``[--min-height, --max-height]`` and splits the runs of every
 variant into bins of ``--bin-width`` of the start distance (from 0 to the top of the map's spread, read from its
 ``config.json``; ``[lo, hi)``, the last bin closed, the edges compared in the inputs' precision as
-``experiments.reach_map.factor_shares`` does). Per variant and bin: ``n``, clean runs and rate with its Wilson 95%
-interval (``hyqjax.studies.statistics.wilson_interval``), the shares of shin strikes and of completed runs. Writes
+``experiments.reach_map.factor_shares`` does), and with ``--split-yaw N`` every bin into N equal bins of the
+spread's heading range. Per variant and bin: ``n``, clean runs and rate with its Wilson 95% interval
+(``hyqjax.studies.statistics.wilson_interval``), the shares of shin strikes and of completed runs. Writes
 ``DIR/profile.json``, ``DIR/profile.md`` (one row per bin, one column pair per variant) and ``DIR/profile.png``
 (clean rate against start distance per variant, Wilson band; shaded: the starts of the tuner's ``train`` spread,
 0-10 cm, which ``experiments.tune_study`` trains on by default; ``hyqjax tune`` trains on the wide spread's 0-15 cm).
 
-``--mode mechanism`` runs the step-down of one crawl preset (``--preset``, ``reach`` by default; or a tuning study's
-set, ``--tuned-run NAME:PATH:METHOD``) on C MuJoCo at each of ``--heights`` for start distances ``--starts FROM TO STEP`` (8-15 cm in 0.5 cm steps by default) with zero
-heading, no lateral offset, friction ``--friction`` (0.7) and no payload, records every control tick (2 ms) the feet,
-the shins' contact forces and the crawl's swing, touchdown, limit and edge-probe state, and reports per run: clean,
-shin strike, the legs whose shin force passed the strike threshold (100 N) and when, and for each FRONT foot its
-swings up to the first strike: lift-off and end tick, how it ended (touchdown, limit, probe), the foot's x past the
-edge (the edge at x = 0) and its height above the platform's top at the end, and the tick its centre first crossed
-the edge. Writes ``DIR/mechanism.json`` and ``DIR/mechanism.md``.
+``--mode mechanism`` runs the step-down of one crawl preset (``--preset``, ``reach`` by default; or a tuning
+study's set, ``--tuned-run NAME:PATH:METHOD``) on C MuJoCo (about 30 s on 2 cores for the default 30 runs) at each
+of ``--heights`` for start distances ``--starts FROM TO STEP`` (8-15 cm in 0.5 cm steps by default) with heading
+``--yaw`` (0), no lateral offset, friction ``--friction`` (0.7) and payload ``--payload`` (0 kg); it records every
+control tick (2 ms) the feet, the joint positions, the shins' contact forces and the crawl's swing, touchdown,
+limit and edge-probe state, and reports per run: clean, shin strike, the legs whose shin force passed the strike
+threshold (100 N), when and with which peak force, for each FRONT foot its swings up to the first strike (lift-off
+and end tick, how each ended: touchdown, limit, probe; the foot's x past the edge, the edge at x = 0, and its height
+above the platform's top at the end) and the tick its centre first crossed the edge, and each front shin's smallest
+distance from the platform up to the first strike (MuJoCo's ``mj_geomDistance`` on the recorded poses), when, and
+where the front feet stood then. Writes ``DIR/mechanism.json`` and ``DIR/mechanism.md``.
 """
 from __future__ import annotations
 
@@ -80,6 +84,8 @@ def check(a: argparse.Namespace) -> None:
     if a.mode not in ("profile", "mechanism"):
         raise UsageError(f"--mode must be profile or mechanism, got {a.mode!r}")
     if a.mode == "profile":
+        if a.instances == DEFAULT_NPZ and not os.path.isfile(a.instances):  # run from outside the repository
+            a.instances = os.path.join(HERE, DEFAULT_NPZ)
         if not os.path.isfile(a.instances):
             raise UsageError(f"instances: no such file {a.instances!r} (a reach map's reach_instances.npz)")
         if not (np.isfinite(a.bin_width) and 0.001 <= a.bin_width <= 0.15):
@@ -116,6 +122,15 @@ def check(a: argparse.Namespace) -> None:
         raise UsageError(f"--payload must be in [0, 20] kg, got {a.payload}")
     if not 2.0 <= a.duration <= 60.0:
         raise UsageError(f"--duration must be in [2, 60] s, got {a.duration}")
+    from hyqjax.studies import stepdown
+
+    try:
+        a.cfg = stepdown.StepdownConfig(duration=a.duration, impl="c", record_every=1)
+    except ValueError as e:
+        raise UsageError(f"--duration: {e}") from None
+    from hyqjax.io import atomic
+
+    atomic.check_writable_dir(a.out)  # a ValueError naming --out
 
 
 # ----------------------------------------------------------------------------------------------------- profile
@@ -293,15 +308,14 @@ def run_profile(a: argparse.Namespace) -> int:
         ylo, yhi = spread_range(a.instances, inst, "yaw")
         yaw_edges = np.linspace(ylo, yhi, a.split_yaw + 1)
     rows = profile(inst, edges, a.min_height, a.max_height, a.variants, yaw_edges)
-    os.makedirs(a.out, exist_ok=True)
+    atomic.check_writable_dir(a.out)  # a ValueError naming --out
     src = {}
     rm = os.path.join(os.path.dirname(a.instances), "reach_map.json")
     if os.path.isfile(rm):
         with open(rm, encoding="utf-8") as f:
             src = json.load(f).get("provenance", {})
     md = profile_markdown(rows, heights)
-    with open(os.path.join(a.out, "profile.md"), "w", encoding="utf-8") as f:
-        f.write(md)
+    atomic.atomic_write(os.path.join(a.out, "profile.md"), lambda f: f.write(md.encode()))
     png = profile_figure(rows, os.path.join(a.out, "profile.png"),
                          f"{os.path.relpath(a.instances)}\nheights {100 * heights[0]:g}-{100 * heights[-1]:g} cm "
                          f"pooled, bins of {100 * a.bin_width:g} cm"
@@ -464,8 +478,8 @@ def analyse_run(tr: dict, height: float, strike_force: float, m=None, every: int
             clearance[leg] = dict(min=round(float(c[j, i]), 4), time=round(float(tr["time"][ticks[j]]), 3),
                                   feet_x=[round(float(x), 4) for x in tr["feet"][ticks[j], :2, 0]])
     return dict(strikes=dict(sorted(strikes.items(), key=lambda kv: kv[1]["tick"])),
-                first_shin_contact=contacts_first, front_swings=front_shown, first_crossing=crossing, probe_ran=bool(tr["probing"].any()),
-                first_strike_tick=first_strike, shin_clearance=clearance)
+                first_shin_contact=contacts_first, front_swings=front_shown, first_crossing=crossing,
+                probe_ran=bool(tr["probing"].any()), first_strike_tick=first_strike, shin_clearance=clearance)
 
 
 def _swing_text(s: dict) -> str:
@@ -522,7 +536,7 @@ def run_mechanism(a: argparse.Namespace) -> int:
                 start_distance=np.tile(starts, len(heights)), friction=np.full(n, a.friction),
                 payload_mass=np.full(n, a.payload), payload_com=np.zeros((n, 3)), lateral_offset=np.zeros(n),
                 yaw=np.full(n, a.yaw))
-    cfg = stepdown.StepdownConfig(duration=a.duration, impl="c", record_every=1)
+    cfg = a.cfg
     ro = simtask.Rollout(probe_task(cfg))
     clock.lap("startup")
     print(f"{n} step-downs of {a.duration:g} s with {a.variant!r} on C MuJoCo (heights {list(heights)} m, starts "
@@ -545,10 +559,8 @@ def run_mechanism(a: argparse.Namespace) -> int:
         print(f"  {100 * r['height']:g} cm, start {100 * r['start_distance']:.1f} cm: clean {r['clean']}, shin strike "
               f"{r['shin_strike']} {list(r['strikes'])}; " + "; ".join(_swing_text(s) for s in r["front_swings"]),
               flush=True)
-    os.makedirs(a.out, exist_ok=True)
     md = mechanism_markdown(runs, a.variant, a.friction, a.yaw, a.payload)
-    with open(os.path.join(a.out, "mechanism.md"), "w", encoding="utf-8") as f:
-        f.write(md)
+    atomic.atomic_write(os.path.join(a.out, "mechanism.md"), lambda f: f.write(md.encode()))
     path = os.path.join(a.out, "mechanism.json")
     atomic.write_json(path, dict(provenance=atomic.provenance(), impl="c", start_pose=stepdown.START_POSE,
                                  preset=None if a.tuned_run else a.preset, tuned_run=a.tuned_run,

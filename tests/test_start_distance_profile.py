@@ -135,6 +135,15 @@ def test_bad_input_is_refused_in_one_line(tmp_path, capsys, argv, names):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("mode", ["profile", "mechanism"])
+def test_an_out_that_is_a_file_is_refused_in_one_line(tmp_path, capsys, mode):
+    f = tmp_path / "afile"
+    f.write_text("x")
+    assert sdp.main(["--mode", mode, "--out", str(f / "sub")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--out" in err[0], err
+
+
 def test_a_file_without_the_columns_is_refused(tmp_path, capsys):
     bad = tmp_path / "x.npz"
     np.savez(bad, height=np.zeros(3))
