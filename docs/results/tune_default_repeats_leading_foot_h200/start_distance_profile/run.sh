@@ -8,3 +8,4 @@ python -m experiments.start_distance_profile --mode mechanism --heights 0.18 --y
 python -m experiments.start_distance_profile --mode mechanism --friction 1.0 --out $OUT/mechanism_friction1.0
 python -m experiments.start_distance_profile --mode mechanism --preset tuned_per_leg_reach --out $OUT/mechanism_tuned_per_leg_reach
 python -m experiments.start_distance_profile --mode mechanism --tuned-run run_1:docs/results/tune_default_repeats_leading_foot_h200/run_1/results.json:cma_es/per_leg --out $OUT/mechanism_run_1
+python -m experiments.start_distance_profile --mode mechanism --heights 0.18 --payload 15 --out $OUT/mechanism_payload15
