@@ -198,7 +198,7 @@ def confirm_figs(variant: str) -> list[dict]:
                  unit="share", interval=[round(x, 3) for x in s["clean_ci95"]], **base),
             dict(what=f"worst clean success at a height up to 24 cm ({100 * w['height']:g} cm)",
                  value=round(w["clean"], 3), unit="share", interval=None, **base),
-            dict(what="clean success from the farthest starts (10-15 cm, beyond the training range)",
+            dict(what="clean success from the farthest starts (10-15 cm before the edge)",
                  value=round(far["clean"], 3), unit=f"share of {far['n']:,}", interval=None, **base),
             dict(what="h90, wide spread", value=round(100 * s["h90"]), unit="cm", interval=None, **base),
             dict(what="completed step-downs at 29 cm (confirmation map)", value=round(tall["completed"], 3),
