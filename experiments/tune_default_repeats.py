@@ -9,7 +9,9 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
    the other, every other option at the tuner's default (``--heldout`` and ``--tune-option`` pass further options;
    the tuner's own held-out evaluation is not what is judged). A finished run is kept; a killed one goes on from
    its stored state (the tuner resumes); ``--max-minutes`` stops before a run that would not finish in the time
-   left (exit status 75: the same command goes on).
+   left (exit status 75: the same command goes on). ``--gpus K`` runs the first run alone (it builds MuJoCo
+   Warp's kernels into the cache), then the others K at a time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``),
+   so that every run still has one whole GPU for its wall-clock budget; the held-out map then runs on every device.
 2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
    same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
    seed and heights the tuner never saw), in ``DIR/heldout``.
@@ -53,6 +55,10 @@ def parse(argv):
                     help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop (exit 75) before a run that would not finish in this many minutes of this process")
+    ap.add_argument("--gpus", type=int, default=1,
+                    help="runs at once, each on a GPU of its own (CUDA_VISIBLE_DEVICES), after the first run alone "
+                         "(it builds MuJoCo Warp's kernels into the cache the others read); the held-out map then "
+                         "runs on every device. Default 1: one run after another on the default device")
     args = ap.parse_args(argv)
     if not args.seeds or len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
         raise ValueError(f"--seeds {args.seeds}: distinct non-negative integers, at least one")
@@ -64,6 +70,8 @@ def parse(argv):
         raise ValueError(f"--instances {args.instances}: must be in [1, 100000]")
     if args.max_minutes is not None and args.max_minutes <= 0:
         raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
+    if not 1 <= args.gpus <= 64:
+        raise ValueError(f"--gpus {args.gpus}: must be in [1, 64]")
     from hyqjax import presets
 
     for r in args.references:
@@ -109,29 +117,16 @@ def main(argv=None) -> int:
     t0 = time.time()
     os.makedirs(args.out, exist_ok=True)
     budget = args.wall_minutes if args.wall_minutes is not None else names.DEFAULT_WALL_MINUTES[-1]
-    for seed in ([] if args.judge_only else args.seeds):
-        d = run_dir(args, seed)
-        if complete(d):
-            continue
-        left = None if args.max_minutes is None else args.max_minutes - (time.time() - t0) / 60
-        if left is not None and left < budget + OVERHEAD_MINUTES:
-            todo = sum(not complete(run_dir(args, s)) for s in args.seeds)
-            print(f"tune_default_repeats: stopping with {todo} run(s) to go ({left:.1f} min left of --max-minutes); "
-                  f"the same command goes on", flush=True)
-            return 75
-        os.makedirs(d, exist_ok=True)
-        cmd = tune_argv(args, seed)
-        print(f"[{time.strftime('%H:%M:%S')}] run {seed}: {' '.join(cmd[1:])}", flush=True)
-        with open(os.path.join(d, "run.log"), "a") as log:
-            rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT)
-        if rc != 0 or not complete(d):
-            print(f"tune_default_repeats: run {seed} ended with exit status {rc} (log: {d}/run.log)", file=sys.stderr)
-            return rc or 1
+    rc = 0 if args.judge_only else _run_all(args, t0, budget)
+    if rc:
+        return rc
     from experiments import reach_map
 
     runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
     heldout = os.path.join(args.out, "heldout")
     rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances)
+    if args.gpus > 1:
+        rm_argv += ["--devices", "all"]
     if not args.judge_only:
         print(f"[{time.strftime('%H:%M:%S')}] held-out: python -m experiments.reach_map {' '.join(rm_argv)}",
               flush=True)
@@ -170,6 +165,86 @@ def main(argv=None) -> int:
     print(f"wall {time.time() - t0:.1f} s in all (this process: the runs it launched, the held-out map, the "
           f"judgement); the runs' own walls {sum(walls):.0f} s over {len(walls)} runs; wrote {args.out}/targets.md")
     return 0
+
+
+def _slots(n: int) -> list[str]:
+    """The ``CUDA_VISIBLE_DEVICES`` value of each of ``n`` run slots: the i-th GPU this process sees (of its own
+    ``CUDA_VISIBLE_DEVICES`` list when set)."""
+    visible = [v for v in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if v.strip()]
+    return [visible[i] if i < len(visible) else str(i) for i in range(n)] if visible else [str(i) for i in range(n)]
+
+
+def _launch(args, seed: int, env: dict | None = None):
+    d = run_dir(args, seed)
+    os.makedirs(d, exist_ok=True)
+    cmd = tune_argv(args, seed)
+    where = f" on GPU {env['CUDA_VISIBLE_DEVICES']}" if env else ""
+    print(f"[{time.strftime('%H:%M:%S')}] run {seed}{where}: {' '.join(cmd[1:])}", flush=True)
+    return cmd, d
+
+
+def _run_all(args, t0: float, budget: float) -> int:
+    """Every run not complete yet: one after another (``--gpus 1``), or the first alone and the others
+    ``--gpus`` at a time, each on a GPU of its own. A run is launched only when it can finish within
+    ``--max-minutes`` (else exit status 75 once the running ones end); a failed run ends the driver with its status."""
+    def left():
+        return None if args.max_minutes is None else args.max_minutes - (time.time() - t0) / 60
+
+    def stop(todo_note=""):
+        todo = sum(not complete(run_dir(args, s)) for s in args.seeds)
+        print(f"tune_default_repeats: stopping with {todo} run(s) to go ({left():.1f} min left of --max-minutes)"
+              f"{todo_note}; the same command goes on", flush=True)
+        return 75
+
+    def fits():
+        lm = left()
+        return lm is None or lm >= budget + OVERHEAD_MINUTES
+
+    def failed(seed, rc):
+        print(f"tune_default_repeats: run {seed} ended with exit status {rc} (log: {run_dir(args, seed)}/run.log)",
+              file=sys.stderr)
+        return rc or 1
+
+    todo = [s for s in args.seeds if not complete(run_dir(args, s))]
+    if args.gpus == 1:
+        serial = todo
+    else:  # the first run alone builds the kernels, unless a finished run built them already
+        serial = [] if any(complete(run_dir(args, s)) for s in args.seeds) else todo[:1]
+    for seed in serial:
+        if not fits():
+            return stop()
+        cmd, d = _launch(args, seed)
+        with open(os.path.join(d, "run.log"), "a") as log:
+            rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT)
+        if rc != 0 or not complete(d):
+            return failed(seed, rc)
+    queue = [s for s in todo if s not in serial]
+    running: dict = {}  # slot -> (seed, process, log file)
+    slots = _slots(args.gpus)
+    status = 0
+    while queue or running:
+        for slot in slots:
+            if slot in running or not queue or status:
+                continue
+            if not fits():
+                break
+            seed = queue.pop(0)
+            env = dict(os.environ, CUDA_VISIBLE_DEVICES=slot)
+            cmd, d = _launch(args, seed, env)
+            log = open(os.path.join(d, "run.log"), "a")
+            running[slot] = (seed, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log)
+        if not running:
+            return status or (stop() if queue else 0)
+        time.sleep(1.0)
+        for slot, (seed, proc, log) in list(running.items()):
+            rc = proc.poll()
+            if rc is None:
+                continue
+            log.close()
+            del running[slot]
+            if (rc != 0 or not complete(run_dir(args, seed))) and not status:
+                status = failed(seed, rc)
+    return status
 
 
 def _read_targets(d: str) -> dict:

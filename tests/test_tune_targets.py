@@ -184,3 +184,72 @@ def test_repeats_driver_stops_before_a_run_that_cannot_finish_and_keeps_finished
     assert tdr.complete(str(tmp_path / "run_0")) and not tdr.complete(str(tmp_path / "run_1"))
     assert tdr.tune_argv(tdr.parse(argv), 1)[3:] == ["tune", "--out", str(tmp_path / "run_1"), "--seed", "1",
                                                      "--impl", "auto", "--wall-minutes", "3"]
+
+
+def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys, monkeypatch):
+    """``--gpus 2``: the first run alone (through ``subprocess.call``, building the kernels), then the other four two
+    at a time, each with a GPU of its own (``CUDA_VISIBLE_DEVICES`` 0 or 1, never two runs on one GPU at once), and
+    the held-out map on both GPUs; a failed run stops new launches and ends the driver with its status."""
+    from experiments import reach_map
+    from experiments import tune_default_repeats as tdr
+
+    def finish(cmd):
+        out = cmd[cmd.index("--out") + 1]
+        with open(os.path.join(out, "results.json"), "w") as f:
+            json.dump(dict(complete=True), f)
+
+    serial, events, busy = [], [], {}
+
+    def call(cmd, **kw):
+        serial.append(cmd[cmd.index("--seed") + 1])
+        finish(cmd)
+        return 0
+
+    class Proc:
+        def __init__(self, cmd, env=None, **kw):
+            self.cmd, self.gpu, self.polls = cmd, env["CUDA_VISIBLE_DEVICES"], 0
+            self.seed = cmd[cmd.index("--seed") + 1]
+            assert busy.get(self.gpu) is None, "two runs on one GPU"
+            busy[self.gpu] = self.seed
+            events.append(("start", self.seed, self.gpu, dict(busy)))
+
+        def poll(self):
+            self.polls += 1
+            if self.polls < 2:
+                return None
+            if busy.get(self.gpu) == self.seed:
+                busy[self.gpu] = None
+                if self.seed == fail_seed:
+                    return 3
+                finish(self.cmd)
+            return 0
+
+    maps = []
+    monkeypatch.setattr(tdr.subprocess, "call", call)
+    monkeypatch.setattr(tdr.subprocess, "Popen", Proc)
+    monkeypatch.setattr(tdr.time, "sleep", lambda s: None)
+    monkeypatch.setattr(reach_map, "main", lambda argv: maps.append(argv) or 9)
+    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a: ["--variants", *runs])
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    fail_seed = None
+    argv = ["--out", str(tmp_path / "a"), "--wall-minutes", "3", "--gpus", "2"]
+    assert tdr.main(argv) == 9  # the map's status: every run finished, then the map ran
+    assert serial == ["0"]
+    starts = [e for e in events if e[0] == "start"]
+    assert [e[1] for e in starts] == ["1", "2", "3", "4"] and {e[2] for e in starts} == {"0", "1"}
+    assert max(sum(v is not None for v in e[3].values()) for e in starts) == 2
+    assert maps and maps[0][-2:] == ["--devices", "all"]
+    assert all(tdr.complete(str(tmp_path / "a" / f"run_{s}")) for s in range(5))
+    # a failure: no new launch after it, the driver ends with the run's status once the running one ends
+    events.clear()
+    serial.clear()
+    fail_seed = "1"
+    assert tdr.main(["--out", str(tmp_path / "b"), "--wall-minutes", "3", "--gpus", "2"]) == 3
+    assert [e[1] for e in events] == ["1", "2"] and "run 1 ended with exit status 3" in capsys.readouterr().err
+    # a finished run built the kernels already: the rest start in parallel at once
+    events.clear()
+    serial.clear()
+    fail_seed = None
+    assert tdr.main(["--out", str(tmp_path / "b"), "--wall-minutes", "3", "--gpus", "2"]) == 9
+    assert serial == [] and [e[1] for e in events] == ["1", "3", "4"]
+    assert tdr.main(["--out", str(tmp_path / "c"), "--gpus", "0"]) == 2
