@@ -123,6 +123,9 @@ def run(args) -> int:
         print(f"run what it returned: hyqjax stepdown --params {args.out}/results.json --heights 0.24 --instances 4; "
               f"on held-out step-downs: python -m experiments.reach_map --tuned-run returned:{args.out}/results.json:"
               f"{next(iter(res['runs']), '')} --variants returned --spread wide")
+        run = "" if len(res["runs"]) == 1 else f":{next(iter(res['runs']), '')}"
+        print(f"keep it as a preset (then --preset NAME in stepdown, sweep, tune and the reach map): "
+              f"hyqjax presets save NAME --from {args.out}/results.json{run}")
     clock.lap("summary")
     print(clock.line(), flush=True)
     return 0
