@@ -263,6 +263,17 @@ def test_sweep_store_refuses_a_resume_after_the_presets_values_changed(pdir, tmp
     assert "\n" not in msg and "preset mine" in msg and old[:16] in msg and new[:16] in msg
     with sweep.SweepStore(str(out), spec) as st:  # a reader reads the rows as they are
         assert len(st.load()["index"]) == 4
+    # a Ray worker whose preset has other values than the driver's refuses the chunk (before any compile)
+    from hyqjax.studies.sweep import cluster
+
+    with pytest.raises(RuntimeError, match=f"other values of preset mine .*{new[:16]}.*{old[:16]}"):
+        cluster.run_chunk(spec.to_dict(), spec.spec_hash, 0, 2, 2, "c", preset_digest=old)
+    # the command line refuses it in one line, exit 2, before anything compiles
+    spec_file = tmp_path / "spec.json"
+    spec_file.write_text(json.dumps(spec.to_dict()))
+    assert cli.main(["sweep", str(spec_file), "--out", str(out), "--impl", "c"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "other values of preset mine" in err and new[:16] in err, err
     man = json.loads((out / "manifest.json").read_text())
     del man[PRESET_DIGEST]  # a store written before the digest was recorded
     (out / "manifest.json").write_text(json.dumps(man))
@@ -281,3 +292,39 @@ def test_stepdown_runs_a_user_preset(pdir, tmp_path, capsys):
     res = json.load(open(tmp_path / "sd" / "results.json"))
     assert res["config"]["preset"] == "mine" and res["preset"]["values"] == presets.get("mine").values
     assert not res["instances"][0]["diverged"] and res["instances"][0]["progress"] > 0.0
+
+
+def test_concurrent_writers_leave_one_whole_file(pdir):
+    """Eight threads save the same name at once: without --force exactly one wins and the others are refused in one
+    line; with --force every write lands whole (the file is one of them, byte for byte); no temporary is left."""
+    import threading
+
+    from hyqjax.presets import from_results
+
+    base = from_results.crawl_preset("mine", SHARED, "snes")
+    docs = [dict(base, description=f"writer {i}") for i in range(8)]
+    for force in (False, True):
+        if pdir.exists():
+            for f in os.listdir(pdir):
+                os.remove(pdir / f)
+        won, refused = [], []
+
+        def go(d):
+            try:
+                from_results.write(d, force)
+                won.append(d["description"])
+            except presets.PresetError as e:
+                refused.append(str(e))
+
+        threads = [threading.Thread(target=go, args=(d,)) for d in docs]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert sorted(os.listdir(pdir)) == ["mine.json"]
+        got = json.loads((pdir / "mine.json").read_text())
+        assert got["description"] in won and got["values"] == base["values"]
+        if force:
+            assert len(won) == 8 and not refused
+        else:
+            assert len(won) == 1 and len(refused) == 7 and all("give --force" in r and "\n" not in r for r in refused)
