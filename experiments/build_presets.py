@@ -58,7 +58,8 @@ def tuned_shared(path: str, run: str):
 
 
 def tuned_per_leg(path: str, key: str):
-    """``(crawl settings, reflex values, per-leg values, results)`` (:func:`hyqjax.presets.from_results.tuned_per_leg`)."""
+    """``(crawl settings, reflex values, per-leg values, results)``
+    (:func:`hyqjax.presets.from_results.tuned_per_leg`)."""
     return from_results.tuned_per_leg(os.path.join(ROOT, path), key)
 
 

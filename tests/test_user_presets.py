@@ -253,8 +253,12 @@ def test_sweep_store_refuses_a_resume_after_the_presets_values_changed(pdir, tmp
     old = presets.get("mine").digest
     assert man[PRESET_DIGEST] == old == presets.values_digest(json.loads((pdir / "mine.json").read_text())["values"])
     write([1])  # same values: resumes
-    assert _save("mine", PER_LEG, "--force") == 0  # the same name, other values
-    capsys.readouterr()
+    with sweep.SweepStore(str(out), spec, 2, layout, writer=True) as st:  # values changed while a writer runs
+        assert _save("mine", PER_LEG, "--force") == 0  # the same name, other values
+        capsys.readouterr()
+        with pytest.raises(sweep.StoreMismatch, match="other values of preset mine"):
+            st.write_chunk(2, spec.instance_inputs(*st.chunk_range(2)), 0.1)
+    assert sorted(json.loads((out / "manifest.json").read_text())["chunks"]) == ["0", "1"]
     new = presets.get("mine").digest
     assert new != old and sweep.SweepSpec.from_dict(spec.to_dict()).spec_hash == spec.spec_hash
     with pytest.raises(sweep.StoreMismatch) as e:
@@ -309,7 +313,7 @@ def test_concurrent_writers_leave_one_whole_file(pdir):
                 os.remove(pdir / f)
         won, refused = [], []
 
-        def go(d):
+        def go(d, force=force, won=won, refused=refused):
             try:
                 from_results.write(d, force)
                 won.append(d["description"])

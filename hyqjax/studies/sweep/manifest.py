@@ -44,8 +44,8 @@ def new_manifest(spec, chunk_size: int, layout: dict | None) -> dict:
     from hyqjax.studies.stepdown import START_POSE
 
     cs = int(chunk_size)
-    man = dict(schema=SCHEMA, start_pose=START_POSE, spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=spec.n_instances,
-               chunk_size=cs, n_chunks=-(-spec.n_instances // cs),
+    man = dict(schema=SCHEMA, start_pose=START_POSE, spec_hash=spec.spec_hash, spec=spec.to_dict(),
+               n_instances=spec.n_instances, chunk_size=cs, n_chunks=-(-spec.n_instances // cs),
                layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=now())
     if spec.preset:  # the spec hash covers the preset's name; its values are recorded here
         man[PRESET_DIGEST] = preset_digest(spec.preset)

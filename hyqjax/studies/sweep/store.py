@@ -282,6 +282,7 @@ class SweepStore:
         if why:
             raise ValueError(f"rows given for chunk {c}: {why}")
         self.manifest = man
+        check_preset_values(man, self.dir)  # the preset's values changed while the sweep ran: not recorded
         why = self._check_columns(rows)
         if why:
             raise StoreMismatch(f"{self.dir}: the rows computed for chunk {c} do not fit the store: {why}; the "
