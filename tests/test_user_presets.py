@@ -332,3 +332,21 @@ def test_concurrent_writers_leave_one_whole_file(pdir):
             assert len(won) == 8 and not refused
         else:
             assert len(won) == 1 and len(refused) == 7 and all("give --force" in r and "\n" not in r for r in refused)
+
+
+def test_user_dir_is_the_env_then_xdg_then_home(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("HYQJAX_PRESETS_DIR", str(tmp_path / "env"))
+    monkeypatch.setenv("XDG_DATA_HOME", str(tmp_path / "xdg"))
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert presets.user_dir() == str(tmp_path / "env")
+    monkeypatch.delenv("HYQJAX_PRESETS_DIR")
+    assert presets.user_dir() == str(tmp_path / "xdg" / "hyqjax" / "presets")
+    monkeypatch.delenv("XDG_DATA_HOME")
+    assert presets.user_dir() == str(tmp_path / "home" / ".local" / "share" / "hyqjax" / "presets")
+    # a presets directory that is a file: save refused in one line, exit 2
+    monkeypatch.setenv("HYQJAX_PRESETS_DIR", str(tmp_path / "afile"))
+    (tmp_path / "afile").write_text("")
+    assert _save("mine", SHARED) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is a file, not a directory" in err
+    assert presets.names() == presets.names(user=False)

@@ -102,6 +102,9 @@ def _validate_save(args) -> None:
         presets.load_preset(rec)
     except ValueError as e:
         raise ValueError(f"--from {args.source}: {e}") from None
+    from hyqjax.io.atomic import check_writable_dir
+
+    check_writable_dir(presets.user_dir(), "presets directory (HYQJAX_PRESETS_DIR, else XDG_DATA_HOME/hyqjax/presets)")
     args.preset_file = d
 
 
@@ -114,7 +117,11 @@ def _save(args) -> int:
     rec = presets.get(d["name"])
     print(f"saved {rec.kind} preset {rec.name}: {path}")
     if rec.figures:
-        print(f"  {presets.format_figure(rec.figures[0])}")
+        print(f"  {presets.format_figure(rec.figures[0])} (held-out set: {rec.figures[0]['heldout']})")
+    elif rec.kind == "crawl":
+        print("  no figure: the run measured no held-out clean success of the set it returned")
+    if rec.provenance.get("complete") is False:
+        print("  note: the run was not complete; this is the set it had returned at its last checkpoint")
     cmd = ("hyqjax stepdown --preset {n} --heights 0.24 --instances 4" if rec.kind == "crawl"
            else "hyqjax bound --preset {n}").format(n=rec.name)
     print(f"run it: {cmd}" + ("; in a sweep: preset = \"{n}\" in the spec or hyqjax sweep --preset {n}".format(
