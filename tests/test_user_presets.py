@@ -150,20 +150,23 @@ def test_corrupt_foreign_and_shipped_named_files_break_nothing_else(pdir, capsys
     (pdir / "foreign.json").write_text(json.dumps({"amplitudes": {}, "gains": {}}))
     (pdir / "reach.json").write_text((pdir / "mine.json").read_text().replace('"name": "mine"', '"name": "reach"'))
     (pdir / "Upper.json").write_text("{}")
+    shape = json.loads((pdir / "mine.json").read_text())
+    shape.update(name="shape", values=dict(shape["values"], reflex=[1.0]))
+    (pdir / "shape.json").write_text(json.dumps(shape))
     (pdir / "notes.txt").write_text("not a preset")
     assert presets.names(user=False) + ["mine"] == presets.names()
     assert _leaves_equal(presets.load("mine"), presets.load("tuned_shared"))
     assert not presets.get("reach").user and presets.get("reach").values["crawl"]["edge_probe"] == 0.1
     for name, needle in (("broken", "broken.json is not used: Expecting"), ("foreign", "not a preset file"),
-                         ("Upper", "a preset name is")):
+                         ("Upper", "a preset name is"), ("shape", "values.reflex is not a table")):
         with pytest.raises(presets.PresetError, match=needle) as e:
             presets.load(name)
         assert "\n" not in str(e.value) and str(pdir) in str(e.value)
-    assert len(presets.user_problems()) == 4
+    assert len(presets.user_problems()) == 5
     assert cli.main(["presets"]) == 0
     out, err = capsys.readouterr()
     assert "\nmine " in out and "broken" not in out
-    assert err.count("\n") == 4 and all(line.startswith("note: user preset file ") for line in err.splitlines())
+    assert err.count("\n") == 5 and all(line.startswith("note: user preset file ") for line in err.splitlines())
     assert "its name is the shipped preset reach's" in err
     assert cli.main(["presets", "reach"]) == 0
     out, err = capsys.readouterr()

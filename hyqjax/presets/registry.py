@@ -105,6 +105,10 @@ def _record(d, fn: str, user_dir: str = "") -> Preset:
     if not isinstance(d.get("values", {}), dict) or not isinstance(d.get("provenance", {}), dict) \
             or not isinstance(d.get("figures", []), list) or not isinstance(d.get("description", ""), str):
         raise PresetError(f"{fn}: its values, provenance, figures or description are not of format {FORMAT}")
+    bad = [k for k in ("crawl", "reflex", "per_leg", "conditioned", "amplitudes", "gains")
+           if not isinstance(d.get("values", {}).get(k) or {}, dict)]
+    if bad:
+        raise PresetError(f"{fn}: values.{bad[0]} is not a table of format {FORMAT}")
     for fig in d.get("figures", ()):
         if not isinstance(fig, dict) or not fig.get("command"):
             raise PresetError(f"{fn}: figure {fig.get('what') if isinstance(fig, dict) else fig!r} has no command")
