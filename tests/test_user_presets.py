@@ -353,3 +353,24 @@ def test_user_dir_is_the_env_then_xdg_then_home(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "is a file, not a directory" in err
     assert presets.names() == presets.names(user=False)
+
+
+def test_tune_closing_line_names_a_save_command_that_works(pdir, tmp_path, capsys):
+    """`hyqjax tune`'s closing lines name `hyqjax presets save NAME --from DIR/results.json`: with a name, that very
+    command saves the run's returned set (here the run of `clean`, copied into DIR)."""
+    import shlex
+    import shutil
+
+    from hyqjax.cli.tune_wallclock import returned_lines
+
+    run_dir = tmp_path / "tune"
+    run_dir.mkdir()
+    shutil.copy(PER_LEG, run_dir / "results.json")
+    lines = returned_lines(str(run_dir), json.load(open(PER_LEG)))
+    cmd = lines[-1].split(": ", 1)[1]
+    assert cmd == f"hyqjax presets save NAME --from {run_dir}/results.json"
+    argv = [("mine" if a == "NAME" else a) for a in shlex.split(cmd)[1:]]
+    assert cli.main(argv) == 0, capsys.readouterr().err
+    assert _leaves_equal(presets.load("mine"), presets.load("clean"))
+    several = returned_lines("D", json.load(open(COND)))[-1]
+    assert several.endswith("--from D/results.json:cma_es/per_leg_cond")
