@@ -33,9 +33,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     use_help_formatter(p)
     p.usage = ("hyqjax presets [NAME] [--kind {crawl,bound}] [--json]\n       hyqjax presets save NAME --from "
                "RESULTS.json[:METHOD/DIM] [--force] [--description TEXT]")
-    p.add_argument("name", nargs="?", default=None, help="show this preset in full (or `save`: see below)")
-    p.add_argument("save_name", nargs="?", default=None, metavar="NAME",
-                   help="with `save`: the name of your new preset (" + NAME_RULE + ")")
+    p.add_argument("name", nargs="?", default=None, metavar="NAME",
+                   help="show this preset in full; the word save saves a new preset: save NEW_NAME --from FILE")
+    p.add_argument("save_name", nargs="?", default=None, metavar="NEW_NAME",
+                   help="after save: the name of your new preset (" + NAME_RULE + ")")
     p.add_argument("--kind", choices=["crawl", "bound"], default=None, help="list the presets of one kind")
     p.add_argument("--json", action="store_true", help="print the registry entries as JSON")
     p.add_argument("--from", dest="source", default=None, metavar="RESULTS.json[:METHOD/DIM]",
