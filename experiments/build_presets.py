@@ -16,7 +16,7 @@ import json
 import os
 import sys
 
-import numpy as np
+from hyqjax.presets import from_results
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OUT = os.path.join(ROOT, "hyqjax", "presets")
@@ -50,74 +50,24 @@ def read(path):
 
 
 def prov_of(res: dict, source: str, **extra) -> dict:
-    p = res["provenance"]
-    dev = res.get("device") or ", ".join(p.get("devices", []))
-    cmd = p["command"]
-    if cmd.startswith("hyqjax --"):  # `hyqjax tune` stored its command without the subcommand
-        cmd = "hyqjax tune " + cmd[len("hyqjax "):]
-    return dict(command=cmd, seed=p.get("seed"), device=dev, date=p["date"][:10], hyqjax=p.get("hyqjax"),
-                source=source, **extra)
-
-
-def _crawl_values(cp, base) -> tuple[dict, dict]:
-    """(``CrawlParams.make`` settings, ``ReflexParams`` fields) of ``cp`` that differ from ``base``."""
-    from hyqjax.core.params import param_ranges
-
-    crawl, reflex = {}, {}
-    for name in param_ranges(type(cp)):
-        a, b = np.asarray(getattr(cp, name)), np.asarray(getattr(base, name))
-        if a.shape == () and a != b:
-            crawl[name] = float(a)
-    for name in param_ranges(type(cp.reflex)):
-        a, b = np.asarray(getattr(cp.reflex, name)), np.asarray(getattr(base.reflex, name))
-        if a.shape == () and a != b:
-            reflex[name] = float(a)
-    return crawl, reflex
+    return from_results.provenance(res, source, **extra)
 
 
 def tuned_shared(path: str, run: str):
-    from hyqjax.crawl.params import CrawlParams
-    from hyqjax.studies.tune import tuned
-
-    res = read(path)
-    cp = tuned.crawl_params(os.path.join(ROOT, path), run)
-    base = CrawlParams.make(shin_remedy=bool(res["config"]["remedy"]))
-    crawl, reflex = _crawl_values(cp, base)
-    return dict(dict(shin_remedy=bool(res["config"]["remedy"])), **crawl), reflex, res
+    return from_results.tuned_shared(os.path.join(ROOT, path), run)
 
 
 def tuned_per_leg(path: str, key: str):
-    from hyqjax.crawl.scheduled import LEGS
-    from hyqjax.studies.tune import tuned
-
-    res = read(path)
-    pl = tuned.crawl_params(os.path.join(ROOT, path), key)
-    per_leg = {k: {leg: float(np.asarray(v)[i]) for i, leg in enumerate(LEGS)} for k, v in pl.legs.items()}
-    return dict(shin_remedy=bool(res["config"]["remedy"])), per_leg, res
+    """``(crawl settings, reflex values, per-leg values, results)``
+    (:func:`hyqjax.presets.from_results.tuned_per_leg`)."""
+    return from_results.tuned_per_leg(os.path.join(ROOT, path), key)
 
 
 def tuned_conditioned(path: str, key: str):
-    from hyqjax.studies.tune import tuned
-
-    res = read(path)
-    run = res["runs"][key]
-    cs = tuned.crawl_params(os.path.join(ROOT, path), key)
-    cond = dict(parameterisation=run["dim"], groups=list(res["config"]["groups"]),
-                theta=[float(x) for x in run["theta"]], fields=list(cs.fields),
-                values={k: round(float(v), 6) for k, v in cs.describe().items()})
-    return dict(shin_remedy=bool(res["config"]["remedy"])), cond, res
+    return from_results.tuned_conditioned(os.path.join(ROOT, path), key)
 
 
-def heldout_fig(res, key, what, source, run_cmd):
-    h = res["heldout"][key]
-    hs = res["heldout_set"]
-    r = hs["ranges"]
-    return dict(what=what, value=round(h["clean"], 3), unit="share", interval=[round(x, 3) for x in h["clean_ci95"]],
-                heldout=(f"{hs['instances']} step-downs, seed {hs['seed']}, {hs['duration']:g} s, heights "
-                         f"{hs['heights'][0]:g}-{hs['heights'][-1]:g} m, friction {r['friction'][0]:g}-"
-                         f"{r['friction'][1]:g}, payload {r['payload'][0]:g}-{r['payload'][1]:g} kg, start "
-                         f"{r['start_distance'][0]:g}-{r['start_distance'][1]:g} m"),
-                command=run_cmd, device=res["device"], date=res["provenance"]["date"][:10], source=source)
+heldout_fig = from_results.heldout_figure
 
 
 def reach_fig(variant: str):
@@ -351,33 +301,31 @@ def build() -> dict[str, dict]:
         dict(crawl=crawl, reflex=reflex), prov_of(res, REACH_SRC),
         [heldout_fig(res, "snes/shared@10min", "clean success, held-out step-downs", REACH_SRC,
                      prov_of(res, REACH_SRC)["command"])])
-    crawl_b, per_leg, res = tuned_per_leg(PER_LEG_SRC, "cma_es/per_leg")
+    crawl_b, reflex_b, per_leg, res = tuned_per_leg(PER_LEG_SRC, "cma_es/per_leg")
     cmd = prov_of(res, PER_LEG_SRC)["command"]
     add("tuned_per_leg", "crawl", "56-coordinate per-leg set (CMA-ES, 14 coordinates per swing leg, 30 min on one "
-        "H200)", dict(crawl=crawl_b, reflex={}, per_leg=per_leg), prov_of(res, PER_LEG_SRC),
+        "H200)", dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg), prov_of(res, PER_LEG_SRC),
         [clean_fig_0129(0.841, "tuned_per_leg"),
          heldout_fig(res, "cma_es/per_leg@30min", "clean success, held-out step-downs", PER_LEG_SRC, cmd)]
         + targets_figs("tuned_per_leg"))
     src = f"{TARGETS}/run_0/results.json"
-    crawl_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
-    start = res.get("start_base") or {}
+    crawl_b, reflex_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
     add("tuned_per_leg_reach", "crawl", "56-coordinate per-leg set: `hyqjax tune` (CMA-ES, 3 min on one H200, "
         "training spread) from `reach`, whose edge probe and depth gate it keeps",
-        dict(crawl=dict(start.get("crawl", {}), **crawl_b), reflex=dict(start.get("reflex", {})), per_leg=per_leg),
+        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg),
         prov_of(res, src), targets_figs("run_0", chosen_on_it=True)
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])]
         + targets_figs("tuned_per_leg_reach", root=TARGETS_LF) + confirm_figs("tuned_per_leg_reach"))
 
     src = f"{TARGETS_LF}/run_1/results.json"
-    crawl_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
-    start = res.get("start_base") or {}
+    crawl_b, reflex_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
     returned = read(f"{TARGETS_LF}/targets.json")["returned"]
     chosen = max(sorted(returned), key=lambda v: returned[v]["validation_clean"])
     assert chosen == "run_1", f"the highest validation score is {chosen}'s"
     add("clean", "crawl", "the highest clean success measured: `hyqjax tune` (CMA-ES on 56 per-leg coordinates, 3 min "
         "on one H200, the wide spread, the leading-foot start) from `reach`, whose edge probe and depth gate it keeps",
-        dict(crawl=dict(start.get("crawl", {}), **crawl_b), reflex=dict(start.get("reflex", {})), per_leg=per_leg),
+        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg),
         prov_of(res, src, selection=(
             "the run of the five of `python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 "
             "--heldout 256` (seeds 0-4) with the highest validation score of the tuner itself "
@@ -389,10 +337,10 @@ def build() -> dict[str, dict]:
                        prov_of(res, src)["command"])])
 
     cond_src = f"{R}/tune_wallclock_h200_10min_68/results.json"
-    crawl_c, cond, res = tuned_conditioned(cond_src, "hybrid/per_leg_cond")
+    crawl_c, reflex_c, cond, res = tuned_conditioned(cond_src, "hybrid/per_leg_cond")
     cmd = prov_of(res, cond_src)["command"]
     add("tuned_per_leg_cond", "crawl", "68-coordinate per-leg set conditioned on payload, search depth and steps down "
-        "(hybrid search, 10 min on one H200)", dict(crawl=crawl_c, reflex={}, conditioned=cond),
+        "(hybrid search, 10 min on one H200)", dict(crawl=crawl_c, reflex=reflex_c, conditioned=cond),
         prov_of(res, cond_src),
         [heldout_fig(res, "hybrid/per_leg_cond@10min", "clean success, held-out step-downs", cond_src, cmd)])
 

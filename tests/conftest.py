@@ -34,6 +34,12 @@ if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):  # a ch
     os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""), *SESSION_XLA_FLAGS]).strip()
     os.environ["HYQJAX_TEST_XLA_FLAG"] = " ".join(SESSION_XLA_FLAGS)  # added here (the xdist workers inherit both)
 
+#: The user's own presets (hyqjax.presets.registry.user_dir) of this test session: an empty directory of its own,
+#: so that no test reads or writes the real home's (~/.local/share/hyqjax/presets); subprocesses inherit it. A test
+#: that saves presets points HYQJAX_PRESETS_DIR at its tmp_path.
+os.environ["HYQJAX_PRESETS_DIR"] = tempfile.mkdtemp(prefix="hyqjax-test-presets-")
+atexit.register(shutil.rmtree, os.environ["HYQJAX_PRESETS_DIR"], True)
+
 import hyqjax  # noqa: E402,F401  (sets the XLA:CPU flags before jax is imported)
 import jax  # noqa: E402
 import numpy as np  # noqa: E402

@@ -60,14 +60,14 @@ def save_params(path: str | os.PathLike, values: dict, provenance: dict | None =
 
 
 def preset_path(name: str) -> str:
-    """The registry file of the shipped parameter set ``name`` (a key of :data:`PRESETS` or a bounding preset of
-    :mod:`hyqjax.presets`)."""
+    """The registry file of the parameter set ``name`` (a key of :data:`PRESETS` or a bounding preset of
+    :mod:`hyqjax.presets`, shipped or the user's)."""
     from hyqjax.presets import registry as presets
 
     reg = PRESETS.get(name, name)
     if reg not in presets.names("bound"):
         raise ValueError(f"preset must be one of {sorted(set(PRESETS) | set(presets.names('bound')))}, got {name!r}")
-    return os.path.join(os.path.dirname(os.path.abspath(presets.__file__)), f"{reg}.json")
+    return presets.get(reg).path
 
 
 def load_params(path: str | os.PathLike) -> dict:

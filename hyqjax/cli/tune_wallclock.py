@@ -13,6 +13,18 @@ import os
 PAUSED = 75
 
 
+def returned_lines(out: str, res: dict) -> list[str]:
+    """The closing lines of a complete `hyqjax tune` run into ``out`` (results ``res``): the commands that run
+    what it returned, on the step-down and on held-out step-downs, and the one that keeps it as a preset."""
+    key = next(iter(res["runs"]), "")
+    run = "" if len(res["runs"]) == 1 else f":{key}"
+    return [f"run what it returned: hyqjax stepdown --params {out}/results.json --heights 0.24 --instances 4; "
+            f"on held-out step-downs: python -m experiments.reach_map --tuned-run returned:{out}/results.json:"
+            f"{key} --variants returned --spread wide",
+            f"keep it as a preset (then --preset NAME in stepdown, sweep, tune and the reach map): "
+            f"hyqjax presets save NAME --from {out}/results.json{run}"]
+
+
 def run(args) -> int:
     """Run the tuner or the equal-wall-clock study (``args.wallclock_config``, built by :func:`hyqjax.cli.tune.validate`
     under the run directory's lock) and print its summary."""
@@ -120,9 +132,8 @@ def run(args) -> int:
               f"{'clear of' if w['clear_of_all_others'] else 'overlapping'} the other {w['others']} runs')")
     print(f"wrote {args.out}/results.json and {fig} ({res['wall_s']:.0f} s), complete: {res['complete']}")
     if res["complete"] and not args.study:
-        print(f"run what it returned: hyqjax stepdown --params {args.out}/results.json --heights 0.24 --instances 4; "
-              f"on held-out step-downs: python -m experiments.reach_map --tuned-run returned:{args.out}/results.json:"
-              f"{next(iter(res['runs']), '')} --variants returned --spread wide")
+        for line in returned_lines(args.out, res):
+            print(line)
     clock.lap("summary")
     print(clock.line(), flush=True)
     return 0

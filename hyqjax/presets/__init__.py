@@ -1,4 +1,5 @@
-"""Named parameter sets for the crawl and the bounding gait, shipped with the package: one registry.
+"""Named parameter sets for the crawl and the bounding gait, shipped with the package, and the user's own: one
+registry.
 
 Every preset is one JSON file beside this module (``<name>.json``, format :data:`FORMAT`): its ``kind``
 (``crawl`` or ``bound``), a one-line ``description``, its ``values``, its ``provenance`` (command, seed, device,
@@ -22,6 +23,13 @@ the ``fields`` it chooses per tick and their ``values`` for reading). Values of 
 (``a_fz, a_hz, a_fx, a_hx``, N per leg) and
 ``gains`` (``BoundingGains`` fields) over the paper's stored limit cycle; empty for the paper's own gains.
 
+The user's own presets are files of the same format in :func:`user_dir` (``$HYQJAX_PRESETS_DIR``, else
+``$XDG_DATA_HOME/hyqjax/presets``, else ``~/.local/share/hyqjax/presets``), listed after the shipped ones and
+loaded wherever a shipped one is (``Preset.user_dir`` names the directory). ``hyqjax presets save NAME --from
+RESULTS.json[:METHOD/DIM]`` writes one from a tuning run's returned set (:mod:`hyqjax.presets.from_results`); a
+user file that cannot be used is named by :func:`user_problems` (and by ``get`` of its name) and breaks nothing
+else.
+
 Refusals are one line (a :class:`PresetError`, a ``ValueError``): an unknown name (naming the known ones), a
 preset of the other kind (:func:`check_kind`), a stored value outside its declared range (naming the field).
 Reading a preset imports JAX's parameter classes only, never MJX.
@@ -31,6 +39,7 @@ from __future__ import annotations
 from hyqjax.presets.registry import (  # noqa: F401  (the registry's API, re-exported)
     FORMAT,
     KINDS,
+    NAME_RULE,
     ORDER,
     Preset,
     PresetError,
@@ -39,7 +48,11 @@ from hyqjax.presets.registry import (  # noqa: F401  (the registry's API, re-exp
     describe,
     format_figure,
     get,
+    name_problem,
     names,
+    user_dir,
+    user_problems,
+    values_digest,
 )
 
 

@@ -30,9 +30,24 @@ import time
 from hyqjax.studies.sweep.spec import SweepSpec
 
 
-def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int, impl: str = "auto") -> tuple:
-    """One chunk on this worker's devices: ``(rows, wall_s, worker, layout)`` (the Ray task body)."""
+def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int, impl: str = "auto",
+              preset_digest: str | None = None) -> tuple:
+    """One chunk on this worker's devices: ``(rows, wall_s, worker, layout)`` (the Ray task body). ``preset_digest``:
+    the driver's digest of the values of the spec's preset (the worker reads the preset from its own registry,
+    a user's preset from its own presets directory); other values there are refused."""
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    spec = SweepSpec.from_dict(spec_dict)
+    if spec.spec_hash != spec_hash:
+        raise RuntimeError(f"worker rebuilt spec hash {spec.spec_hash[:12]}, driver sent {spec_hash[:12]}: "
+                           f"different hyqjax versions on driver and worker")
+    if spec.preset and preset_digest:
+        from hyqjax.studies.sweep.manifest import preset_digest as digest_of
+
+        here = digest_of(spec.preset)
+        if here != preset_digest:
+            raise RuntimeError(f"worker {socket.gethostname()} has other values of preset {spec.preset} (values sha256 "
+                               f"{here[:16]}, the driver's {preset_digest[:16]}): give every worker the same preset "
+                               f"file (its HYQJAX_PRESETS_DIR)")
     from hyqjax.io.cache import enable_compilation_cache
 
     enable_compilation_cache()
@@ -40,10 +55,6 @@ def run_chunk(spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size
 
     from hyqjax.studies.sweep.runner import compute_chunk, device_layout
 
-    spec = SweepSpec.from_dict(spec_dict)
-    if spec.spec_hash != spec_hash:
-        raise RuntimeError(f"worker rebuilt spec hash {spec.spec_hash[:12]}, driver sent {spec_hash[:12]}: "
-                           f"different hyqjax versions on driver and worker")
     devices = jax.local_devices()
     t0 = time.time()
     rows = compute_chunk(spec, start, stop, chunk_size, devices, impl=impl)
@@ -63,8 +74,9 @@ class ChunkWorker:
     """One sweep worker (a Ray actor): its devices, its process and its compiled chunk program for the whole
     sweep."""
 
-    def run(self, spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int, impl: str = "auto"):
-        return run_chunk(spec_dict, spec_hash, start, stop, chunk_size, impl)
+    def run(self, spec_dict: dict, spec_hash: str, start: int, stop: int, chunk_size: int, impl: str = "auto",
+            preset_digest: str | None = None):
+        return run_chunk(spec_dict, spec_hash, start, stop, chunk_size, impl, preset_digest)
 
     def layout(self, impl: str = "auto") -> dict:
         return worker_layout(impl)
@@ -141,13 +153,20 @@ class RayExecutor:
         want = self.layout()
         workers = self.workers()
         spec_ref = ray.put(spec.to_dict())
+        if spec.preset:
+            from hyqjax.studies.sweep.manifest import preset_digest
+
+            digest = preset_digest(spec.preset)
+        else:
+            digest = None
         queue = list(chunks)
         pending: dict = {}  # ref -> (chunk, worker index)
         load = [0] * len(workers)
 
         def submit(w: int) -> None:
             c, start, stop = queue.pop(0)
-            pending[workers[w].run.remote(spec_ref, spec.spec_hash, start, stop, chunk_size, self.impl)] = (c, w)
+            pending[workers[w].run.remote(spec_ref, spec.spec_hash, start, stop, chunk_size, self.impl,
+                                          digest)] = (c, w)
             load[w] += 1
 
         try:

@@ -1,7 +1,8 @@
 """A sweep store's manifest, ``DIR/manifest.json``: its schema, what it records, reading and checking it.
 
-The manifest holds the schema, the canonical spec and its SHA-256, the chunk size, the device layout, the
-columns, and per chunk its file, row range ``[start, stop)``, size, SHA-256 and wall time
+The manifest holds the schema, the canonical spec and its SHA-256, the digest of the values of the spec's preset
+(:data:`PRESET_DIGEST`; the spec names the preset only), the chunk size, the device layout, the columns, and per
+chunk its file, row range ``[start, stop)``, size, SHA-256 and wall time
 (:func:`chunk_entry`). A store whose manifest names another sweep, schema or device layout is refused with
 :class:`StoreMismatch` (:func:`check_manifest`); one that cannot be read is :class:`StoreCorrupt`
 (:func:`read_manifest`). The store that keeps it is :class:`hyqjax.studies.sweep.store.SweepStore`.
@@ -43,9 +44,38 @@ def new_manifest(spec, chunk_size: int, layout: dict | None) -> dict:
     from hyqjax.studies.stepdown import START_POSE
 
     cs = int(chunk_size)
-    return dict(schema=SCHEMA, start_pose=START_POSE, spec_hash=spec.spec_hash, spec=spec.to_dict(), n_instances=spec.n_instances,
-                chunk_size=cs, n_chunks=-(-spec.n_instances // cs),
-                layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=now())
+    man = dict(schema=SCHEMA, start_pose=START_POSE, spec_hash=spec.spec_hash, spec=spec.to_dict(),
+               n_instances=spec.n_instances, chunk_size=cs, n_chunks=-(-spec.n_instances // cs),
+               layout=None if layout is None else dict(layout, chunk_size=cs), chunks={}, created=now())
+    if spec.preset:  # the spec hash covers the preset's name; its values are recorded here
+        man[PRESET_DIGEST] = preset_digest(spec.preset)
+    return man
+
+
+#: The manifest's record of the values of the spec's preset (:func:`preset_digest`).
+PRESET_DIGEST = "preset_values_sha256"
+
+
+def preset_digest(name: str) -> str:
+    """SHA-256 of the canonical values JSON of preset ``name`` (:func:`hyqjax.presets.registry.values_digest`)."""
+    from hyqjax.presets import registry
+
+    return registry.get(name).digest
+
+
+def check_preset_values(man: dict, out_dir: str) -> None:
+    """Raise :class:`StoreMismatch` when the values of the spec's preset changed since the store recorded them (a
+    manifest without the record, written before it was kept, passes)."""
+    stored = man.get(PRESET_DIGEST)
+    name = (man.get("spec") or {}).get("preset") or ""
+    if not stored or not name:
+        return
+    now_digest = preset_digest(name)
+    if now_digest != stored:
+        raise StoreMismatch(
+            f"{out_dir} was computed with other values of preset {name} (values sha256 {stored[:16]}; now "
+            f"{now_digest[:16]}, `hyqjax presets {name}`), so it is not resumed (a store never mixes two parameter "
+            f"sets); its rows read as they are: use another --out, or restore the preset's values")
 
 
 def read_manifest(out_dir: str) -> dict | None:
@@ -69,8 +99,8 @@ def check_manifest(man: dict, out_dir: str, spec_hash: str, writer: bool, chunk_
                    layout: dict | None) -> None:
     """Raise :class:`StoreMismatch` unless the manifest ``man`` of ``out_dir`` is of this schema, this sweep
     (``spec_hash``) and the device ``layout`` (None: not checked); a writer is also refused on a converted
-    store and on one of another start pose (:data:`hyqjax.studies.stepdown.START_POSE`; ``hip-line`` when not
-    recorded). An old schema's store of the same sweep passes (read as it is, never resumed)."""
+    store, on one of another start pose (:data:`hyqjax.studies.stepdown.START_POSE`; ``hip-line`` when not
+    recorded) and on one whose spec's preset has other values now than it recorded (:func:`check_preset_values`). An old schema's store of the same sweep passes (read as it is, never resumed)."""
     path = os.path.join(out_dir, MANIFEST)
     if man.get("schema") in OLD_SCHEMAS:  # same spec, read as is, never resumed
         why = legacy.v1_refusal(out_dir, man, spec_hash, writer)
@@ -94,6 +124,7 @@ def check_manifest(man: dict, out_dir: str, spec_hash: str, writer: bool, chunk_
                 f"{out_dir} was computed with the {pose!r} start pose (this hyqjax starts the step-down with the "
                 f"{START_POSE!r} pose: hyqjax.studies.stepdown.start_qpos), so it is not resumed (a store never "
                 f"mixes two start poses); its rows read as they are: use another --out")
+        check_preset_values(man, out_dir)
     if chunk_size is not None and chunk_size != man["chunk_size"]:
         print(f"note: resuming with the stored chunk size {man['chunk_size']} (ignoring {chunk_size})")
     stored = man.get("layout")

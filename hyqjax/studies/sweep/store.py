@@ -52,7 +52,8 @@ from hyqjax.studies.sweep import legacy
 from hyqjax.studies.sweep.chunkfile import CHECKSUM, ChunkDamaged, parquet_to_rows, rows_to_parquet
 from hyqjax.studies.sweep.legacy import OLD_SCHEMAS
 from hyqjax.studies.sweep.manifest import (MANIFEST, SCHEMA, StoreCorrupt, StoreMismatch, check_manifest,
-                                           chunk_entry, new_manifest, read_manifest, sha256_bytes)
+                                           check_preset_values, chunk_entry, new_manifest, read_manifest,
+                                           sha256_bytes)
 from hyqjax.studies.sweep.recovery import repair
 from hyqjax.studies.sweep.spec import SpecError, SweepSpec
 
@@ -151,11 +152,13 @@ class SweepStore:
         check_manifest(man, self.dir, self.spec.spec_hash, self._writer, chunk_size, layout)
 
     def check_resumable(self) -> None:
-        """Raise :class:`StoreMismatch` if a writer would be refused here (an old or a converted store)."""
+        """Raise :class:`StoreMismatch` if a writer would be refused here (an old or a converted store, one whose
+        spec's preset has other values now: :func:`hyqjax.studies.sweep.manifest.check_preset_values`)."""
         schema = self.manifest.get("schema")
         if schema in OLD_SCHEMAS or self.manifest.get("converted_from"):
             old = self.manifest.get("converted_from") or schema
             raise StoreMismatch(legacy.read_only_message(self.dir, old, converted=schema not in OLD_SCHEMAS))
+        check_preset_values(self.manifest, self.dir)
 
     @property
     def chunk_size(self) -> int:
@@ -279,6 +282,7 @@ class SweepStore:
         if why:
             raise ValueError(f"rows given for chunk {c}: {why}")
         self.manifest = man
+        check_preset_values(man, self.dir)  # the preset's values changed while the sweep ran: not recorded
         why = self._check_columns(rows)
         if why:
             raise StoreMismatch(f"{self.dir}: the rows computed for chunk {c} do not fit the store: {why}; the "
