@@ -134,7 +134,9 @@ def test_surrogate_matches_central_differences_and_methods_compare_at_equal_wall
     compile is charged once in this test: both methods train from the same start at the same limit; results.json
     holds each method's per-generation record (guided ES's with the surrogate's time and the cosines), its budget
     split into forward and gradient physics steps, every set's held-out rows on the same instances, and the
-    comparison. (That a first call's compile lands in the first generation's time is checked without physics in
+    comparison. Each method's limit is 4 s (the checks hold per generation, whatever their number): a
+    generation started before the limit is finished, so each method runs at least one. (That a first call's
+    compile lands in the first generation's time is checked without physics in
     ``test_the_clock_includes_the_gradient_and_stops_like_cma_es``.)"""
     args = br.parse(TINY)
     train, labels = br.training_batch(args)
@@ -159,14 +161,14 @@ def test_surrogate_matches_central_differences_and_methods_compare_at_equal_wall
     built = []
     monkeypatch.setattr(bg, "make_surrogate", lambda *a, **k: built.append(a) or grad_fn)
     out = tmp_path / "cmp"
-    assert br.main(TINY + ["--methods", "cma_es", "guided_es", "--max-wall", "8", "--out", str(out)]) == 0
+    assert br.main(TINY + ["--methods", "cma_es", "guided_es", "--max-wall", "4", "--out", str(out)]) == 0
     assert len(built) == 1 and len(built[0][1].apex0) == 1 and built[0][2] == 0.4  # the command's surrogate
     res = json.load(open(out / "results.json"))
     tr = res["training"]
     assert set(tr["methods"]) == {"cma_es", "guided_es"} and "history" not in tr  # no default-run fields
     g, c = tr["methods"]["guided_es"], tr["methods"]["cma_es"]
     for m in (g, c):
-        assert m["generations"] >= 1 and m["wall_s"] >= 8.0 and len(m["history"]) == m["generations"]
+        assert m["generations"] >= 1 and m["wall_s"] >= 4.0 and len(m["history"]) == m["generations"]
     h0 = g["history"][0]
     assert h0["new_gradient"] and h0["grad_compile_s"] == 0.0 and g["grad_compile_s"] == 0.0  # compiled above
     assert h0["wall_s"] >= h0["grad_s"] > 0
