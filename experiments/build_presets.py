@@ -16,7 +16,7 @@ import json
 import os
 import sys
 
-from hyqjax.presets import from_results
+from hyqjax.presets import from_results, registry
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 OUT = os.path.join(ROOT, "hyqjax", "presets")
@@ -144,14 +144,14 @@ def confirm_figs(variant: str) -> list[dict]:
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=CONFIRM_LF)
     w, far = s["worst_low"], s["far_start"]
     tall = next(p for p in s["per_height"] if abs(p["height"] - 0.29) < 1e-9)
-    return [dict(what="clean success up to 26 cm, held-out step-downs (confirmation map)", value=round(s["clean"], 3),
+    return [dict(what=registry.FIGURE_CLEAN, value=round(s["clean"], 3),
                  unit="share", interval=[round(x, 3) for x in s["clean_ci95"]], **base),
             dict(what=f"worst clean success at a height up to 24 cm ({100 * w['height']:g} cm)",
                  value=round(w["clean"], 3), unit="share", interval=None, **base),
             dict(what="clean success from the farthest starts (10-15 cm before the edge)",
                  value=round(far["clean"], 3), unit=f"share of {far['n']:,}", interval=None, **base),
             dict(what="h90, wide spread", value=round(100 * s["h90"]), unit="cm", interval=None, **base),
-            dict(what="completed step-downs at 29 cm (confirmation map)", value=round(tall["completed"], 3),
+            dict(what=registry.FIGURE_TALL, value=round(tall["completed"], 3),
                  unit="share", interval=[round(x, 3) for x in statistics.wilson_interval(
                      int(round(tall["completed"] * tall["n"])), int(tall["n"]))], **base)]
 

@@ -134,9 +134,6 @@ DEFAULT_PRESET = "paper"
 #: up to 26 cm (their figures from the registry).
 REACH_PRESET = "reach"
 CLEAN_PRESET = "clean"
-#: The registry figures that line quotes.
-CLEAN_FIGURE = "clean success up to 26 cm, held-out step-downs (confirmation map)"
-TALL_FIGURE = "completed step-downs at 29 cm (confirmation map)"
 
 
 def _preset_name(args) -> str | None:
@@ -181,8 +178,8 @@ def preset_line(preset: str | None) -> str | None:
             return None
         return f"{f['value']:g} {f['unit']}" if f["unit"] == "cm" else f"{100 * f['value']:.1f}%"
 
-    clean = {n: fig(n, CLEAN_FIGURE) for n in (CLEAN_PRESET, REACH_PRESET)}
-    tall = {n: fig(n, TALL_FIGURE) for n in (CLEAN_PRESET, REACH_PRESET)}
+    clean = {n: fig(n, registry.FIGURE_CLEAN) for n in (CLEAN_PRESET, REACH_PRESET)}
+    tall = {n: fig(n, registry.FIGURE_TALL) for n in (CLEAN_PRESET, REACH_PRESET)}
     if None in clean.values() or None in tall.values():
         return None
     if preset == CLEAN_PRESET:

@@ -37,6 +37,8 @@ Reading a preset imports JAX's parameter classes only, never MJX.
 from __future__ import annotations
 
 from hyqjax.presets.registry import (  # noqa: F401  (the registry's API, re-exported)
+    FIGURE_CLEAN,
+    FIGURE_TALL,
     FORMAT,
     KINDS,
     NAME_RULE,

@@ -236,6 +236,11 @@ def names(kind: str | None = None, user: bool = True) -> list[str]:
 #: aliases of bounding presets.
 BOUND_ALIASES = {"robust": "bound_robust_grad", "robust_8s": "bound_robust_8s"}
 
+#: The names (``what``) of the confirmation map's figures that ``hyqjax stepdown``'s summary quotes: clean success
+#: pooled up to 26 cm and completed step-downs at 29 cm (written by experiments/build_presets.py).
+FIGURE_CLEAN = "clean success up to 26 cm, held-out step-downs (confirmation map)"
+FIGURE_TALL = "completed step-downs at 29 cm (confirmation map)"
+
 #: Listing order: the paper's sets, then what beats them.
 ORDER = ("paper", "remedy", "reach", "clean", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach", "tuned_per_leg_cond",
          "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
