@@ -51,6 +51,9 @@ def parse(argv):
     ap.add_argument("--extra-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
                     help="a further set from a tuning results.json (the reach map's --tuned-run)")
     ap.add_argument("--instances", type=int, default=targets.HELDOUT["instances"], help="held-out runs per height")
+    ap.add_argument("--map-seed", type=int, default=None,
+                    help=f"the held-out map's draw seed (default {targets.HELDOUT['seed']}); a new one gives instances "
+                         "that no earlier study or preset choice saw")
     ap.add_argument("--judge-only", action="store_true",
                     help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
     ap.add_argument("--max-minutes", type=float, default=None,
@@ -70,6 +73,8 @@ def parse(argv):
         raise ValueError(f"--instances {args.instances}: must be in [1, 100000]")
     if args.max_minutes is not None and args.max_minutes <= 0:
         raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
+    if args.map_seed is not None and not 0 <= args.map_seed < 2**31:
+        raise ValueError(f"--map-seed {args.map_seed}: must be in [0, 2147483647]")
     if not 1 <= args.gpus <= 64:
         raise ValueError(f"--gpus {args.gpus}: must be in [1, 64]")
     from hyqjax import presets
@@ -124,7 +129,8 @@ def main(argv=None) -> int:
 
     runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
     heldout = os.path.join(args.out, "heldout")
-    rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances)
+    rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances,
+                                          args.map_seed)
     if args.gpus > 1:
         rm_argv += ["--devices", "all"]
     if not args.judge_only:
@@ -143,7 +149,8 @@ def main(argv=None) -> int:
         return 2
     try:
         summary = targets.judge(cells, list(runs),
-                                list(args.references) + [t.split(":", 1)[0] for t in args.extra_run])
+                                list(args.references) + [t.split(":", 1)[0] for t in args.extra_run],
+                                seed=(heldout_map.get("provenance") or {}).get("seed", args.map_seed))
     except ValueError as e:
         print(f"tune_default_repeats: {heldout}/reach_map.json: {e}", file=sys.stderr)
         return 2

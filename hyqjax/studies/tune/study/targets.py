@@ -56,9 +56,10 @@ def variant_summary(cell: dict) -> dict:
                 h90=cell.get("h90"), diverged=int(cell.get("diverged", 0)), n=int(cell.get("n", 0)))
 
 
-def judge(cells: list[dict], runs: list[str], references: list[str] = ()) -> dict:
+def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: int | None = None) -> dict:
     """The targets over ``runs`` (variant names of the reach map ``cells``), with ``references`` summarised beside
-    them. A run or reference missing from the map is a ``ValueError`` naming it."""
+    them; ``seed`` is the map's draw seed (default :data:`HELDOUT`'s). A run or reference missing from the map is a
+    ``ValueError`` naming it."""
     by = {c["variant"]: c for c in cells if c.get("spread", HELDOUT["spread"]) == HELDOUT["spread"]}
     missing = [v for v in list(runs) + list(references) if v not in by]
     if missing:
@@ -76,7 +77,8 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = ()) -> dic
         h90=dict(value=min((h for h in h90s if h is not None), default=None) if all(h is not None for h in h90s)
                  else None, target=H90, ok=bool(runs) and all(h is not None and h >= H90 - 1e-9 for h in h90s)),
         spread=dict(value=rng, target=SPREAD, ok=rng is not None and rng <= SPREAD))
-    return dict(heldout=dict(HELDOUT, clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
+    return dict(heldout=dict(HELDOUT, seed=HELDOUT["seed"] if seed is None else int(seed),
+                             clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
                 over_runs=dict(stats, range=rng, clean=clean), targets=targets,
                 diverged=sum(per[v]["diverged"] for v in per))
@@ -120,13 +122,13 @@ def table(summary: dict) -> str:
 
 
 def reach_map_arguments(runs: dict, references=(), extra_runs=(), impl: str = "auto", out: str = "",
-                        instances: int | None = None) -> list[str]:
+                        instances: int | None = None, seed: int | None = None) -> list[str]:
     """``python -m experiments.reach_map`` arguments of the targets' held-out map: ``runs`` maps a variant name to
     a tuning ``results.json`` (its one run), ``references`` are presets, ``extra_runs`` further
-    ``NAME:PATH:METHOD[:settings]`` variants."""
+    ``NAME:PATH:METHOD[:settings]`` variants; ``seed`` draws the map's instances (default :data:`HELDOUT`'s)."""
     h = HELDOUT
     argv = ["--out", out, "--impl", impl, "--instances", str(instances or h["instances"]), "--spread", h["spread"],
-            "--seed", str(h["seed"]), "--heights", *[f"{x:g}" for x in h["heights"]]]
+            "--seed", str(h["seed"] if seed is None else seed), "--heights", *[f"{x:g}" for x in h["heights"]]]
     if references:
         argv += ["--preset", *references]
     for name, path in runs.items():
