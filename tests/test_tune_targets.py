@@ -11,6 +11,7 @@ from hyqjax.studies.tune.study import targets
 STORED = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_h200")
 STORED_LF = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_leading_foot_h200")
 STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_wide_h200")
+STORED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_h200x2")
 
 
 def cell(name, rates, n=100, completed=None):
@@ -142,6 +143,41 @@ def test_stored_leading_foot_runs_their_targets_and_the_clean_preset():
     assert sum(v["diverged"] for v in c.values()) == 0
 
 
+def test_stored_runs_from_clean_return_clean_and_their_targets():
+    """The five default runs from ``clean`` (docs/results/tune_default_repeats_clean_h200x2), judged on a map of a seed
+    no earlier map used: recomputed from the map, three targets of four (h90 missed by one run), no spread over runs;
+    every run's final re-evaluation chose the start, whose validation beat every later iterate, and the returned sets
+    are ``clean``'s values to float32 rounding."""
+    from hyqjax import presets
+    from hyqjax.studies.tune import tuned
+
+    with open(os.path.join(STORED_CLEAN, "heldout", "reach_map.json")) as f:
+        m = json.load(f)
+    with open(os.path.join(STORED_CLEAN, "targets.json")) as f:
+        stored = json.load(f)
+    seed = m["provenance"]["seed"]
+    assert seed == stored["heldout"]["seed"] == 27182 and seed not in (targets.HELDOUT["seed"], 31415, 7777)
+    s = targets.judge(m["cells"], stored["runs"], stored["references"], seed=seed)
+    assert {k: v["ok"] for k, v in s["targets"].items()} == dict(clean_lower=True, per_height=True, h90=False,
+                                                                  spread=True)
+    assert round(s["over_runs"]["mean"], 3) == 0.924 and s["over_runs"]["range"] < 0.001 and s["diverged"] == 0
+    assert [v for v in stored["runs"] if s["variants"][v]["h90"] < 0.27 - 1e-9] == ["run_1"]
+    want = presets.load("clean")
+    for run in stored["runs"]:
+        with open(os.path.join(STORED_CLEAN, run, "results.json")) as f:
+            r = json.load(f)
+        (res,) = r["runs"].values()
+        assert res["selection"]["log"][0]["iteration"] == 0
+        start = res["selection"]["log"][0]["clean"]
+        assert all(x["clean"] < start for x in res["selection"]["log"][1:])
+        fr = res["final_reevaluation"]
+        assert fr is None or fr["candidates"][fr["chosen"]]["iteration"] == 0
+        got = tuned.crawl_params(os.path.join(STORED_CLEAN, run, "results.json"), "cma_es/per_leg")
+        for k, v in want.legs.items():
+            np.testing.assert_allclose(np.asarray(v), np.asarray(got.legs[k]), rtol=1e-6)
+    assert abs(s["variants"]["run_1"]["clean"] - s["variants"]["clean"]["clean"]) < 0.001
+
+
 def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):
     from experiments import tune_study
 
@@ -160,7 +196,8 @@ def test_repeats_driver_refuses_bad_options_in_one_line(capsys):
     from experiments import tune_default_repeats as tdr
 
     for argv, needle in ((["--seeds", "1", "1"], "--seeds"), (["--wall-minutes", "0"], "--wall-minutes"),
-                         (["--references", "bound_robust"], "bound"), (["--instances", "0"], "--instances")):
+                         (["--references", "bound_robust"], "bound"), (["--instances", "0"], "--instances"),
+                         (["--map-seed", "-3"], "--map-seed")):
         assert tdr.main(argv + ["--out", "/nonexistent/x"]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and needle in err[0] and "Traceback" not in err[0], err
