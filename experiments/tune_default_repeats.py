@@ -9,7 +9,10 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
    the other, every other option at the tuner's default (``--heldout`` and ``--tune-option`` pass further options;
    the tuner's own held-out evaluation is not what is judged). A finished run is kept; a killed one goes on from
    its stored state (the tuner resumes); ``--max-minutes`` stops before a run that would not finish in the time
-   left (exit status 75: the same command goes on). ``--gpus K`` runs the first run alone (it builds MuJoCo
+   left (exit status 75: the same command goes on). ``--segment-minutes M`` runs budgets longer than one sitting
+   (10 or 30 minutes inside calls or jobs of a few minutes): each run stops on purpose after M minutes (or the
+   time left of ``--max-minutes``) with its state stored (the tuner's ``--segment-minutes``), and the next call
+   goes on from there. ``--gpus K`` runs the first run alone (it builds MuJoCo
    Warp's kernels into the cache), then the others K at a time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``),
    so that every run still has one whole GPU for its wall-clock budget; the held-out map then runs on every device.
 2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
@@ -31,6 +34,10 @@ import time
 PROG = "python -m experiments.tune_default_repeats"
 #: Minutes a default run takes beyond its budget: the final re-evaluation, the held-out runs of the tuner, start-up.
 OVERHEAD_MINUTES = 1.5
+#: the shortest segment worth starting: imports, the kernel load and compiles, then some of the search
+MIN_SEGMENT_MINUTES = 2.0
+#: exit status of a run (and of the driver) stopped on purpose with its state stored
+PAUSED = 75
 
 
 def parse(argv):
@@ -58,6 +65,9 @@ def parse(argv):
                     help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop (exit 75) before a run that would not finish in this many minutes of this process")
+    ap.add_argument("--segment-minutes", type=float, default=None,
+                    help="stop each run after this many minutes of it (at most the time left of --max-minutes), its "
+                         "state stored, exit status 75 once the running ones stop: budgets longer than one call")
     ap.add_argument("--gpus", type=int, default=1,
                     help="runs at once, each on a GPU of its own (CUDA_VISIBLE_DEVICES), after the first run alone "
                          "(it builds MuJoCo Warp's kernels into the cache the others read); the held-out map then "
@@ -73,6 +83,8 @@ def parse(argv):
         raise ValueError(f"--instances {args.instances}: must be in [1, 100000]")
     if args.max_minutes is not None and args.max_minutes <= 0:
         raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
+    if args.segment_minutes is not None and not MIN_SEGMENT_MINUTES <= args.segment_minutes <= 600:
+        raise ValueError(f"--segment-minutes {args.segment_minutes}: must be in [{MIN_SEGMENT_MINUTES:g}, 600]")
     if args.map_seed is not None and not 0 <= args.map_seed < 2**31:
         raise ValueError(f"--map-seed {args.map_seed}: must be in [0, 2147483647]")
     if not 1 <= args.gpus <= 64:
@@ -87,13 +99,16 @@ def parse(argv):
     return args
 
 
-def tune_argv(args, seed: int) -> list[str]:
+def tune_argv(args, seed: int, segment: float | None = None) -> list[str]:
+    """The ``hyqjax tune`` command of run ``seed``; ``segment``: its ``--segment-minutes``."""
     argv = [sys.executable, "-m", "hyqjax.cli", "tune", "--out", run_dir(args, seed), "--seed", str(seed),
             "--impl", args.impl]
     if args.wall_minutes is not None:
         argv += ["--wall-minutes", f"{args.wall_minutes:g}"]
     if args.heldout is not None:
         argv += ["--heldout", str(args.heldout)]
+    if segment is not None:
+        argv += ["--segment-minutes", f"{segment:.2f}"]
     return argv + list(args.tune_option)
 
 
@@ -181,10 +196,10 @@ def _slots(n: int) -> list[str]:
     return [visible[i] if i < len(visible) else str(i) for i in range(n)] if visible else [str(i) for i in range(n)]
 
 
-def _launch(args, seed: int, env: dict | None = None):
+def _launch(args, seed: int, env: dict | None = None, segment: float | None = None):
     d = run_dir(args, seed)
     os.makedirs(d, exist_ok=True)
-    cmd = tune_argv(args, seed)
+    cmd = tune_argv(args, seed, segment)
     where = f" on GPU {env['CUDA_VISIBLE_DEVICES']}" if env else ""
     print(f"[{time.strftime('%H:%M:%S')}] run {seed}{where}: {' '.join(cmd[1:])}", flush=True)
     return cmd, d
@@ -193,18 +208,31 @@ def _launch(args, seed: int, env: dict | None = None):
 def _run_all(args, t0: float, budget: float) -> int:
     """Every run not complete yet: one after another (``--gpus 1``), or the first alone and the others
     ``--gpus`` at a time, each on a GPU of its own. A run is launched only when it can finish within
-    ``--max-minutes`` (else exit status 75 once the running ones end); a failed run ends the driver with its status."""
+    ``--max-minutes`` (else exit status 75 once the running ones end); with ``--segment-minutes`` a run is launched
+    when a segment of at least :data:`MIN_SEGMENT_MINUTES` fits, and one that stops with its state stored (exit
+    status 75) is left for the next call. A failed run ends the driver with its status."""
     def left():
         return None if args.max_minutes is None else args.max_minutes - (time.time() - t0) / 60
 
     def stop(todo_note=""):
         todo = sum(not complete(run_dir(args, s)) for s in args.seeds)
-        print(f"tune_default_repeats: stopping with {todo} run(s) to go ({left():.1f} min left of --max-minutes)"
-              f"{todo_note}; the same command goes on", flush=True)
-        return 75
+        lm = left()
+        print(f"tune_default_repeats: stopping with {todo} run(s) to go"
+              + ("" if lm is None else f" ({lm:.1f} min left of --max-minutes)")
+              + f"{todo_note}; the same command goes on", flush=True)
+        return PAUSED
+
+    def segment():
+        """The next run's ``--segment-minutes`` (None: the run goes to the end of its budget)."""
+        if args.segment_minutes is None:
+            return None
+        lm = left()
+        return args.segment_minutes if lm is None else min(args.segment_minutes, lm - 0.5)
 
     def fits():
         lm = left()
+        if args.segment_minutes is not None:
+            return lm is None or lm - 0.5 >= MIN_SEGMENT_MINUTES
         return lm is None or lm >= budget + OVERHEAD_MINUTES
 
     def failed(seed, rc):
@@ -212,20 +240,34 @@ def _run_all(args, t0: float, budget: float) -> int:
               file=sys.stderr)
         return rc or 1
 
+    paused = []
+
+    def ended(seed, rc):
+        """0 when run ``seed`` finished or stopped on purpose (its state stored), else the failure's status."""
+        if rc == PAUSED and args.segment_minutes is not None:
+            paused.append(seed)
+            print(f"[{time.strftime('%H:%M:%S')}] run {seed} stopped after its segment, its state stored", flush=True)
+            return 0
+        return failed(seed, rc) if rc != 0 or not complete(run_dir(args, seed)) else 0
+
     todo = [s for s in args.seeds if not complete(run_dir(args, s))]
     if args.gpus == 1:
         serial = todo
-    else:  # the first run alone builds the kernels, unless a finished run built them already
-        serial = [] if any(complete(run_dir(args, s)) for s in args.seeds) else todo[:1]
+    else:  # the first run alone builds the kernels, unless an earlier run (finished or stopped) started already
+        serial = [] if any(complete(run_dir(args, s)) or os.path.exists(os.path.join(run_dir(args, s), "run.log"))
+                           for s in args.seeds) else todo[:1]
     for seed in serial:
         if not fits():
             return stop()
-        cmd, d = _launch(args, seed)
+        cmd, d = _launch(args, seed, segment=segment())
         with open(os.path.join(d, "run.log"), "a") as log:
             rc = subprocess.call(cmd, stdout=log, stderr=subprocess.STDOUT)
-        if rc != 0 or not complete(d):
-            return failed(seed, rc)
-    queue = [s for s in todo if s not in serial]
+        status = ended(seed, rc)
+        if status:
+            return status
+        if paused and args.gpus == 1:
+            return stop()
+    queue = [s for s in todo if s not in serial or s in paused]
     running: dict = {}  # slot -> (seed, process, log file)
     slots = _slots(args.gpus)
     status = 0
@@ -237,11 +279,11 @@ def _run_all(args, t0: float, budget: float) -> int:
                 break
             seed = queue.pop(0)
             env = dict(os.environ, CUDA_VISIBLE_DEVICES=slot)
-            cmd, d = _launch(args, seed, env)
+            cmd, d = _launch(args, seed, env, segment())
             log = open(os.path.join(d, "run.log"), "a")
             running[slot] = (seed, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env), log)
         if not running:
-            return status or (stop() if queue else 0)
+            return status or (stop() if queue or paused else 0)
         time.sleep(1.0)
         for slot, (seed, proc, log) in list(running.items()):
             rc = proc.poll()
@@ -249,9 +291,12 @@ def _run_all(args, t0: float, budget: float) -> int:
                 continue
             log.close()
             del running[slot]
-            if (rc != 0 or not complete(run_dir(args, seed))) and not status:
-                status = failed(seed, rc)
-    return status
+            if seed in paused:  # the first run's next segment, on a GPU of its own, ended
+                paused.remove(seed)
+            failure = ended(seed, rc)
+            if failure and not status:
+                status = failure
+    return status or (stop() if paused else 0)
 
 
 def _read_targets(d: str) -> dict:

@@ -290,3 +290,81 @@ def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys,
     assert tdr.main(["--out", str(tmp_path / "b"), "--wall-minutes", "3", "--gpus", "2"]) == 9
     assert serial == [] and [e[1] for e in events] == ["1", "3", "4"]
     assert tdr.main(["--out", str(tmp_path / "c"), "--gpus", "0"]) == 2
+
+
+def test_repeats_driver_runs_long_budgets_in_segments(tmp_path, capsys, monkeypatch):
+    """``--segment-minutes``: every run gets the tuner's ``--segment-minutes`` (at most the time left of
+    ``--max-minutes`` less half a minute); a run that stops with its state stored (exit status 75) is no failure:
+    the driver goes on with the others and exits 75, and the next call finishes it; with no segment left to start
+    the driver stops before launching anything. One GPU and two."""
+    from experiments import reach_map
+    from experiments import tune_default_repeats as tdr
+
+    invocations: dict = {}
+
+    def tune(cmd):
+        """A run finishes in its second invocation, stopping with its state stored in the first."""
+        out = cmd[cmd.index("--out") + 1]
+        seg = float(cmd[cmd.index("--segment-minutes") + 1])
+        invocations.setdefault(out, []).append(seg)
+        if len(invocations[out]) < 2:
+            return 75
+        with open(os.path.join(out, "results.json"), "w") as f:
+            json.dump(dict(complete=True), f)
+        return 0
+
+    class Proc:
+        def __init__(self, cmd, env=None, **kw):
+            self.rc = tune(cmd)
+
+        def poll(self):
+            return self.rc
+
+    maps = []
+    monkeypatch.setattr(tdr.subprocess, "call", lambda cmd, **kw: tune(cmd))
+    monkeypatch.setattr(tdr.subprocess, "Popen", Proc)
+    monkeypatch.setattr(tdr.time, "sleep", lambda s: None)
+    monkeypatch.setattr(reach_map, "main", lambda argv: maps.append(argv) or 9)
+    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a: ["--variants", *runs])
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    one = ["--out", str(tmp_path / "one"), "--seeds", "0", "1", "--wall-minutes", "30", "--segment-minutes", "8"]
+    assert tdr.main(one) == 75 and not maps  # run 0 stopped after its segment
+    assert tdr.main(one) == 75  # run 0 finished, run 1 stopped
+    assert tdr.main(one) == 9 and maps  # both finished: the held-out map ran
+    assert [invocations[str(tmp_path / "one" / f"run_{s}")] for s in (0, 1)] == [[8.0, 8.0], [8.0, 8.0]]
+    assert "1 run(s) to go" in capsys.readouterr().out
+    # two GPUs: the first run's second segment goes on in parallel at once; the others stop and finish next call
+    two = ["--out", str(tmp_path / "two"), "--seeds", "0", "1", "2", "--wall-minutes", "30", "--segment-minutes", "8",
+           "--gpus", "2"]
+    maps.clear()
+    assert tdr.main(two) == 75 and not maps
+    assert tdr.complete(str(tmp_path / "two" / "run_0")) and not tdr.complete(str(tmp_path / "two" / "run_1"))
+    assert tdr.main(two) == 9 and maps
+    # a first run stopped in its first segment: the next call runs every run in parallel, none alone
+    serial, now = [], [1000.0]
+    monkeypatch.setattr(tdr.time, "time", lambda: now[0])
+
+    def alone(cmd, **kw):  # a segment of 8 minutes on the clock
+        serial.append(cmd)
+        now[0] += 8 * 60
+        return tune(cmd)
+
+    monkeypatch.setattr(tdr.subprocess, "call", alone)
+    three = ["--out", str(tmp_path / "three"), "--seeds", "0", "1", "--wall-minutes", "30", "--segment-minutes", "8",
+             "--gpus", "2", "--max-minutes", "8.6"]
+    assert tdr.main(three) == 75 and len(serial) == 1  # run 0 alone, stopped; no time left for another segment
+    assert tdr.main(three) == 75 and len(serial) == 1  # both on GPUs at once: run 0 finishes, run 1 stops
+    assert tdr.complete(str(tmp_path / "three" / "run_0"))
+    monkeypatch.setattr(tdr.subprocess, "call", lambda cmd, **kw: tune(cmd))
+    # the segment is cut to the time left of --max-minutes; too little left for a segment: nothing launched
+    invocations.clear()
+    short = ["--out", str(tmp_path / "short"), "--seeds", "0", "--wall-minutes", "30", "--segment-minutes", "8",
+             "--max-minutes", "4"]
+    assert tdr.main(short) == 75
+    (seg,) = invocations[str(tmp_path / "short" / "run_0")]
+    assert 3.4 <= seg <= 3.5
+    invocations.clear()
+    assert tdr.main(short[:-1] + ["2.2"]) == 75 and not invocations
+    assert tdr.main(["--out", str(tmp_path / "bad"), "--segment-minutes", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("tune_default_repeats: --segment-minutes 1.0: must be in [2, 600]")

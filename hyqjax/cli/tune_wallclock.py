@@ -119,10 +119,13 @@ def run(args) -> int:
         sel = r.get("selection")
         if sel and sel["log"]:
             pt = r["points"][-1]
+            it = pt.get("selected_iteration", 0)
+            what = (f"iteration {it}" if it else "the start point" + (f" (preset {cfg.start_preset})"
+                                                                       if cfg.start_preset else "")
+                    + ", which no validated iterate beat")
             print(f"selection of {key}: {len(sel['log'])} validations on {sel['instances']} fixed scenarios "
                   f"({sel['wall_s']:.0f} s, {sel['physics_steps']:,} physics steps of its budget); returned: "
-                  f"iteration {pt.get('selected_iteration', 0)}, validation clean "
-                  f"{pt.get('validation_clean', float('nan')):.3f}")
+                  f"{what}, validation clean {pt.get('validation_clean', float('nan')):.3f}")
     w = wallclock_results.winner(res, cfg.wall_minutes[-1])
     if args.study and w and not w["others"]:
         print(f"only run at {cfg.wall_minutes[-1]:g} min: {w['method']} / {w['dim']} (clean {w['clean']:.3f}; no other "
