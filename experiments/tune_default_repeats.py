@@ -31,6 +31,8 @@ import subprocess
 import sys
 import time
 
+from experiments.gpu_slots import gpu_slots
+
 PROG = "python -m experiments.tune_default_repeats"
 #: Minutes a default run takes beyond its budget: the final re-evaluation, the held-out runs of the tuner, start-up.
 OVERHEAD_MINUTES = 1.5
@@ -189,13 +191,6 @@ def main(argv=None) -> int:
     return 0
 
 
-def _slots(n: int) -> list[str]:
-    """The ``CUDA_VISIBLE_DEVICES`` value of each of ``n`` run slots: the i-th GPU this process sees (of its own
-    ``CUDA_VISIBLE_DEVICES`` list when set)."""
-    visible = [v for v in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",") if v.strip()]
-    return [visible[i] if i < len(visible) else str(i) for i in range(n)] if visible else [str(i) for i in range(n)]
-
-
 def _launch(args, seed: int, env: dict | None = None, segment: float | None = None):
     d = run_dir(args, seed)
     os.makedirs(d, exist_ok=True)
@@ -269,7 +264,7 @@ def _run_all(args, t0: float, budget: float) -> int:
             return stop()
     queue = [s for s in todo if s not in serial or s in paused]
     running: dict = {}  # slot -> (seed, process, log file)
-    slots = _slots(args.gpus)
+    slots = gpu_slots(args.gpus)
     status = 0
     while queue or running:
         for slot in slots:

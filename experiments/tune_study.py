@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import subprocess
 
 #: Baselines of the gradient study (``--baselines``: the names of :data:`hyqjax.studies.tune.study.gradient.METHODS`
 #: after the gradient), checked before anything heavy is imported.
@@ -57,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="guided ES against CMA-ES and SNES on 56 and 68 coordinates, once per --seeds")
     m.add_argument("--seeds", type=tune.ints, default=None,
                    help="--guided-comparison: training seeds, one study each in DIR/seed<N> (default 0,1,2,3,4)")
+    m.add_argument("--gpus", type=int, default=1,
+                   help="--guided-comparison: one process per GPU (CUDA_VISIBLE_DEVICES), each with its share of "
+                        "--seeds, so every study has a whole GPU for its clocks; their logs in DIR/gpu<K>.log, "
+                        "then the comparison over every finished seed (default 1: the seeds one after another)")
     g = p.add_argument_group("the equal-wall-clock study")
     g.add_argument("--train-instances", type=int, default=H["train_instances"],
                    help="training scenarios per generation, the same for every member (a multiple of the number "
@@ -168,6 +173,10 @@ def validate(args) -> None:
         raise UsageError("--gradient-study and --guided-comparison are two different studies; give one")
     if args.seeds is not None and not args.guided_comparison:
         raise UsageError("--seeds belongs to --guided-comparison (one study per seed)")
+    if args.gpus != 1 and not args.guided_comparison:
+        raise UsageError("--gpus belongs to --guided-comparison (one process per GPU, each with its own seeds)")
+    if not 1 <= args.gpus <= 64:
+        raise UsageError(f"--gpus must be in [1, 64], got {args.gpus}")
     if args.gradient_study:
         return _validate_gradient_study(args)
     for k, v in GRADIENT_STUDY_ONLY.items():
@@ -306,16 +315,16 @@ def _run_gradient_study(args) -> int:
 def _run_comparison(args) -> int:
     """``--guided-comparison``: one equal-wall-clock study per seed in DIR/seed<N> (each locked on its own, so
     processes with other ``--seeds`` may share DIR, one per GPU), then DIR/comparison.json over every finished
-    seed directory in DIR."""
-    import glob
-    import json
-
+    seed directory in DIR; ``--gpus K``: the seeds spread over K processes, one per GPU."""
     from hyqjax.cli import tune_wallclock
-    from hyqjax.io.atomic import write_json
     from hyqjax.io.lock import DirLock
-    from hyqjax.studies.tune.study import guided as guided_report
 
     out = args.out
+    if args.gpus > 1 and len(args.comparison) > 1:
+        rc = _spread_over_gpus(args)
+        if rc:
+            return rc
+        return _write_comparison(args, out)
     for seed, seed_out, cfg in args.comparison:
         args.out, args.seed, args.wallclock_config = seed_out, seed, cfg
         print(f"tune_study: guided comparison, seed {seed} -> {seed_out}", flush=True)
@@ -324,6 +333,18 @@ def _run_comparison(args) -> int:
         if rc:
             return rc
     args.out = out
+    return _write_comparison(args, out)
+
+
+def _write_comparison(args, out: str) -> int:
+    """DIR/comparison.json and comparison.md over every finished seed directory in ``out`` (atomic writes: the
+    processes of other seeds may write them too)."""
+    import glob
+    import json
+
+    from hyqjax.io.atomic import atomic_write, write_json
+    from hyqjax.studies.tune.study import guided as guided_report
+
     results = {}
     for path in sorted(glob.glob(os.path.join(out, "seed*", "results.json"))):
         with open(path) as f:
@@ -334,11 +355,58 @@ def _run_comparison(args) -> int:
     path = os.path.join(out, "comparison.json")
     write_json(path, comp)
     table = guided_report.markdown(comp)
-    with open(os.path.join(out, "comparison.md"), "w") as f:
-        f.write(table + "\n")
+    atomic_write(os.path.join(out, "comparison.md"), lambda f: f.write((table + "\n").encode()))
     print(table)
     print(f"wrote {path} and comparison.md ({len(results)} seeds: {', '.join(map(str, sorted(results)))})")
     return 0
+
+
+def child_argv(argv: list[str], seeds) -> list[str]:
+    """``argv`` (this command's arguments) without ``--gpus`` and ``--seeds``, then ``--seeds`` ``seeds``: the
+    command of one GPU's process."""
+    out, skip = [], False
+    for a in argv:
+        if skip:
+            skip = False
+            continue
+        if a in ("--gpus", "--seeds"):
+            skip = True
+            continue
+        if a.startswith(("--gpus=", "--seeds=")):
+            continue
+        out.append(a)
+    return out + ["--seeds", ",".join(map(str, seeds))]
+
+
+def _spread_over_gpus(args) -> int:
+    """``--gpus K``: the seeds dealt round-robin to ``K`` processes of this command, each on a GPU of its own
+    (``CUDA_VISIBLE_DEVICES``); waits for all of them. Exit status: a failed process's, else 75 when one stopped
+    after its segment (the same command goes on), else 0."""
+    import sys
+    import time
+
+    from experiments.gpu_slots import gpu_slots
+
+    seeds = [s for s, _, _ in args.comparison]
+    k = min(args.gpus, len(seeds))
+    procs = []
+    for slot, group in zip(gpu_slots(k), [seeds[i::k] for i in range(k)]):
+        cmd = [sys.executable, "-m", "experiments.tune_study", *child_argv(args.raw_argv, group)]
+        log_path = os.path.join(args.out, f"gpu{slot}.log")
+        os.makedirs(args.out, exist_ok=True)
+        log = open(log_path, "a")
+        print(f"[{time.strftime('%H:%M:%S')}] seeds {','.join(map(str, group))} on GPU {slot} (log {log_path})",
+              flush=True)
+        procs.append((slot, group, subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT,
+                                                    env=dict(os.environ, CUDA_VISIBLE_DEVICES=slot)), log))
+    codes = []
+    for slot, group, proc, log in procs:
+        codes.append(proc.wait())
+        log.close()
+        print(f"[{time.strftime('%H:%M:%S')}] GPU {slot} (seeds {','.join(map(str, group))}): exit status "
+              f"{codes[-1]}", flush=True)
+    failed = [c for c in codes if c not in (0, 75)]
+    return failed[0] if failed else (75 if 75 in codes else 0)
 
 
 def run(args) -> int:
@@ -358,7 +426,11 @@ def run(args) -> int:
 def main(argv=None) -> int:
     from hyqjax.cli.app import main as app_main
 
-    return app_main(None if argv is None else list(argv), parser=build_parser())
+    import sys
+
+    parser = build_parser()
+    parser.set_defaults(raw_argv=list(sys.argv[1:] if argv is None else argv))
+    return app_main(None if argv is None else list(argv), parser=parser)
 
 
 if __name__ == "__main__":
