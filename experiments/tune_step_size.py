@@ -1,0 +1,157 @@
+"""How much a search's first samples lose around a tuned set, per step size: the local landscape that decides the
+step size a search started from a tuned preset should take.
+
+    python -m experiments.tune_step_size --out DIR                                   # C MuJoCo on a CPU
+    python -m experiments.tune_step_size --out DIR --impl warp --samples 64 --instances 256     # one GPU
+
+The start is a crawl preset (``--preset``, ``clean`` by default) in the tuner's coordinates (``--dim``, the 56
+per-leg ones by default; :func:`hyqjax.studies.tune.wallclock_config.start_theta`). For every step size ``sigma``
+of ``--sigmas`` it draws ``--samples`` points ``theta_0 + sigma z`` (``z`` standard normal: exactly a first
+generation of CMA-ES, SNES or isotropic ES at that step) and runs the start and every sample on the same
+``--instances`` training step-downs (the tuner's training heights, 16-28 cm, on the wide spread; seed ``--seed``).
+Because every member runs the same instances, the differences are paired: per sample the difference of its clean
+rate from the start's, ``d_i``, and of its fitness (clean + 0.1 x completed, the tuner's). Per step size: the mean
+``d`` with its 95% interval over samples, the best and worst sample, the share of samples at least as clean as the
+start, and the median distance ``sigma |z|``. Writes ``DIR/step_size.json`` and ``DIR/step_size.md``.
+
+A sample as clean as its start on the same instances is what a search needs to climb; a step size whose mean loss is
+large and whose best sample does not beat the start spends its generations off the ridge (the measured cause of
+five 3-minute runs from ``clean`` returning it, docs/tuning.md).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from hyqjax.cli.common import HelpFormatter, UsageError
+
+
+def parse(argv=None):
+    ap = argparse.ArgumentParser(prog="python -m experiments.tune_step_size", description=__doc__,
+                                 formatter_class=HelpFormatter)
+    ap.add_argument("--out", default="out/tune_step_size")
+    ap.add_argument("--preset", default="clean", help="the crawl preset the samples are drawn around")
+    ap.add_argument("--dim", default="per_leg", help="the tuner's parameterisation (hyqjax tune --dim)")
+    ap.add_argument("--sigmas", type=float, nargs="+", default=[0.03, 0.1, 0.3],
+                    help="step sizes in the tuner's normalised coordinates (hyqjax tune --sigma: 0.3)")
+    ap.add_argument("--samples", type=int, default=8, help="samples per step size")
+    ap.add_argument("--instances", type=int, default=32,
+                    help="training step-downs every member runs (a multiple of the 4 training heights)")
+    ap.add_argument("--seed", type=int, default=0, help="draws the samples and the instances")
+    ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run (the tuner's 24)")
+    ap.add_argument("--impl", default="c", help="simulator: auto | jax | warp | c (default c: a CPU)")
+    a = ap.parse_args(argv)
+    if a.impl not in ("auto", "jax", "warp", "c"):
+        raise UsageError(f"--impl must be auto, jax, warp or c, got {a.impl!r}")
+    if not a.sigmas or any(not 0 < s <= 5 for s in a.sigmas):
+        raise UsageError(f"--sigmas must be in (0, 5], got {a.sigmas}")
+    if not 2 <= a.samples <= 4096:
+        raise UsageError(f"--samples must be in [2, 4096], got {a.samples}")
+    if not (4 <= a.instances <= 65536 and a.instances % 4 == 0):
+        raise UsageError(f"--instances must be a multiple of 4 in [4, 65536], got {a.instances}")
+    if not 0 <= a.seed < 2**31:
+        raise UsageError(f"--seed must be in [0, 2^31), got {a.seed}")
+    if not 2 <= a.duration <= 60:
+        raise UsageError(f"--duration must be in [2, 60] s, got {a.duration}")
+    from hyqjax import presets
+    from hyqjax.studies.tune import schedule
+
+    try:
+        presets.check_kind(a.preset, "crawl", "--preset")
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if a.dim not in schedule.NAMES:
+        raise UsageError(f"--dim must be one of {', '.join(schedule.NAMES)}, got {a.dim!r}")
+    return a
+
+
+def sample_points(theta0, sigmas, samples: int, seed: int) -> dict:
+    """``samples`` points ``theta0 + sigma z`` per step size (the same ``z`` for every ``sigma``, so the step sizes
+    differ only in scale)."""
+    theta0 = np.asarray(theta0, np.float64)
+    z = np.random.default_rng(seed).standard_normal((samples, theta0.size))
+    return {float(s): theta0[None] + float(s) * z for s in sigmas}
+
+
+def summarize(start: dict, members: dict, sigma: float) -> dict:
+    """Paired differences of the members' clean rate and fitness from the start's on the same instances."""
+    from hyqjax.studies import statistics
+
+    c0, f0 = float(np.mean(start["clean"])), float(start["fitness"][0])
+    clean = members["clean"].mean(1)
+    d, df = clean - c0, members["fitness"] - f0
+    lo, hi = statistics.mean_interval(d)
+    return dict(sigma=sigma, samples=int(d.size), start_clean=c0, mean_clean=float(clean.mean()),
+                mean_diff=float(d.mean()), mean_diff_ci95=[lo, hi], best_diff=float(d.max()), worst_diff=float(d.min()),
+                share_at_least_start=float(np.mean(d >= 0)), mean_fitness_diff=float(df.mean()),
+                best_fitness_diff=float(df.max()), per_sample_clean=[float(x) for x in clean])
+
+
+def markdown(rows: list, instances: int) -> str:
+    lines = [f"| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
+             f"samples at least as clean as the start | fitness difference: mean / best |",
+             "|---:|---|---|---|---|---|"]
+    for r in rows:
+        lo, hi = r["mean_diff_ci95"]
+        lines.append(f"| {r['sigma']:g} | {r['start_clean']:.3f} / {r['mean_clean']:.3f} | {r['mean_diff']:+.3f} "
+                     f"[{lo:+.3f}, {hi:+.3f}] | {r['best_diff']:+.3f} / {r['worst_diff']:+.3f} | "
+                     f"{r['share_at_least_start']:.2f} of {r['samples']} | {r['mean_fitness_diff']:+.3f} / "
+                     f"{r['best_fitness_diff']:+.3f} |")
+    return "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
+
+
+def main(argv=None) -> int:
+    try:
+        a = parse(argv)
+    except (UsageError, ValueError) as e:
+        print(f"tune_step_size: {e}", file=sys.stderr)
+        return 2
+    import os
+    import time
+
+    from hyqjax.io import atomic
+    from hyqjax.studies.tune import forward, schedule
+    from hyqjax.studies.tune.wallclock import start_params
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig, start_point, start_theta
+
+    t0 = time.time()
+    cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread="wide",
+                          impl=a.impl, train_duration=a.duration)
+    param = schedule.make(a.dim, cfg.groups)
+    try:
+        theta0 = start_theta(param, start_point(cfg))
+    except ValueError as e:
+        print(f"tune_step_size: --preset {a.preset} on --dim {a.dim}: {e}", file=sys.stderr)
+        return 2
+    evaluator = forward.SuccessEvaluator(param, start_params(cfg), a.duration, a.impl, cfg.completed_weight)
+    sc = forward.train_scenarios(a.instances, a.seed, 0, cfg.train_heights, "wide")
+    points = sample_points(theta0, a.sigmas, a.samples, a.seed)
+    start = evaluator(theta0[None], sc)
+    print(f"start ({a.preset}, {param.size} coordinates of {a.dim}): clean {np.mean(start['clean']):.3f} on "
+          f"{a.instances} step-downs ({start['wall_s']:.0f} s with its compile)", flush=True)
+    rows = []
+    for s, th in points.items():
+        r = evaluator(th, sc)
+        rows.append(summarize(start, r, s))
+        x = rows[-1]
+        print(f"sigma {s:g}: mean clean difference {x['mean_diff']:+.3f}, best {x['best_diff']:+.3f}, "
+              f"{x['share_at_least_start']:.2f} of samples at least as clean ({r['wall_s']:.0f} s)", flush=True)
+    os.makedirs(a.out, exist_ok=True)
+    res = dict(provenance=atomic.provenance(seed=a.seed), preset=a.preset, dim=a.dim, size=param.size,
+               impl=evaluator.setup.impl, instances=a.instances, duration=a.duration, spread="wide",
+               heights=[float(h) for h in cfg.train_heights], completed_weight=cfg.completed_weight,
+               start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
+                          fitness=float(start["fitness"][0])),
+               rows=rows, physics_steps=int(evaluator.physics_steps), wall_s=time.time() - t0)
+    atomic.write_json(os.path.join(a.out, "step_size.json"), res)
+    text = markdown(rows, a.instances)
+    atomic.atomic_write(os.path.join(a.out, "step_size.md"), lambda f: f.write((text + "\n").encode()))
+    print(text)
+    print(f"wall {res['wall_s']:.1f} s in all; wrote {a.out}/step_size.json and step_size.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,52 @@
+"""``python -m experiments.tune_step_size``: the paired loss of a search's first samples around a tuned set."""
+import json
+
+import numpy as np
+import pytest
+
+from experiments import tune_step_size as ts
+
+
+def test_samples_share_their_directions_across_step_sizes():
+    theta0 = np.linspace(-1, 1, 7)
+    pts = ts.sample_points(theta0, [0.1, 0.3], 5, seed=3)
+    z1, z3 = (pts[0.1] - theta0) / 0.1, (pts[0.3] - theta0) / 0.3
+    np.testing.assert_allclose(z1, z3, atol=1e-12)
+    assert z1.shape == (5, 7) and abs(z1.mean()) < 1.0
+
+
+def test_summary_is_the_paired_difference_from_the_start():
+    start = dict(clean=np.array([[1, 1, 0, 1]], bool), fitness=np.array([0.8]))
+    members = dict(clean=np.array([[1, 1, 0, 1], [0, 1, 0, 0], [1, 1, 1, 1]], bool), fitness=np.array([0.8, 0.3, 1.1]))
+    r = ts.summarize(start, members, 0.2)
+    assert r["start_clean"] == 0.75 and r["mean_diff"] == pytest.approx((0 - 0.5 + 0.25) / 3)
+    assert r["best_diff"] == 0.25 and r["worst_diff"] == -0.5 and r["share_at_least_start"] == pytest.approx(2 / 3)
+    assert r["mean_fitness_diff"] == pytest.approx((0 - 0.5 + 0.3) / 3) and r["best_fitness_diff"] == pytest.approx(0.3)
+    lo, hi = r["mean_diff_ci95"]
+    assert lo < r["mean_diff"] < hi
+
+
+@pytest.mark.parametrize("argv, needle", [(["--sigmas", "0"], "--sigmas"), (["--instances", "6"], "--instances"),
+                                          (["--samples", "1"], "--samples"), (["--preset", "bound_robust"], "bound"),
+                                          (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl")])
+def test_bad_input_is_refused_in_one_line(argv, needle, tmp_path, capsys):
+    assert ts.main(argv + ["--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0] and "Traceback" not in err[0], err
+    assert not (tmp_path / "x").exists()
+
+
+@pytest.mark.slow
+def test_a_vanishing_step_runs_exactly_the_start_and_a_large_one_loses(tmp_path, capsys):
+    """On C MuJoCo, samples 1e-7 away from ``clean`` end every one of the same step-downs as ``clean`` does (a
+    paired difference of exactly 0), and samples at a step of 2 lose clean success on average."""
+    out = tmp_path / "ss"
+    assert ts.main(["--out", str(out), "--samples", "2", "--instances", "4", "--sigmas", "1e-7", "2",
+                    "--seed", "5"]) == 0, capsys.readouterr().err
+    res = json.loads((out / "step_size.json").read_text())
+    tiny, big = res["rows"]
+    assert res["start"]["clean"] > 0.5 and res["impl"] == "c"
+    assert tiny["mean_diff"] == 0.0 and tiny["worst_diff"] == 0.0 and tiny["share_at_least_start"] == 1.0
+    assert big["mean_diff"] < 0.0
+    assert res["physics_steps"] == (1 + 2 * 2) * 4 * round(24.0 / 0.002)
+    assert "| 2 |" in (out / "step_size.md").read_text()
