@@ -111,8 +111,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--lead", type=float, default=H["lead"], help="forward run that takes the snapshots (s)")
     g.add_argument("--window-ticks", type=int, default=None,
                    help="window length (control ticks of 2 ms; default 500, 750 with --gradient-study)")
-    g.add_argument("--sigma", type=float, default=None,
-                   help="initial step of the search methods (theta units; default 0.3, 0.5 with --gradient-study)")
     g.add_argument("--heldout-seed", type=int, default=H["heldout_seed"], help="held-out seed (never used for training)")
     g.add_argument("--heldout-duration", type=float, default=H["heldout_duration"],
                    help="simulated seconds per held-out instance")

@@ -59,7 +59,7 @@ HIDDEN = dict(
     heldout_chunk=8, no_compile_charge=False, cold_compile=False, state_every_s=30.0, retake_windows=False,
     select_every_s=0.0, select_seed=5555, grad_directions=0, grad_mode="jacfwd", contacts_from_distance=0.0,
     train_spread=None, train_heights=None, paper_crawl=False, lr=0.1, train_per_height=2, windows_per_scenario=2,
-    lead=10.0, window_ticks=None, sigma=None, heldout_seed=7777, heldout_duration=24.0, select_instances=None,
+    lead=10.0, window_ticks=None, heldout_seed=7777, heldout_duration=24.0, select_instances=None,
     select_every=5, train_instances=32, guided_alpha=0.5, guided_subspace=1, guided_lr=0.05, guided_grad_every=1,
     blend_gamma=2.0, blend_lr=0.05, restart_stall=25,
 )
@@ -94,6 +94,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="tuned groups, comma-separated, from k_base, damping, mobility, k_x, delta, k_kl, "
                         "body_height, step_length, step_height, search_speed, search_forward, terrain_adaptation")
     p.add_argument("--popsize", type=int, default=16, help="population per generation")
+    p.add_argument("--sigma", type=float, default=None,
+                   help="the search's first step in the tuner's normalised coordinates (default 0.3; "
+                        "python -m experiments.tune_study --gradient-study: 0.5). Around a tuned set a step of 0.3 "
+                        "leaves no sample of the first generation as clean as the start, 0.1 a third "
+                        "(python -m experiments.tune_step_size, docs/tuning.md)")
     p.add_argument("--heldout", type=int, default=None,
                    help="held-out closed-loop instances per parameter set (default 2000)")
     p.add_argument("--final-instances", type=int, default=None,
