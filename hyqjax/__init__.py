@@ -24,6 +24,11 @@ from __future__ import annotations
 
 import os as _os
 import sys as _sys
+import time as _time
+
+#: When this package was first imported (``time.perf_counter``): a command's clock (:mod:`hyqjax.io.phases`) starts at
+#: its process's start unless that process ran another program before this interpreter (a shell's ``exec``).
+_IMPORTED_AT = _time.perf_counter()
 
 __version__ = "0.1.0"
 

@@ -3,7 +3,10 @@
 A command's printed ``wall ... in all`` line and its ``results.json`` (``phases``) come from one :class:`Clock`:
 started when the process started (Linux: ``/proc/self/stat``'s start time against ``CLOCK_BOOTTIME``, so the
 interpreter's start and every import count; elsewhere, or when a command is run in-process through
-``hyqjax.cli.app.main([...])``, when the command was called), and divided into named phases by
+``hyqjax.cli.app.main([...])``, when the command was called). A process keeps its start time through ``exec``:
+when hyqjax was imported more than :data:`EXEC_GAP_S` after the process started, the process ran another program
+first (a shell that ran other commands, then ``exec``'d this one, e.g. the last command of ``bash -c``), and the
+clock starts at hyqjax's import instead, the line saying so. The wall is divided into named phases by
 :meth:`Clock.lap`: each lap gives the time since the previous one to a phase, less the parts carved out for
 others (a batch run's XLA compile and MuJoCo Warp kernel build out of its simulation). Phases, in order:
 
@@ -32,6 +35,10 @@ import sys
 import threading
 import time
 
+#: Seconds between a process's start and hyqjax's import beyond which the process ran another program before this
+#: interpreter (an ``exec``): the interpreter's start and the imports before hyqjax take well under a second.
+EXEC_GAP_S = 5.0
+
 #: Phase keys and their labels, in the order they are printed.
 LABELS = {"startup": "imports and device start-up", "kernels": "kernel build (Warp)", "compile": "XLA compile",
           "simulation": "simulation", "tuning": "tuning (search, compiles and held-out evaluation)",
@@ -54,11 +61,14 @@ def process_age() -> float | None:
 class Clock:
     """Wall time since ``t0`` (a ``time.perf_counter`` value) in named phases (:data:`LABELS`).
 
-    ``since``: ``"process"`` when ``t0`` is the process's start, ``"call"`` when it is the command's call."""
+    ``since``: ``"process"`` when ``t0`` is the process's start, ``"import"`` when it is hyqjax's import in a
+    process that ran another program ``before_s`` seconds before it (:meth:`from_process_start`), ``"call"`` when
+    it is the command's call."""
 
-    def __init__(self, t0: float | None = None, since: str = "call"):
+    def __init__(self, t0: float | None = None, since: str = "call", before_s: float = 0.0):
         self.t0 = time.perf_counter() if t0 is None else float(t0)
         self.since = since
+        self.before_s = float(before_s)
         self.seconds: dict[str, float] = {}
         self._last = self.t0
         self._kernels_last = _kernel_seconds()
@@ -66,10 +76,17 @@ class Clock:
 
     @classmethod
     def from_process_start(cls) -> "Clock":
-        """A clock started when this process did (or now, where that cannot be read)."""
+        """A clock started when this process did (or now, where that cannot be read); at hyqjax's import when the
+        process ran another program first (more than :data:`EXEC_GAP_S` between the two)."""
         age = process_age()
         now = time.perf_counter()
-        return cls(now - age, "process") if age is not None else cls(now, "call")
+        if age is None:
+            return cls(now, "call")
+        started = now - age
+        imported = getattr(sys.modules.get("hyqjax"), "_IMPORTED_AT", None)
+        if imported is not None and imported - started > EXEC_GAP_S:
+            return cls(imported, "import", before_s=imported - started)
+        return cls(started, "process")
 
     def add(self, phase: str, seconds: float) -> None:
         if phase not in LABELS:
@@ -106,8 +123,11 @@ class Clock:
         form, for ``results.json``)."""
         wall = self.wall()
         phases = {k: round(self.seconds[k], 4) for k in LABELS if k in self.seconds}
-        return dict(wall_s=round(wall, 4), since=self.since, phases=phases,
-                    unattributed_s=round(max(wall - sum(self.seconds.values()), 0.0), 4))
+        out = dict(wall_s=round(wall, 4), since=self.since, phases=phases,
+                   unattributed_s=round(max(wall - sum(self.seconds.values()), 0.0), 4))
+        if self.since == "import":
+            out["process_before_s"] = round(self.before_s, 2)
+        return out
 
     def line(self) -> str:
         """``wall 23.4 s in all (since the process started): imports and device start-up 5.1 s, ...``: the last
@@ -117,7 +137,9 @@ class Clock:
         rest = wall - sum(self.seconds.values())
         if rest >= 0.05:
             parts.append(f"other {rest:.1f} s")
-        since = "since the process started" if self.since == "process" else "since the command was called"
+        since = {"process": "since the process started",
+                 "import": f"since hyqjax was imported; the process ran another program for {self.before_s:.1f} s "
+                           "before"}.get(self.since, "since the command was called")
         return f"wall {wall:.1f} s in all ({since}): " + ", ".join(parts)
 
 
