@@ -279,6 +279,14 @@ FACTORS = (("start_distance", "start_distance"), ("friction", "friction"), ("pay
 FACTOR_OUTCOMES = ("completed", "clean", "terminated", "lost_foothold", "joint_past_range", "tilt", "shin_strike")
 
 
+def bin_index(x, edges) -> np.ndarray:
+    """The bin of every value of ``x`` among ``edges`` (``[lo, hi)``, the last one closed, values outside in the end
+    bins), the edges compared in the inputs' own precision (float32 0.15 is above float64 0.15): no run is
+    dropped."""
+    x = np.asarray(x)
+    return np.searchsorted(np.asarray(edges[1:-1]).astype(x.dtype), x, side="right")
+
+
 def factor_shares(rows: dict, out: dict, mask: np.ndarray, spread: str, bins: int = 3) -> dict[str, list[dict]]:
     """Per factor of :data:`FACTORS`: the runs of ``mask`` split into ``bins`` equal parts of the spread's range of that
     input (``[lo, hi)``, the last one closed), each with its range, its count ``n`` and the share of each of
@@ -289,9 +297,7 @@ def factor_shares(rows: dict, out: dict, mask: np.ndarray, spread: str, bins: in
         lo, hi = SPREADS[spread][key]
         x = np.asarray(rows[col])
         edges = np.linspace(lo, hi, bins + 1)
-        # the part of each run, compared in the inputs' own precision (float32 0.15 is above float64 0.15); no run
-        # is dropped
-        part = np.searchsorted(edges[1:-1].astype(x.dtype), x, side="right")
+        part = bin_index(x, edges)
         parts = []
         for i in range(bins):
             inside = mask & (part == i)

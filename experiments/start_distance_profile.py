@@ -176,26 +176,21 @@ def bin_edges(lo: float, hi: float, width: float) -> np.ndarray:
     return np.append(lo + width * np.arange(int(np.floor(k)) + 1), hi)
 
 
-def _part(x: np.ndarray, edges) -> np.ndarray:
-    """The bin of every value of ``x`` among ``edges`` (``[lo, hi)``, the last closed, values outside in the end bins),
-    compared in the inputs' own precision (``experiments.reach_map.factor_shares``): no run is dropped."""
-    return np.searchsorted(np.asarray(edges[1:-1]).astype(x.dtype), x, side="right")
-
-
 def profile(inst: dict, edges: np.ndarray, min_height: float, max_height: float, variants=None,
             yaw_edges=None) -> list[dict]:
     """Per variant (map order) and start-distance bin of ``edges`` (and, with ``yaw_edges``, per heading bin within
     it: ``yaw_lo``, ``yaw_hi``): ``n``, clean runs, clean rate and its Wilson 95% interval, shin strike and completed
     shares, over the runs with ``min_height <= height <= max_height``."""
+    from experiments.reach_map import bin_index
     from hyqjax.studies import statistics
 
-    part = _part(np.asarray(inst["start_distance"]), edges)
+    part = bin_index(inst["start_distance"], edges)
     h = np.asarray(inst["height"])
     in_h = (h >= min_height - 1e-9) & (h <= max_height + 1e-9)
     if yaw_edges is None:
         yaw_bins, ypart = [None], np.zeros(len(h), int)
     else:
-        yaw_bins, ypart = list(range(len(yaw_edges) - 1)), _part(np.asarray(inst["yaw"]), yaw_edges)
+        yaw_bins, ypart = list(range(len(yaw_edges) - 1)), bin_index(inst["yaw"], yaw_edges)
     names = list(dict.fromkeys(np.asarray(inst["variant"]).tolist()))
     rows = []
     for v in (variants or names):

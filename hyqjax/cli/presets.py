@@ -29,6 +29,7 @@ ORDER = 5
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     from hyqjax.cli.common import use_help_formatter
+    from hyqjax.presets.registry import NAME_RULE
 
     use_help_formatter(p)
     p.usage = ("hyqjax presets [NAME] [--kind {crawl,bound}] [--json]\n       hyqjax presets save NAME --from "
@@ -46,8 +47,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--description", default=None, metavar="TEXT",
                    help="with `save`: the preset's one-line description (default: the run, its command and date)")
 
-
-NAME_RULE = "a lowercase letter, then lowercase letters, digits, '_' or '-'"
 
 
 def validate(args) -> None:

@@ -257,7 +257,7 @@ def get(name: str, option: str = "preset") -> Preset:
 
 def _refuse_unusable(name) -> None:
     """A user preset file of ``name`` that is not used: its one-line problem as a :class:`PresetError`."""
-    why = _user()[1].get(name) if isinstance(name, str) else None
+    why = user_problem(name) if isinstance(name, str) else None
     if why:
         raise PresetError(why)
 
