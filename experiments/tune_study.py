@@ -319,10 +319,13 @@ def _run_comparison(args) -> int:
 
     out = args.out
     if args.gpus > 1 and len(args.comparison) > 1:
-        rc = _spread_over_gpus(args)
-        if rc:
-            return rc
-        return _write_comparison(args, out)
+        from hyqjax.io import phases
+
+        rc = _spread_over_gpus(args) or _write_comparison(args, out)
+        clock = phases.current()
+        clock.lap("tuning")  # the processes of every GPU, their searches and held-out evaluations
+        print(clock.line(), flush=True)
+        return rc
     for seed, seed_out, cfg in args.comparison:
         args.out, args.seed, args.wallclock_config = seed_out, seed, cfg
         print(f"tune_study: guided comparison, seed {seed} -> {seed_out}", flush=True)
