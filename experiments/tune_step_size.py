@@ -12,7 +12,8 @@ generation of CMA-ES, SNES or isotropic ES at that step) and runs the start and 
 Because every member runs the same instances, the differences are paired: per sample the difference of its clean
 rate from the start's, ``d_i``, and of its fitness (clean + 0.1 x completed, the tuner's). Per step size: the mean
 ``d`` with its 95% interval over samples, the best and worst sample, the share of samples at least as clean as the
-start, and the median distance ``sigma |z|``. Writes ``DIR/step_size.json`` and ``DIR/step_size.md``.
+start, and the runs not completed, not clean, fallen and diverged. Writes ``DIR/step_size.json`` and
+``DIR/step_size.md``.
 
 A sample as clean as its start on the same instances is what a search needs to climb; a step size whose mean loss is
 large and whose best sample does not beat the start spends its generations off the ridge (the measured cause of
@@ -86,37 +87,57 @@ def summarize(start: dict, members: dict, sigma: float) -> dict:
     return dict(sigma=sigma, samples=int(d.size), start_clean=c0, mean_clean=float(clean.mean()),
                 mean_diff=float(d.mean()), mean_diff_ci95=[lo, hi], best_diff=float(d.max()), worst_diff=float(d.min()),
                 share_at_least_start=float(np.mean(d >= 0)), mean_fitness_diff=float(df.mean()),
-                best_fitness_diff=float(df.max()), per_sample_clean=[float(x) for x in clean])
+                best_fitness_diff=float(df.max()), per_sample_clean=[float(x) for x in clean],
+                counts=counts(members))
+
+
+def counts(r: dict) -> dict:
+    """Runs of an evaluation (``SuccessEvaluator`` output) by outcome: all, not completed, not clean, fell (ended at
+    a fall: tilt or trunk strike) and diverged (a simulator blow-up or a non-finite state: a counted failure)."""
+    cols = dict(r.get("columns", {}), completed=r.get("completed"), clean=r["clean"])
+
+    def n(key, false=False):
+        if cols.get(key) is None:
+            return None
+        x = np.asarray(cols[key], bool)
+        return int(np.sum(~x if false else x))
+
+    return dict(runs=int(np.size(r["clean"])), not_completed=n("completed", True), not_clean=n("clean", True),
+                fell=n("terminated"), diverged=n("diverged"))
 
 
 def markdown(rows: list, instances: int) -> str:
     lines = [f"| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
-             f"samples at least as clean as the start | fitness difference: mean / best |",
-             "|---:|---|---|---|---|---|"]
+             f"samples at least as clean as the start | fitness difference: mean / best | runs: not completed / "
+             f"not clean / fell / diverged |",
+             "|---:|---|---|---|---|---|---|"]
     for r in rows:
         lo, hi = r["mean_diff_ci95"]
+        c = r["counts"]
         lines.append(f"| {r['sigma']:g} | {r['start_clean']:.3f} / {r['mean_clean']:.3f} | {r['mean_diff']:+.3f} "
                      f"[{lo:+.3f}, {hi:+.3f}] | {r['best_diff']:+.3f} / {r['worst_diff']:+.3f} | "
                      f"{r['share_at_least_start']:.2f} of {r['samples']} | {r['mean_fitness_diff']:+.3f} / "
-                     f"{r['best_fitness_diff']:+.3f} |")
+                     f"{r['best_fitness_diff']:+.3f} | {c['not_completed']} / {c['not_clean']} / {c['fell']} / "
+                     f"{c['diverged']} of {c['runs']} |")
     return "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
 
 
 def main(argv=None) -> int:
+    from hyqjax.io import phases
+
+    clock = phases.Clock.from_process_start()
     try:
         a = parse(argv)
     except (UsageError, ValueError) as e:
         print(f"tune_step_size: {e}", file=sys.stderr)
         return 2
     import os
-    import time
 
     from hyqjax.io import atomic
     from hyqjax.studies.tune import forward, schedule
     from hyqjax.studies.tune.wallclock import start_params
     from hyqjax.studies.tune.wallclock_config import WallClockConfig, start_point, start_theta
 
-    t0 = time.time()
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread="wide",
                           impl=a.impl, train_duration=a.duration)
     param = schedule.make(a.dim, cfg.groups)
@@ -128,6 +149,7 @@ def main(argv=None) -> int:
     evaluator = forward.SuccessEvaluator(param, start_params(cfg), a.duration, a.impl, cfg.completed_weight)
     sc = forward.train_scenarios(a.instances, a.seed, 0, cfg.train_heights, "wide")
     points = sample_points(theta0, a.sigmas, a.samples, a.seed)
+    clock.lap("startup")
     start = evaluator(theta0[None], sc)
     print(f"start ({a.preset}, {param.size} coordinates of {a.dim}): clean {np.mean(start['clean']):.3f} on "
           f"{a.instances} step-downs ({start['wall_s']:.0f} s with its compile)", flush=True)
@@ -143,13 +165,17 @@ def main(argv=None) -> int:
                impl=evaluator.setup.impl, instances=a.instances, duration=a.duration, spread="wide",
                heights=[float(h) for h in cfg.train_heights], completed_weight=cfg.completed_weight,
                start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
-                          fitness=float(start["fitness"][0])),
-               rows=rows, physics_steps=int(evaluator.physics_steps), wall_s=time.time() - t0)
+                          fitness=float(start["fitness"][0]), counts=counts(start)),
+               rows=rows, physics_steps=int(evaluator.physics_steps))
+    clock.lap("simulation")
+    res.update(wall_s=clock.wall(), phases=clock.to_dict())
     atomic.write_json(os.path.join(a.out, "step_size.json"), res)
     text = markdown(rows, a.instances)
     atomic.atomic_write(os.path.join(a.out, "step_size.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
-    print(f"wall {res['wall_s']:.1f} s in all; wrote {a.out}/step_size.json and step_size.md")
+    print(f"wrote {a.out}/step_size.json and step_size.md")
+    clock.lap("summary")
+    print(clock.line())
     return 0
 
 
