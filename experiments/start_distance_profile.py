@@ -52,7 +52,9 @@ LEGS = ("LF", "RF", "LH", "RH")
 
 
 def parse(argv=None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m experiments.start_distance_profile", description=__doc__,
+    from hyqjax.cli.app import Parser
+
+    ap = Parser(prog="python -m experiments.start_distance_profile", description=__doc__,
                                  formatter_class=HelpFormatter)
     ap.add_argument("instances", nargs="?", default=DEFAULT_NPZ,
                     help="profile: a reach map's reach_instances.npz (its config.json beside it gives the spread)")

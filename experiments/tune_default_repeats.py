@@ -45,7 +45,9 @@ PAUSED = 75
 def parse(argv):
     from hyqjax.studies.tune.study import targets
 
-    ap = argparse.ArgumentParser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from hyqjax.cli.app import Parser
+
+    ap = Parser(prog=PROG, description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/tune_default_repeats")
     ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4], help="training seeds, one run each")
