@@ -21,7 +21,6 @@ five 3-minute runs from ``clean`` returning it, docs/tuning.md).
 """
 from __future__ import annotations
 
-import argparse
 import sys
 
 import numpy as np
@@ -30,7 +29,9 @@ from hyqjax.cli.common import HelpFormatter, UsageError
 
 
 def parse(argv=None):
-    ap = argparse.ArgumentParser(prog="python -m experiments.tune_step_size", description=__doc__,
+    from hyqjax.cli.app import Parser
+
+    ap = Parser(prog="python -m experiments.tune_step_size", description=__doc__,
                                  formatter_class=HelpFormatter)
     ap.add_argument("--out", default="out/tune_step_size")
     ap.add_argument("--preset", default="clean", help="the crawl preset the samples are drawn around")
@@ -107,9 +108,9 @@ def counts(r: dict) -> dict:
 
 
 def markdown(rows: list, instances: int) -> str:
-    lines = [f"| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
-             f"samples at least as clean as the start | fitness difference: mean / best | runs: not completed / "
-             f"not clean / fell / diverged |",
+    lines = ["| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
+             "samples at least as clean as the start | fitness difference: mean / best | runs: not completed / "
+             "not clean / fell / diverged |",
              "|---:|---|---|---|---|---|---|"]
     for r in rows:
         lo, hi = r["mean_diff_ci95"]
