@@ -192,6 +192,30 @@ def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(t
     assert a.wallclock_config.train_spread == "train"
 
 
+def test_the_first_step_is_small_from_a_tuned_start_and_as_stored_from_table_i(tmp_path):
+    """``--sigma`` when none is given: 0.1 when ``hyqjax tune`` starts from a tuned set (the default preset, a named
+    preset, ``--start-from``), 0.3 from Table I (``--preset none``) and in the study, whose stored runs used 0.3; a
+    given value is kept and a bad one refused in one line naming ``--sigma``."""
+    from experiments import tune_study
+
+    from hyqjax.cli import tune
+    from hyqjax.cli.app import build_parser
+    from hyqjax.cli.common import UsageError
+
+    def sigma(argv, parse=lambda a: build_parser().parse_args(["tune", *a]), check=tune.validate):
+        a = parse(argv + ["--out", str(tmp_path / f"t{len(list(tmp_path.iterdir()))}")])
+        check(a)
+        return a.wallclock_config.sigma, a.wallclock_config.start_preset
+
+    assert sigma([]) == (0.1, "clean")
+    assert sigma(["--preset", "reach"]) == (0.1, "reach")
+    assert sigma(["--preset", "none"]) == (0.3, "")
+    assert sigma(["--sigma", "0.25"]) == (0.25, "clean")
+    assert sigma([], parse=tune_study.build_parser().parse_args, check=tune_study.validate) == (0.3, "")
+    with pytest.raises(UsageError, match="--sigma"):
+        sigma(["--sigma", "0"])
+
+
 def test_repeats_driver_refuses_bad_options_in_one_line(capsys):
     from experiments import tune_default_repeats as tdr
 

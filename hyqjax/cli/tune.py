@@ -95,9 +95,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "body_height, step_length, step_height, search_speed, search_forward, terrain_adaptation")
     p.add_argument("--popsize", type=int, default=16, help="population per generation")
     p.add_argument("--sigma", type=float, default=None,
-                   help="the search's first step in the tuner's normalised coordinates (default 0.3; "
-                        "python -m experiments.tune_study --gradient-study: 0.5). Around a tuned set a step of 0.3 "
-                        "leaves no sample of the first generation as clean as the start, 0.1 a third "
+                   help="the search's first step in the tuner's normalised coordinates (default: 0.1 from a tuned "
+                        "start, a preset or --start-from; 0.3 from Table I, --preset none, and in "
+                        "python -m experiments.tune_study; its --gradient-study: 0.5). Around a tuned set a step of "
+                        "0.3 leaves no sample of the first generation as clean as the start, 0.1 a third "
                         "(python -m experiments.tune_step_size, docs/tuning.md)")
     p.add_argument("--heldout", type=int, default=None,
                    help="held-out closed-loop instances per parameter set (default 2000)")
@@ -189,10 +190,10 @@ def validate_wallclock(args) -> None:
     check_range("--hybrid-split", args.hybrid_split, 0.0, 1.0, lo_open=True, hi_open=True)
     check_range("--heldout-chunk", args.heldout_chunk, 1, 4096, integer=True)
     args.window_ticks = 500 if args.window_ticks is None else args.window_ticks
-    args.sigma = 0.3 if args.sigma is None else args.sigma
     args.heldout = 2000 if args.heldout is None else args.heldout
     check_range("--window-ticks", args.window_ticks, 1, 20000, integer=True)
-    check_range("--sigma", args.sigma, 0.0, 5.0, lo_open=True)
+    if args.sigma is not None:
+        check_range("--sigma", args.sigma, 0.0, 5.0, lo_open=True)
     check_range("--heldout", args.heldout, 1, 10**6, integer=True)
     check_range("--seed", args.seed, 0, 2**31 - 1, integer=True)
     check_range("--heldout-seed", args.heldout_seed, 0, 2**31 - 1, integer=True)
@@ -224,6 +225,8 @@ def validate_wallclock(args) -> None:
     except ValueError as e:
         raise UsageError(f"--groups: {e}") from None
     preset = _start_preset(args, methods, dims)
+    if args.sigma is None:
+        args.sigma = names.default_sigma(tuned_start=bool(preset or args.start_from), study=args.study)
     from hyqjax.studies.tune import wallclock  # the study itself: MJX and the step-down, after every cheap check
 
     try:

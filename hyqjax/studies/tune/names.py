@@ -62,3 +62,20 @@ STUDY_WALL_MINUTES = (1.0, 3.0, 10.0)
 DEFAULT_PRESETS = {("clean", "shared"): "reach", ("clean", "per_leg"): "clean",
                    ("clean", "per_leg_cond"): "clean", ("clean", "per_leg_cond_all"): "clean",
                    ("reach", "shared"): "reach", ("reach", "per_leg"): "reach"}
+
+#: The search's first step (``--sigma``, in the tuner's normalised coordinates) of ``hyqjax tune`` from a tuned
+#: start (a registry preset or ``--start-from``). Around ``clean`` a step of 0.3 leaves 0 of 16 first-generation
+#: samples as clean as the start (mean paired loss 0.400), 0.1 leaves 5 of 16 (loss 0.057; C MuJoCo,
+#: ``python -m experiments.tune_step_size``). Five 3-minute runs from ``clean`` (two H200s, MuJoCo Warp, held-out map
+#: seed 27182, 6,144 step-downs a set): at 0.3 every run returned ``clean`` (0.924); at 0.1 four of five returned a
+#: later iterate, 0.937 [0.925, 0.949] over runs, range 0.023 (docs/tuning.md, "The step size").
+SIGMA_TUNED_START = 0.1
+#: The first step from Table I with the shin remedy (``--preset none``) and in the equal-wall-clock study: the one
+#: every stored study ran (``python -m experiments.tune_study``).
+SIGMA_TABLE_I = 0.3
+
+
+def default_sigma(tuned_start: bool, study: bool = False) -> float:
+    """``--sigma`` when none is given: :data:`SIGMA_TUNED_START` for ``hyqjax tune`` from a tuned set, else
+    :data:`SIGMA_TABLE_I` (a start far from any tuned set, and every study, whose stored runs used it)."""
+    return SIGMA_TUNED_START if tuned_start and not study else SIGMA_TABLE_I
