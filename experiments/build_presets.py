@@ -100,8 +100,13 @@ TARGETS = f"{R}/tune_default_repeats_h200"
 #: targets map (seed 60613) and a confirmation map of four sets on fresh instances (seed 31415).
 TARGETS_LF = f"{R}/tune_default_repeats_leading_foot_h200"
 CONFIRM_LF = f"{TARGETS_LF}/confirm_31415/reach_map.json"
+#: Five default runs from ``clean`` at the first step 0.1 (two H200s), their targets map (seed 27182) and a
+#: confirmation of four of them against ``clean`` on fresh instances on C MuJoCo (seed 90210).
+TARGETS_S01 = f"{R}/tune_default_repeats_clean_sigma01_h200x2"
+CONFIRM_C = f"{TARGETS_S01}/confirm_c_90210"
 #: The start pose of each stored targets map (``experiments/start_pose_check.py``, docs/stepdown.md).
-POSE = {TARGETS: "the earlier hip-line start", TARGETS_LF: "the leading-foot start"}
+POSE = {TARGETS: "the earlier hip-line start", TARGETS_LF: "the leading-foot start",
+        TARGETS_S01: "the leading-foot start"}
 
 
 def targets_figs(variant: str, chosen_on_it: bool = False, root: str = TARGETS) -> list[dict]:
@@ -117,7 +122,8 @@ def targets_figs(variant: str, chosen_on_it: bool = False, root: str = TARGETS) 
             f"{h['instances']} runs per height at {', '.join(f'{100 * x:g}' for x in h['heights'])} cm (no "
             f"training height), {POSE[root]}" + ("; this set was chosen as the best of five runs on this map, so the "
                                                  "figure is optimistic" if chosen_on_it else ""))
-    base = dict(heldout=held, command=t["reach_map_command"].replace("/tmp/tdr/", "out/tdr/"),
+    base = dict(heldout=held, command=t["reach_map_command"].replace("/tmp/tdr/", "out/tdr/").replace("/tmp/s01/",
+                                                                                                     "out/tdr/"),
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10],
                 source=f"{root}/targets.json")
     return [dict(what="clean success up to 26 cm, held-out step-downs", value=round(v["clean"], 3), unit="share",
@@ -154,6 +160,33 @@ def confirm_figs(variant: str) -> list[dict]:
             dict(what=registry.FIGURE_TALL, value=round(tall["completed"], 3),
                  unit="share", interval=[round(x, 3) for x in statistics.wilson_interval(
                      int(round(tall["completed"] * tall["n"])), int(tall["n"]))], **base)]
+
+
+def confirm_c_figs(variant: str, reference: str = "clean") -> list[dict]:
+    """Figures of ``variant`` on the C MuJoCo confirmation :data:`CONFIRM_C` (fresh instances, seed 90210, 15-25
+    cm; no run, study or choice saw them): its clean success pooled over the map with the Wilson interval, and its
+    difference from ``reference`` paired on the same instances (``python -m experiments.paired_map``)."""
+    from hyqjax.studies import statistics
+
+    m = read(f"{CONFIRM_C}/reach_map.json")
+    paired = read(f"{CONFIRM_C}/paired_{reference}.json")["variants"][variant]["clean"]["pooled"]
+    cell = next(c for c in m["cells"] if c["variant"] == variant)
+    hs = ", ".join(f"{100 * p['height']:g}" for p in cell["per_height"])
+    n_h = cell["per_height"][0]["n"]
+    base = dict(heldout=(f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed "
+                         f"{m['provenance']['seed']}, {n_h} runs per height at {hs} cm, the leading-foot start, C "
+                         f"MuJoCo; {cell['diverged']} diverged of {cell['n']:,}"),
+                command="python -m experiments.reach_map " + m["provenance"]["command"][len("hyqjax "):],
+                device=f"{m['device']} (C MuJoCo)", date=m["provenance"]["date"][:10], source=f"{CONFIRM_C}/reach_map.json")
+    k = int(round(paired["variant"] * paired["n"]))
+    return [dict(what="clean success at 15-25 cm, held-out step-downs (C MuJoCo confirmation)",
+                 value=round(paired["variant"], 3), unit="share",
+                 interval=[round(x, 3) for x in statistics.wilson_interval(k, paired["n"])], **base),
+            dict(what=f"clean success minus {reference}'s on the same step-downs (paired)", value=round(paired["d"], 3),
+                 unit="share", interval=[round(x, 3) for x in paired["ci95"]],
+                 **dict(base, command=base["command"] + f"; python -m experiments.paired_map {CONFIRM_C} "
+                                                        f"--reference {reference}",
+                        source=f"{CONFIRM_C}/paired_{reference}.json"))]
 
 
 def bound_file(path: str):
@@ -333,6 +366,24 @@ def build() -> dict[str, dict]:
             + ", ".join(f"{returned[v]['validation_clean']:.3f}" for v in sorted(returned) if v != "run_1")
             + "); no held-out map took part in the choice")),
         confirm_figs("run_1") + targets_figs("run_1", root=TARGETS_LF)
+        + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
+                       prov_of(res, src)["command"])])
+
+    src = f"{TARGETS_S01}/run_2/results.json"
+    crawl_b, reflex_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
+    returned = read(f"{TARGETS_S01}/targets.json")["returned"]
+    chosen = max(sorted(returned), key=lambda v: returned[v]["pooled_clean"])
+    assert chosen == "run_2", f"the highest pooled validation score is {chosen}'s"
+    add("clean_refined", "crawl", "`clean` refined by `hyqjax tune`'s default (CMA-ES on 56 per-leg coordinates, "
+        "first step 0.1, 3 min on one H200, the wide spread); edge probe and depth gate kept",
+        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg),
+        prov_of(res, src, selection=(
+            "the run of the five of `python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 "
+            "--heldout 256 --references clean reach --map-seed 27182 --gpus 2` (seeds 0-4, first step 0.1) with the "
+            f"highest pooled validation score of the tuner itself ({returned['run_2']['pooled_clean']:.3f}; the "
+            "others " + ", ".join(f"{returned[v]['pooled_clean']:.3f}" for v in sorted(returned) if v != "run_2")
+            + "); no held-out map took part in the choice")),
+        targets_figs("run_2", root=TARGETS_S01) + confirm_c_figs("s01_run2")
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])])
 

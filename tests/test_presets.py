@@ -25,9 +25,9 @@ from hyqjax.crawl.params import CrawlParams
 from hyqjax.crawl.scheduled import LEGS, PerLegCrawlParams, at_tick, common_structure
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-NAMES = ("paper", "remedy", "reach", "clean", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach", "tuned_per_leg_cond",
-         "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
-N_CRAWL = 8
+NAMES = ("paper", "remedy", "reach", "clean", "clean_refined", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach",
+         "tuned_per_leg_cond", "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
+N_CRAWL = 9
 
 
 def _leaves_equal(a, b) -> bool:

@@ -12,6 +12,8 @@ STORED = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_
 STORED_LF = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_leading_foot_h200")
 STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_wide_h200")
 STORED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_h200x2")
+STORED_S01 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_sigma01_h200x2")
+CONFIRM_C = os.path.join(STORED_S01, "confirm_c_90210")
 
 
 def cell(name, rates, n=100, completed=None):
@@ -176,6 +178,78 @@ def test_stored_runs_from_clean_return_clean_and_their_targets():
         for k, v in want.legs.items():
             np.testing.assert_allclose(np.asarray(v), np.asarray(got.legs[k]), rtol=1e-6)
     assert abs(s["variants"]["run_1"]["clean"] - s["variants"]["clean"]["clean"]) < 0.001
+
+
+def test_stored_runs_from_clean_at_the_first_step_0_1_meet_every_target_and_give_clean_refined():
+    """The five default runs from ``clean`` at the first step 0.1, judged on the same map as the runs at 0.3 (seed
+    27182): recomputed from the map, all four targets met, 0.937 over runs against ``clean``'s 0.924; run 0 returned
+    the start, the other four a later iterate that beat the start on the pooled validation runs. The preset
+    ``clean_refined`` is run 2's returned set (the highest pooled validation score), and on the C MuJoCo confirmation
+    (seed 90210, no run or choice saw it) the paired comparison recomputed from the stored instances puts it above
+    ``clean`` with the interval's lower end above 0."""
+    from experiments import paired_map
+
+    from hyqjax import presets
+    from hyqjax.studies.tune import tuned
+
+    with open(os.path.join(STORED_S01, "heldout", "reach_map.json")) as f:
+        m = json.load(f)
+    with open(os.path.join(STORED_S01, "targets.json")) as f:
+        stored = json.load(f)
+    assert m["provenance"]["seed"] == 27182
+    s = targets.judge(m["cells"], stored["runs"], stored["references"], seed=27182)
+    assert all(v["ok"] for v in s["targets"].values()) and s["diverged"] == 0
+    assert round(s["over_runs"]["mean"], 3) == 0.937 and s["over_runs"]["range"] <= 0.05
+    assert round(s["variants"]["clean"]["clean"], 3) == 0.924
+    ret = stored["returned"]
+    assert ret["run_0"]["iteration"] == 0 and all(ret[f"run_{i}"]["iteration"] > 0 for i in range(1, 5))
+    assert all(ret[f"run_{i}"]["pooled_clean"] > ret["run_0"]["pooled_clean"] for i in range(1, 5))
+    assert max(ret, key=lambda r: ret[r]["pooled_clean"]) == "run_2"
+    for run in stored["runs"]:
+        with open(os.path.join(STORED_S01, run, "results.json")) as f:
+            assert json.load(f)["config"]["sigma"] == 0.1
+    want = tuned.crawl_params(os.path.join(STORED_S01, "run_2", "results.json"), "cma_es/per_leg")
+    got = presets.load("clean_refined")
+    for k, v in want.legs.items():
+        np.testing.assert_allclose(np.asarray(got.legs[k]), np.asarray(v), rtol=1e-6)
+    with np.load(os.path.join(CONFIRM_C, "reach_instances.npz")) as z:
+        table = {k: z[k] for k in z.files}
+    res = paired_map.compare(table, "clean", max_height=0.26)
+    with open(os.path.join(CONFIRM_C, "paired_clean.json")) as f:
+        assert json.loads(json.dumps(res)) == json.load(f)
+    d = res["variants"]["s01_run2"]["clean"]["pooled"]
+    assert d["n"] == 1536 and d["ci95"][0] > 0 and d["p_mcnemar"] < 0.05
+    assert res["reference_diverged"] == 0 and all(v["diverged"] == 0 for v in res["variants"].values())
+
+
+@pytest.mark.slow
+def test_clean_refined_reproduces_its_stored_confirmation_runs_where_it_and_clean_disagree():
+    """The presets ``clean_refined`` and ``clean`` run again on C MuJoCo on stored confirmation instances where the
+    two disagreed (three that only ``clean_refined`` stepped down cleanly, one that only ``clean`` did) give the
+    stored outcomes, and their progress to float32 rounding: the registry's values are the runs' values."""
+    import jax
+
+    from experiments import reach_map
+    from hyqjax import presets
+    from hyqjax.studies import stepdown
+    from hyqjax.studies import stepdown_outcome as so
+
+    with np.load(os.path.join(CONFIRM_C, "reach_instances.npz")) as z:
+        t = {k: z[k] for k in z.files}
+    iv, ic = np.flatnonzero(t["variant"] == "s01_run2"), np.flatnonzero(t["variant"] == "clean")
+    assert np.array_equal(t["instance"][iv], t["instance"][ic]) and np.array_equal(t["height"][iv], t["height"][ic])
+    a, b = t["out_clean"][iv], t["out_clean"][ic]
+    pick = np.concatenate([np.flatnonzero(a & ~b)[:3], np.flatnonzero(~a & b)[:1]])
+    rows_idx = np.concatenate([iv[pick], ic[pick]])
+    rows = {k: v[rows_idx] for k, v in t.items() if not k.startswith("out_")}
+    params = {"s01_run2": presets.load("clean_refined"), "clean": presets.load("clean")}
+    ro = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl="c", terminate=True))
+    out, _ = ro.run(reach_map.scenario_of(rows, np.arange(len(rows_idx)), params))
+    cols = so.to_columns(jax.block_until_ready(out))
+    np.testing.assert_array_equal(np.asarray(cols["clean"]), t["out_clean"][rows_idx])
+    np.testing.assert_array_equal(np.asarray(cols["completed"]), t["out_completed"][rows_idx])
+    np.testing.assert_allclose(np.asarray(cols["progress"]), t["out_progress"][rows_idx], rtol=1e-5)
+    assert list(np.asarray(cols["clean"])) == [True, True, True, False, False, False, False, True]
 
 
 def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):

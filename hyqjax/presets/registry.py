@@ -242,8 +242,8 @@ FIGURE_CLEAN = "clean success up to 26 cm, held-out step-downs (confirmation map
 FIGURE_TALL = "completed step-downs at 29 cm (confirmation map)"
 
 #: Listing order: the paper's sets, then what beats them.
-ORDER = ("paper", "remedy", "reach", "clean", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach", "tuned_per_leg_cond",
-         "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
+ORDER = ("paper", "remedy", "reach", "clean", "clean_refined", "tuned_shared", "tuned_per_leg", "tuned_per_leg_reach",
+         "tuned_per_leg_cond", "bound_paper", "bound_robust", "bound_robust_8s", "bound_robust_grad")
 
 
 def get(name: str, option: str = "preset") -> Preset:
