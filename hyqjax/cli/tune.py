@@ -82,7 +82,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "spread: friction 0.4-1.0, payload 0-15 kg, start 0-15 cm before the edge)")
     p.add_argument("--preset", default=None,
                    help="start point: a crawl preset of hyqjax.presets (hyqjax presets lists them), or none for "
-                        "Table I with the shin remedy; default: the best measured preset, "
+                        "Table I with the shin remedy; default: the preset the default was measured from, "
                         + ", ".join(sorted(set(names.DEFAULT_PRESETS.values())))
                         + " (a per-leg parameterisation starts from it on every leg; its values of the coordinates "
                           "no parameterisation tunes, such as an edge probe, stay fixed)")

@@ -56,6 +56,9 @@ STUDY_WALL_MINUTES = (1.0, 3.0, 10.0)
 #:   ``reach`` (SNES gains trained on the reach, the edge probe and the depth gate). At 29 cm ``clean`` completes
 #:   0.57-0.59 of the step-downs against ``reach``'s 0.75-0.77, so the reach objective keeps ``reach``.
 #:
+#: ``clean_refined`` (``clean`` refined by one 3-minute run of this default, +0.011 above ``clean`` on fresh
+#: step-downs) is not the default start: the five-run measurements of the default started from ``clean``.
+#:
 #: Coordinates no parameterisation tunes (the edge probe) stay as the preset has them
 #: (``WallClockConfig.start_preset``). A pair not listed starts from Table I with the shin remedy; ``--preset none``
 #: starts there too.
