@@ -222,36 +222,6 @@ def test_stored_runs_from_clean_at_the_first_step_0_1_meet_every_target_and_give
     assert res["reference_diverged"] == 0 and all(v["diverged"] == 0 for v in res["variants"].values())
 
 
-@pytest.mark.slow
-def test_clean_refined_reproduces_its_stored_confirmation_runs_where_it_and_clean_disagree():
-    """The presets ``clean_refined`` and ``clean`` run again on C MuJoCo on stored confirmation instances where the
-    two disagreed (one that only ``clean_refined`` stepped down cleanly, one that only ``clean`` did) give the
-    stored outcomes, and their progress to float32 rounding: the registry's values are the runs' values."""
-    import jax
-
-    from experiments import reach_map
-    from hyqjax import presets
-    from hyqjax.studies import stepdown
-    from hyqjax.studies import stepdown_outcome as so
-
-    with np.load(os.path.join(CONFIRM_C, "reach_instances.npz")) as z:
-        t = {k: z[k] for k in z.files}
-    iv, ic = np.flatnonzero(t["variant"] == "s01_run2"), np.flatnonzero(t["variant"] == "clean")
-    assert np.array_equal(t["instance"][iv], t["instance"][ic]) and np.array_equal(t["height"][iv], t["height"][ic])
-    a, b = t["out_clean"][iv], t["out_clean"][ic]
-    pick = np.concatenate([np.flatnonzero(a & ~b)[:1], np.flatnonzero(~a & b)[:1]])
-    rows_idx = np.concatenate([iv[pick], ic[pick]])
-    rows = {k: v[rows_idx] for k, v in t.items() if not k.startswith("out_")}
-    params = {"s01_run2": presets.load("clean_refined"), "clean": presets.load("clean")}
-    ro = stepdown.make_stepdown_rollout(stepdown.StepdownConfig(duration=24.0, impl="c", terminate=True))
-    out, _ = ro.run(reach_map.scenario_of(rows, np.arange(len(rows_idx)), params))
-    cols = so.to_columns(jax.block_until_ready(out))
-    np.testing.assert_array_equal(np.asarray(cols["clean"]), t["out_clean"][rows_idx])
-    np.testing.assert_array_equal(np.asarray(cols["completed"]), t["out_completed"][rows_idx])
-    np.testing.assert_allclose(np.asarray(cols["progress"]), t["out_progress"][rows_idx], rtol=1e-5)
-    assert list(np.asarray(cols["clean"])) == [True, False, False, True]
-
-
 def test_hyqjax_tune_trains_on_the_wide_spread_and_the_study_on_the_stored_one(tmp_path):
     from experiments import tune_study
 
