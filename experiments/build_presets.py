@@ -162,6 +162,18 @@ def confirm_figs(variant: str) -> list[dict]:
                      int(round(tall["completed"] * tall["n"])), int(tall["n"]))], **base)]
 
 
+def chosen_run(root: str, key: str, label: str, command: tuple[str, str]) -> tuple[str, str]:
+    """The run of a default tuner's repeats under ``root`` with the highest ``key`` of the tuner's own selection
+    (``targets.json``'s ``returned``), and the provenance line saying how it was chosen (``command``: the repeats
+    command and its runs; ``label``: what ``key`` is)."""
+    returned = read(f"{root}/targets.json")["returned"]
+    chosen = max(sorted(returned), key=lambda v: returned[v][key])
+    others = ", ".join(f"{returned[v][key]:.3f}" for v in sorted(returned) if v != chosen)
+    return chosen, (f"the run of the five of `{command[0]}` ({command[1]}) with the highest {label} of the tuner "
+                    f"itself ({returned[chosen][key]:.3f}; the others {others}); no held-out map took part in the "
+                    f"choice")
+
+
 def confirm_c_figs(variant: str, reference: str = "clean") -> list[dict]:
     """Figures of ``variant`` on the C MuJoCo confirmation :data:`CONFIRM_C` (fresh instances, seed 90210, 15-25
     cm; no run, study or choice saw them): its clean success pooled over the map with the Wilson interval, and its
@@ -353,36 +365,25 @@ def build() -> dict[str, dict]:
 
     src = f"{TARGETS_LF}/run_1/results.json"
     crawl_b, reflex_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
-    returned = read(f"{TARGETS_LF}/targets.json")["returned"]
-    chosen = max(sorted(returned), key=lambda v: returned[v]["validation_clean"])
+    chosen, selection = chosen_run(TARGETS_LF, "validation_clean", "validation score", (
+        "python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 --heldout 256", "seeds 0-4"))
     assert chosen == "run_1", f"the highest validation score is {chosen}'s"
     add("clean", "crawl", "the highest clean success measured: `hyqjax tune` (CMA-ES on 56 per-leg coordinates, 3 min "
         "on one H200, the wide spread, the leading-foot start) from `reach`, whose edge probe and depth gate it keeps",
-        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg),
-        prov_of(res, src, selection=(
-            "the run of the five of `python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 "
-            "--heldout 256` (seeds 0-4) with the highest validation score of the tuner itself "
-            f"({returned['run_1']['validation_clean']:.3f}; the others "
-            + ", ".join(f"{returned[v]['validation_clean']:.3f}" for v in sorted(returned) if v != "run_1")
-            + "); no held-out map took part in the choice")),
+        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg), prov_of(res, src, selection=selection),
         confirm_figs("run_1") + targets_figs("run_1", root=TARGETS_LF)
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])])
 
     src = f"{TARGETS_S01}/run_2/results.json"
     crawl_b, reflex_b, per_leg, res = tuned_per_leg(src, "cma_es/per_leg")
-    returned = read(f"{TARGETS_S01}/targets.json")["returned"]
-    chosen = max(sorted(returned), key=lambda v: returned[v]["pooled_clean"])
+    chosen, selection = chosen_run(TARGETS_S01, "pooled_clean", "pooled validation score", (
+        "python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 --heldout 256 --references clean "
+        "reach --map-seed 27182 --gpus 2", "seeds 0-4, first step 0.1"))
     assert chosen == "run_2", f"the highest pooled validation score is {chosen}'s"
     add("clean_refined", "crawl", "`clean` refined by `hyqjax tune`'s default (CMA-ES on 56 per-leg coordinates, "
         "first step 0.1, 3 min on one H200, the wide spread); edge probe and depth gate kept",
-        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg),
-        prov_of(res, src, selection=(
-            "the run of the five of `python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 "
-            "--heldout 256 --references clean reach --map-seed 27182 --gpus 2` (seeds 0-4, first step 0.1) with the "
-            f"highest pooled validation score of the tuner itself ({returned['run_2']['pooled_clean']:.3f}; the "
-            "others " + ", ".join(f"{returned[v]['pooled_clean']:.3f}" for v in sorted(returned) if v != "run_2")
-            + "); no held-out map took part in the choice")),
+        dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg), prov_of(res, src, selection=selection),
         targets_figs("run_2", root=TARGETS_S01) + confirm_c_figs("s01_run2")
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])])
