@@ -104,6 +104,9 @@ CONFIRM_LF = f"{TARGETS_LF}/confirm_31415/reach_map.json"
 #: confirmation of four of them against ``clean`` on fresh instances on C MuJoCo (seed 90210).
 TARGETS_S01 = f"{R}/tune_default_repeats_clean_sigma01_h200x2"
 CONFIRM_C = f"{TARGETS_S01}/confirm_c_90210"
+#: ``clean_refined`` and ``clean`` run again on the confirmation map's instances (seed 31415; two H200s, MuJoCo Warp),
+#: with the instances kept for the paired comparison.
+CONFIRM_S01 = f"{TARGETS_S01}/confirm_31415"
 #: The start pose of each stored targets map (``experiments/start_pose_check.py``, docs/stepdown.md).
 POSE = {TARGETS: "the earlier hip-line start", TARGETS_LF: "the leading-foot start",
         TARGETS_S01: "the leading-foot start"}
@@ -131,14 +134,15 @@ def targets_figs(variant: str, chosen_on_it: bool = False, root: str = TARGETS) 
             dict(what="h90, wide spread", value=round(100 * v["h90"]), unit="cm", interval=None, **base)]
 
 
-def confirm_figs(variant: str) -> list[dict]:
-    """Figures of ``variant`` on the confirmation map :data:`CONFIRM_LF` (fresh instances, seed 31415; the
-    leading-foot start; no part of any tuner or of the choice of the ``clean`` preset saw it): clean success pooled
-    up to 26 cm, the worst clean rate at a height up to 24 cm, clean at the farthest starts (10-15 cm) and h90."""
+def confirm_figs(variant: str, path: str = CONFIRM_LF) -> list[dict]:
+    """Figures of ``variant`` on the confirmation map ``path`` (:data:`CONFIRM_LF`, or its instances run again:
+    fresh instances, seed 31415; the leading-foot start; no part of any tuner or of the choice of the ``clean`` and
+    ``clean_refined`` presets saw it): clean success pooled up to 26 cm, the worst clean rate at a height up to 24
+    cm, clean at the farthest starts (10-15 cm), h90 and completed at 29 cm."""
     from hyqjax.studies import statistics
     from hyqjax.studies.tune.study import targets
 
-    m = read(CONFIRM_LF)
+    m = read(path)
     s = targets.variant_summary(next(c for c in m["cells"] if c["variant"] == variant))
     n = s["per_height"][0]["n"]
     hs = ", ".join(f"{100 * p['height']:g}" for p in s["per_height"])
@@ -146,8 +150,9 @@ def confirm_figs(variant: str) -> list[dict]:
                          f"{m['provenance']['seed']}, {n} runs per height at {hs} cm, the leading-foot start; "
                          f"{s['diverged']} diverged of {s['n']:,}"),
                 command=("python -m experiments.reach_map "
-                         + m["provenance"]["command"][len("hyqjax "):].replace("/root/out/", "out/")),
-                device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=CONFIRM_LF)
+                         + m["provenance"]["command"][len("hyqjax "):].replace("/root/out/", "out/").replace(
+                             "/tmp/m/c31415", "out/confirm")),
+                device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=path)
     w, far = s["worst_low"], s["far_start"]
     tall = next(p for p in s["per_height"] if abs(p["height"] - 0.29) < 1e-9)
     return [dict(what=registry.FIGURE_CLEAN, value=round(s["clean"], 3),
@@ -199,6 +204,18 @@ def confirm_c_figs(variant: str, reference: str = "clean") -> list[dict]:
                  **dict(base, command=base["command"] + f"; python -m experiments.paired_map {CONFIRM_C} "
                                                         f"--reference {reference}",
                         source=f"{CONFIRM_C}/paired_{reference}.json"))]
+
+
+def paired_fig(map_dir: str, variant: str, reference: str, figure: dict) -> dict:
+    """``variant``'s clean success minus ``reference``'s on the same step-downs of the reach map ``map_dir`` up to
+    26 cm (``python -m experiments.paired_map``'s stored result), with the provenance of ``figure`` (one of the
+    map's figures)."""
+    paired = read(f"{map_dir}/paired_{reference}.json")["variants"][variant]["clean"]["pooled"]
+    return dict(what=f"clean success minus {reference}'s on the same step-downs up to 26 cm (paired)",
+                value=round(paired["d"], 3), unit="share", interval=[round(x, 3) for x in paired["ci95"]],
+                heldout=figure["heldout"], command=figure["command"] + f"; python -m experiments.paired_map "
+                                                                         f"{map_dir} --reference {reference}",
+                device=figure["device"], date=figure["date"], source=f"{map_dir}/paired_{reference}.json")
 
 
 def bound_file(path: str):
@@ -381,10 +398,12 @@ def build() -> dict[str, dict]:
         "python -m experiments.tune_default_repeats --impl warp --wall-minutes 3 --heldout 256 --references clean "
         "reach --map-seed 27182 --gpus 2", "seeds 0-4, first step 0.1"))
     assert chosen == "run_2", f"the highest pooled validation score is {chosen}'s"
+    refined_confirm = confirm_figs("clean_refined", f"{CONFIRM_S01}/reach_map.json")
     add("clean_refined", "crawl", "`clean` refined by `hyqjax tune`'s default (CMA-ES on 56 per-leg coordinates, "
         "first step 0.1, 3 min on one H200, the wide spread); edge probe and depth gate kept",
         dict(crawl=crawl_b, reflex=reflex_b, per_leg=per_leg), prov_of(res, src, selection=selection),
-        targets_figs("run_2", root=TARGETS_S01) + confirm_c_figs("s01_run2")
+        refined_confirm + [paired_fig(CONFIRM_S01, "clean_refined", "clean", refined_confirm[0])]
+        + targets_figs("run_2", root=TARGETS_S01) + confirm_c_figs("s01_run2")
         + [heldout_fig(res, "cma_es/per_leg@3min", "clean success, held-out step-downs", src,
                        prov_of(res, src)["command"])])
 

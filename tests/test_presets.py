@@ -317,7 +317,8 @@ def test_stepdown_runs_the_per_leg_preset(tmp_path, capsys):
     assert res["preset"]["values"] == presets.get("tuned_per_leg").values  # what ran, in the results
     assert not res["instances"][0]["diverged"] and res["instances"][0]["progress"] > 0.1
     lines = out.rstrip().splitlines()
-    assert lines[-1].startswith("wall ") and lines[-2].startswith("best measured crawls: --preset clean (92.5% clean up to 26 cm")
+    assert lines[-1].startswith("wall ") and lines[-2].startswith(
+        "best measured crawls: --preset clean_refined (93.5% clean up to 26 cm")
     # ... and its recording renders as any other: one frame per 100 recorded samples of the 10 s run
     from PIL import Image
 
