@@ -47,17 +47,17 @@ def fake_children(monkeypatch):
 
 
 def test_seeds_spread_over_gpus_then_one_comparison(tmp_path, fake_children, capsys):
-    """Seeds 0-3 on two GPUs, one process each with ``--seeds`` of its own (dealt round-robin: 0,2 and 1,3) and
-    ``CUDA_VISIBLE_DEVICES`` 0 and 1; the parent's comparison over all four equals the stored one of the two-GPU
+    """Seeds 0-4 on two GPUs, one process each with ``--seeds`` of its own (dealt round-robin: 0,2,4 and 1,3) and
+    ``CUDA_VISIBLE_DEVICES`` 0 and 1; the parent's comparison over all five equals the stored one of the two-GPU
     study."""
     from experiments import tune_study
 
     started, status = fake_children
     out = tmp_path / "cmp"
     argv = ["--guided-comparison", "--out", str(out), "--impl", "c", "--methods", "guided_es,cma_es,snes",
-            "--dims", "per_leg", "--seeds", "0,1,2,3", "--wall-minutes", "1", "3", "--heldout", "512", "--gpus", "2"]
+            "--dims", "per_leg", "--seeds", "0,1,2,3,4", "--wall-minutes", "1", "3", "--heldout", "512", "--gpus", "2"]
     assert tune_study.main(argv) == 0, capsys.readouterr().err
-    assert sorted((g, s) for g, s, _ in started) == [("0", [0, 2]), ("1", [1, 3])]
+    assert sorted((g, s) for g, s, _ in started) == [("0", [0, 2, 4]), ("1", [1, 3])]
     assert all("--gpus" not in cmd for _, _, cmd in started)
     with open(os.path.join(STORED, "comparison.json")) as f:
         want = json.load(f)
