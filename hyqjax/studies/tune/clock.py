@@ -1,7 +1,7 @@
 """The clock a tuning method runs against under a wall-clock budget (:mod:`.search`), and the compile charges.
 
-:class:`Clock` counts everything a stand-alone run would pay: wall seconds since it started plus the compile time
-charged so far. The compile of each program a method uses is measured once per process (:class:`Charges`: JAX's
+:class:`Clock` counts everything a stand-alone run would pay on a machine that has run MuJoCo Warp before: wall
+seconds since it started, less MuJoCo Warp's kernel build in them, plus the compile time charged so far. The compile of each program a method uses is measured once per process (:class:`Charges`: JAX's
 compile events added up during the program's first use) and *charged* to every method that uses the program, so
 that a method run after another does not profit from its compile. Physics steps are counted next to the seconds
 (tangents of forward-mode derivatives included).
@@ -14,37 +14,58 @@ from collections.abc import Callable
 
 import jax
 
+from hyqjax.sim import warp_kernels
+
 
 class Clock:
-    """Wall seconds since ``start()`` plus the compile time charged so far (:class:`Charges`)."""
+    """Wall seconds since the clock started, less MuJoCo Warp's kernel build in them, plus the compile time charged
+    so far (:class:`Charges`).
 
-    def __init__(self):
-        self.t0 = time.perf_counter()
+    The kernel build (:mod:`hyqjax.sim.warp_kernels`: Warp compiling its kernels the first time a module is
+    launched on a machine, or loading them from its cache) is a cost of the machine, paid once, not of a method or
+    of a budget: counted, a method that runs first on a fresh machine loses up to a minute of its budget to it (56 s
+    on an H200) and a method after it nothing. :meth:`kernel_build` counts it apart, and the command's wall line names
+    it. ``timer`` and ``kernel_seconds`` (the process's kernel-build seconds so far) are the sources of time."""
+
+    def __init__(self, timer: Callable[[], float] = time.perf_counter,
+                 kernel_seconds: Callable[[], float] = warp_kernels.seconds):
+        self._timer, self._kernels = timer, kernel_seconds
+        self.t0 = timer()
         self.charged = 0.0
         self.physics_steps = 0
+        self.kernels_before = 0.0  # kernel-build seconds left out in earlier segments of a resumed run
+        self._k0 = kernel_seconds()
 
     def charge(self, seconds: float) -> None:
         self.charged += float(seconds)
 
+    def kernel_build(self) -> float:
+        """Seconds of MuJoCo Warp's kernel build left out of :meth:`elapsed` (all segments of a resumed run)."""
+        return self.kernels_before + self._kernels() - self._k0
+
     def elapsed(self) -> float:
-        return time.perf_counter() - self.t0 + self.charged
+        return self._timer() - self.t0 - (self._kernels() - self._k0) + self.charged
 
     def state(self) -> dict:
-        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=int(self.physics_steps))
+        return dict(elapsed=self.elapsed(), charged=self.charged, physics_steps=int(self.physics_steps),
+                    kernel_build=self.kernel_build())
 
     def restore(self, state: dict) -> None:
         """Go on from a stored :meth:`state` (:mod:`.resume`): :meth:`elapsed` continues from its seconds."""
         self.charged, self.physics_steps = float(state["charged"]), int(state["physics_steps"])
-        self.t0 = time.perf_counter() - (float(state["elapsed"]) - self.charged)
+        self.kernels_before, self._k0 = float(state.get("kernel_build", 0.0)), self._kernels()
+        self.t0 = self._timer() - (float(state["elapsed"]) - self.charged)
 
     @contextlib.contextmanager
     def paused(self):
-        """Time inside the block is not counted (a resumed run compiling again what it paid for once)."""
-        t = time.perf_counter()
+        """Time inside the block is not counted (a resumed run compiling again what it paid for once), nor is a
+        kernel build in it counted as one."""
+        t, k = self._timer(), self._kernels()
         try:
             yield
         finally:
-            self.t0 += time.perf_counter() - t
+            self.t0 += self._timer() - t
+            self._k0 += self._kernels() - k
 
 
 #: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.

@@ -132,6 +132,7 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
                     wall_s=float(sum(r["wall_s_run"] for r in selection.log))),
                 final_reevaluation=final,
                 charged_s=clock.charged, wall_s=wall_before + time.perf_counter() - t_wall, elapsed_s=clock.elapsed(),
+                kernel_build_s=clock.kernel_build(),
                 segments=segment,
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
                 params=describe(param, np.asarray(points[-1]["theta"])))
