@@ -101,8 +101,8 @@ def rows(runs: list[dict]) -> list[dict]:
     out = []
     for r, names in zip(runs, member_names(runs)):
         res = r["res"]
+        target = res["heldout"]["target"]
         for method, c in res["comparison"].items():
-            target = res["heldout"]["target"]
             best, mean = target[method], target[f"{method}_mean"]
             out.append(dict(
                 member=names[method], method=method, seed=int(res["config"]["seed"]), dir=r["dir"],

@@ -196,22 +196,19 @@ def confirm_c_figs(variant: str, reference: str = "clean") -> list[dict]:
                 command="python -m experiments.reach_map " + m["provenance"]["command"][len("hyqjax "):],
                 device=f"{m['device']} (C MuJoCo)", date=m["provenance"]["date"][:10], source=f"{CONFIRM_C}/reach_map.json")
     k = int(round(paired["variant"] * paired["n"]))
-    return [dict(what="clean success at 15-25 cm, held-out step-downs (C MuJoCo confirmation)",
+    first = dict(what="clean success at 15-25 cm, held-out step-downs (C MuJoCo confirmation)",
                  value=round(paired["variant"], 3), unit="share",
-                 interval=[round(x, 3) for x in statistics.wilson_interval(k, paired["n"])], **base),
-            dict(what=f"clean success minus {reference}'s on the same step-downs (paired)", value=round(paired["d"], 3),
-                 unit="share", interval=[round(x, 3) for x in paired["ci95"]],
-                 **dict(base, command=base["command"] + f"; python -m experiments.paired_map {CONFIRM_C} "
-                                                        f"--reference {reference}",
-                        source=f"{CONFIRM_C}/paired_{reference}.json"))]
+                 interval=[round(x, 3) for x in statistics.wilson_interval(k, paired["n"])], **base)
+    return [first, paired_fig(CONFIRM_C, variant, reference, first,
+                              what=f"clean success minus {reference}'s on the same step-downs (paired)")]
 
 
-def paired_fig(map_dir: str, variant: str, reference: str, figure: dict) -> dict:
+def paired_fig(map_dir: str, variant: str, reference: str, figure: dict, what: str | None = None) -> dict:
     """``variant``'s clean success minus ``reference``'s on the same step-downs of the reach map ``map_dir`` up to
     26 cm (``python -m experiments.paired_map``'s stored result), with the provenance of ``figure`` (one of the
-    map's figures)."""
+    map's figures); ``what`` names it (default: the step-downs up to 26 cm)."""
     paired = read(f"{map_dir}/paired_{reference}.json")["variants"][variant]["clean"]["pooled"]
-    return dict(what=f"clean success minus {reference}'s on the same step-downs up to 26 cm (paired)",
+    return dict(what=what or f"clean success minus {reference}'s on the same step-downs up to 26 cm (paired)",
                 value=round(paired["d"], 3), unit="share", interval=[round(x, 3) for x in paired["ci95"]],
                 heldout=figure["heldout"], command=figure["command"] + f"; python -m experiments.paired_map "
                                                                          f"{map_dir} --reference {reference}",

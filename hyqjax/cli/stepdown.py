@@ -171,7 +171,8 @@ def _preset_params(args):
 def preset_line(preset: str | None) -> str | None:
     """The summary's last line: the best measured crawl presets beside ``preset``, with their registry figures.
     :data:`CLEAN_PRESET` points to ``reach`` for taller steps (completed at 29 cm), ``reach`` to
-    :data:`CLEAN_PRESET` for clean success up to 26 cm, any other preset (or ``--params``) to both. None when a figure is missing from the registry."""
+    :data:`CLEAN_PRESET` for clean success up to 26 cm, any other preset (or ``--params``) to both. None when a
+    figure is missing from the registry."""
     from hyqjax import presets as registry
 
     def fig(name, what):

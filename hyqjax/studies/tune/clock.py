@@ -1,9 +1,10 @@
 """The clock a tuning method runs against under a wall-clock budget (:mod:`.search`), and the compile charges.
 
 :class:`Clock` counts everything a stand-alone run would pay on a machine that has run MuJoCo Warp before: wall
-seconds since it started, less MuJoCo Warp's kernel build in them, plus the compile time charged so far. The compile of each program a method uses is measured once per process (:class:`Charges`: JAX's
-compile events added up during the program's first use) and *charged* to every method that uses the program, so
-that a method run after another does not profit from its compile. Physics steps are counted next to the seconds
+seconds since it started, less MuJoCo Warp's kernel build in them, plus the compile time charged so far. The
+compile of each program a method uses is measured once per process (:class:`Charges`: JAX's compile events added
+up during the program's first use) and *charged* to every method that uses the program, so that a method run
+after another does not profit from its compile. Physics steps are counted next to the seconds
 (tangents of forward-mode derivatives included).
 """
 from __future__ import annotations

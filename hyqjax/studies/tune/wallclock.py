@@ -184,7 +184,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         log(f"{run_key(m, d)}: done, {r['physics_steps']:,} physics steps, {len(r['log'])} iterations, "
             f"{r['charged_s']:.1f} s charged compile"
             + (f", MuJoCo Warp's kernel build {r['kernel_build_s']:.1f} s (not in the budget)"
-               if r.get("kernel_build_s", 0.0) >= 0.05 else ""))
+               if r["kernel_build_s"] >= 0.05 else ""))
     res["charges"].update(charges.seconds)
     save()
     # ---- held-out
