@@ -2,7 +2,7 @@
 hash, no timing by the hour of a machine), every docs page opening with a summary of at most 10 lines, every relative
 link and anchor resolving, the README's presets table naming exactly the registry's presets, each headline result
 naming a preset and a command of the README, and the README's library example computing a derivative that central
-finite differences confirm. (The commands of the code blocks are parsed by tests/test_docs.py.)"""
+finite differences confirm, and CI installing and testing exactly as the README says. (The commands of the code blocks are parsed by tests/test_docs.py.)"""
 from __future__ import annotations
 
 import glob
@@ -160,3 +160,19 @@ def test_readme_library_example_runs_and_its_derivative_is_a_scalar():
     assert not np.any(np.asarray(outcome.clean) & ~np.asarray(outcome.completed))  # clean implies completed
     assert np.any(np.asarray(outcome.completed)[:2])  # 16 cm with the reflex: 99.9% of 1,024 runs
     assert ns["dz_dk"].shape == () and ns["dz_dk"].dtype == jax.numpy.float32
+
+
+def test_ci_installs_and_tests_exactly_as_the_readme_says():
+    """``.ci/run`` is a new user: it creates the README's virtual environment, installs with the README's pip command
+    and nothing else (no pip upgrade, no extra package), and runs the README's test command."""
+    readme = _read(README)
+    blocks = re.findall(r"```bash\n(.*?)```", readme, re.S)
+    install, tests = blocks[0].strip(), blocks[1].strip()
+    ci = [line.strip() for line in _read(os.path.join(ROOT, ".ci", "run")).split("\n")
+          if line.strip() and not line.lstrip().startswith("#")]
+    steps = [s.strip() for s in install.split("&&")]
+    assert steps[:3] == ["python3 -m venv .venv", ". .venv/bin/activate", 'pip install -e ".[test]"'], steps
+    assert steps[0] in ci and steps[1] in ci
+    pips = [line for line in ci if re.search(r"\bpip install\b", line)]
+    assert pips == ['python -m pip install -q -e ".[test]"'], pips
+    assert ci.count(tests) == 1, tests  # the README's test command, as it is written there
