@@ -139,7 +139,9 @@ def test_first_hour_benchmark_at_its_tiny_size(tmp_path):
     for r in (fresh, warm):
         assert r["rc"] == 0 and r["printed_wall_s"] is not None
         assert r["printed_wall_s"] <= r["process_wall_s"] + 0.05 and r["process_wall_s"] - r["printed_wall_s"] < 1.0
-        assert sum(r["phases"].values()) <= r["printed_wall_s"] + 0.05
+        # the phases add up to no more than the wall: the wall is printed to 0.1 s (off by up to 0.05) and each
+        # phase kept to 0.01 s (up to 0.005 each; five phases once summed to 6.65 against a printed 6.6)
+        assert sum(r["phases"].values()) <= r["printed_wall_s"] + 0.05 + 0.005 * len(r["phases"])
     # The fresh run compiled what the warm one loaded from the cache the fresh one filled.
     assert os.listdir(tmp_path / "caches" / "jax")
     assert warm["phases"]["compile"] < fresh["phases"]["compile"]
