@@ -2,7 +2,8 @@
 hash, no timing by the hour of a machine), every docs page opening with a summary of at most 10 lines, every relative
 link and anchor resolving, the README's presets table naming exactly the registry's presets, each headline result
 naming a preset and a command of the README, and the README's library example computing a derivative that central
-finite differences confirm, and CI installing and testing exactly as the README says. (The commands of the code blocks are parsed by tests/test_docs.py.)"""
+finite differences confirm, and CI installing and testing exactly as the README says. (The commands of the code
+blocks are parsed by tests/test_docs.py.)"""
 from __future__ import annotations
 
 import glob
