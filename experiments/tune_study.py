@@ -337,14 +337,10 @@ def _run_comparison(args) -> int:
     return _write_comparison(args, out)
 
 
-def _write_comparison(args, out: str) -> int:
-    """DIR/comparison.json and comparison.md over every finished seed directory in ``out`` (atomic writes: the
-    processes of other seeds may write them too)."""
+def finished_seeds(out: str) -> dict:
+    """Seed -> ``results.json`` of every finished study (``complete``) in the seed directories of ``out``."""
     import glob
     import json
-
-    from hyqjax.io.atomic import atomic_write, write_json
-    from hyqjax.studies.tune.study import guided as guided_report
 
     results = {}
     for path in sorted(glob.glob(os.path.join(out, "seed*", "results.json"))):
@@ -352,6 +348,16 @@ def _write_comparison(args, out: str) -> int:
             res = json.load(f)
         if res.get("complete"):
             results[int(res["config"]["seed"])] = res
+    return results
+
+
+def _write_comparison(args, out: str) -> int:
+    """DIR/comparison.json and comparison.md over every finished seed directory in ``out`` (atomic writes: the
+    processes of other seeds may write them too)."""
+    from hyqjax.io.atomic import atomic_write, write_json
+    from hyqjax.studies.tune.study import guided as guided_report
+
+    results = finished_seeds(out)
     comp = guided_report.compare(results, args.comparison[0][2].wall_minutes[-1])
     path = os.path.join(out, "comparison.json")
     write_json(path, comp)

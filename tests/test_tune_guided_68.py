@@ -12,10 +12,10 @@ GUIDED, CMA, SNES = "guided_es/per_leg_cond", "cma_es/per_leg_cond", "snes/per_l
 
 @pytest.fixture(scope="module")
 def results():
-    out = {}
-    for s in range(4):
-        with open(os.path.join(STORED, f"seed{s}", "results.json")) as f:
-            out[s] = json.load(f)
+    from experiments.tune_study import finished_seeds
+
+    out = finished_seeds(STORED)
+    assert sorted(out) == [0, 1, 2, 3]
     return out
 
 
