@@ -12,9 +12,9 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
    left (exit status 75: the same command goes on). ``--segment-minutes M`` runs budgets longer than one sitting
    (10 or 30 minutes inside calls or jobs of a few minutes): each run stops on purpose after M minutes (or the
    time left of ``--max-minutes``) with its state stored (the tuner's ``--segment-minutes``), and the next call
-   goes on from there. ``--gpus K`` runs the first run alone (it builds MuJoCo
-   Warp's kernels into the cache), then the others K at a time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``),
-   so that every run still has one whole GPU for its wall-clock budget; the held-out map then runs on every device.
+   goes on from there. ``--gpus K`` runs K at a time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``), so
+   that every run still has one whole GPU for its wall-clock budget (on a fresh machine each builds MuJoCo Warp's
+   kernels, which its clock leaves out of its budget); the held-out map then runs on every device.
 2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
    same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
    seed and heights the tuner never saw), in ``DIR/heldout``.
@@ -73,9 +73,9 @@ def parse(argv):
                     help="stop each run after this many minutes of it (at most the time left of --max-minutes), its "
                          "state stored, exit status 75 once the running ones stop: budgets longer than one call")
     ap.add_argument("--gpus", type=int, default=1,
-                    help="runs at once, each on a GPU of its own (CUDA_VISIBLE_DEVICES), after the first run alone "
-                         "(it builds MuJoCo Warp's kernels into the cache the others read); the held-out map then "
-                         "runs on every device. Default 1: one run after another on the default device")
+                    help="runs at once, each on a GPU of its own (CUDA_VISIBLE_DEVICES; each run's clock leaves "
+                         "MuJoCo Warp's kernel build out of its budget); the held-out map then runs on every device. "
+                         "Default 1: one run after another on the default device")
     args = ap.parse_args(argv)
     if not args.seeds or len(set(args.seeds)) != len(args.seeds) or min(args.seeds) < 0:
         raise ValueError(f"--seeds {args.seeds}: distinct non-negative integers, at least one")
@@ -203,8 +203,8 @@ def _launch(args, seed: int, env: dict | None = None, segment: float | None = No
 
 
 def _run_all(args, t0: float, budget: float) -> int:
-    """Every run not complete yet: one after another (``--gpus 1``), or the first alone and the others
-    ``--gpus`` at a time, each on a GPU of its own. A run is launched only when it can finish within
+    """Every run not complete yet: one after another (``--gpus 1``), or ``--gpus`` at a time, each on a GPU of its
+    own. A run is launched only when it can finish within
     ``--max-minutes`` (else exit status 75 once the running ones end); with ``--segment-minutes`` a run is launched
     when a segment of at least :data:`MIN_SEGMENT_MINUTES` fits, and one that stops with its state stored (exit
     status 75) is left for the next call. A failed run ends the driver with its status."""
@@ -248,11 +248,7 @@ def _run_all(args, t0: float, budget: float) -> int:
         return failed(seed, rc) if rc != 0 or not complete(run_dir(args, seed)) else 0
 
     todo = [s for s in args.seeds if not complete(run_dir(args, s))]
-    if args.gpus == 1:
-        serial = todo
-    else:  # the first run alone builds the kernels, unless an earlier run (finished or stopped) started already
-        serial = [] if any(complete(run_dir(args, s)) or os.path.exists(os.path.join(run_dir(args, s), "run.log"))
-                           for s in args.seeds) else todo[:1]
+    serial = todo if args.gpus == 1 else []
     for seed in serial:
         if not fits():
             return stop()
