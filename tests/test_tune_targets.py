@@ -292,9 +292,10 @@ def test_repeats_driver_stops_before_a_run_that_cannot_finish_and_keeps_finished
 
 
 def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys, monkeypatch):
-    """``--gpus 2``: the first run alone (through ``subprocess.call``, building the kernels), then the other four two
-    at a time, each with a GPU of its own (``CUDA_VISIBLE_DEVICES`` 0 or 1, never two runs on one GPU at once), and
-    the held-out map on both GPUs; a failed run stops new launches and ends the driver with its status."""
+    """``--gpus 2``: the five runs two at a time from the first (no run alone: each run's clock leaves MuJoCo Warp's
+    kernel build out of its budget), each with a GPU of its own (``CUDA_VISIBLE_DEVICES`` 0 or 1, never two runs on
+    one GPU at once), and the held-out map on both GPUs; a failed run stops new launches and ends the driver with its
+    status."""
     from experiments import reach_map
     from experiments import tune_default_repeats as tdr
 
@@ -339,9 +340,10 @@ def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys,
     fail_seed = None
     argv = ["--out", str(tmp_path / "a"), "--wall-minutes", "3", "--gpus", "2"]
     assert tdr.main(argv) == 9  # the map's status: every run finished, then the map ran
-    assert serial == ["0"]
+    assert serial == []
     starts = [e for e in events if e[0] == "start"]
-    assert [e[1] for e in starts] == ["1", "2", "3", "4"] and {e[2] for e in starts} == {"0", "1"}
+    assert [e[1] for e in starts] == ["0", "1", "2", "3", "4"] and {e[2] for e in starts} == {"0", "1"}
+    assert [sorted(k for k, v in e[3].items() if v) for e in starts[:2]] == [["0"], ["0", "1"]]  # 0 and 1 at once
     assert max(sum(v is not None for v in e[3].values()) for e in starts) == 2
     assert maps and maps[0][-2:] == ["--devices", "all"]
     assert all(tdr.complete(str(tmp_path / "a" / f"run_{s}")) for s in range(5))
@@ -350,13 +352,12 @@ def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys,
     serial.clear()
     fail_seed = "1"
     assert tdr.main(["--out", str(tmp_path / "b"), "--wall-minutes", "3", "--gpus", "2"]) == 3
-    assert [e[1] for e in events] == ["1", "2"] and "run 1 ended with exit status 3" in capsys.readouterr().err
-    # a finished run built the kernels already: the rest start in parallel at once
+    assert [e[1] for e in events] == ["0", "1"] and "run 1 ended with exit status 3" in capsys.readouterr().err
+    # the same command again: the finished run is kept, the failed one and the rest run
     events.clear()
-    serial.clear()
     fail_seed = None
     assert tdr.main(["--out", str(tmp_path / "b"), "--wall-minutes", "3", "--gpus", "2"]) == 9
-    assert serial == [] and [e[1] for e in events] == ["1", "3", "4"]
+    assert serial == [] and [e[1] for e in events] == ["1", "2", "3", "4"]
     assert tdr.main(["--out", str(tmp_path / "c"), "--gpus", "0"]) == 2
 
 
@@ -401,28 +402,33 @@ def test_repeats_driver_runs_long_budgets_in_segments(tmp_path, capsys, monkeypa
     assert tdr.main(one) == 9 and maps  # both finished: the held-out map ran
     assert [invocations[str(tmp_path / "one" / f"run_{s}")] for s in (0, 1)] == [[8.0, 8.0], [8.0, 8.0]]
     assert "1 run(s) to go" in capsys.readouterr().out
-    # two GPUs: the first run's second segment goes on in parallel at once; the others stop and finish next call
+    # two GPUs, three runs: runs 0 and 1 stop after their first segments and run 2 after its first on the GPU
+    # freed; the next call finishes all three (no subprocess.call: no run alone)
     two = ["--out", str(tmp_path / "two"), "--seeds", "0", "1", "2", "--wall-minutes", "30", "--segment-minutes", "8",
            "--gpus", "2"]
     maps.clear()
+    monkeypatch.setattr(tdr.subprocess, "call", None)
     assert tdr.main(two) == 75 and not maps
-    assert tdr.complete(str(tmp_path / "two" / "run_0")) and not tdr.complete(str(tmp_path / "two" / "run_1"))
+    assert not any(tdr.complete(str(tmp_path / "two" / f"run_{s}")) for s in range(3))
     assert tdr.main(two) == 9 and maps
-    # a first run stopped in its first segment: the next call runs every run in parallel, none alone
-    serial, now = [], [1000.0]
+    assert [len(invocations[str(tmp_path / "two" / f"run_{s}")]) for s in range(3)] == [2, 2, 2]
+    # with the time of one segment left (--max-minutes), the first call stops both runs after one segment each,
+    # launched at once, and launches nothing more
+    now = [1000.0]
     monkeypatch.setattr(tdr.time, "time", lambda: now[0])
+    launched = []
 
-    def alone(cmd, **kw):  # a segment of 8 minutes on the clock
-        serial.append(cmd)
-        now[0] += 8 * 60
-        return tune(cmd)
+    class Timed(Proc):
+        def __init__(self, cmd, env=None, **kw):
+            launched.append(env["CUDA_VISIBLE_DEVICES"])
+            super().__init__(cmd, env)
+            now[0] += 4 * 60  # the two segments overlap: 8 minutes pass in all
 
-    monkeypatch.setattr(tdr.subprocess, "call", alone)
+    monkeypatch.setattr(tdr.subprocess, "Popen", Timed)
     three = ["--out", str(tmp_path / "three"), "--seeds", "0", "1", "--wall-minutes", "30", "--segment-minutes", "8",
              "--gpus", "2", "--max-minutes", "8.6"]
-    assert tdr.main(three) == 75 and len(serial) == 1  # run 0 alone, stopped; no time left for another segment
-    assert tdr.main(three) == 75 and len(serial) == 1  # both on GPUs at once: run 0 finishes, run 1 stops
-    assert tdr.complete(str(tmp_path / "three" / "run_0"))
+    assert tdr.main(three) == 75 and launched == ["0", "1"]  # both stopped; no time left for another segment
+    assert tdr.main(three) == 9 and launched == ["0", "1", "0", "1"]  # both finish in the next call
     monkeypatch.setattr(tdr.subprocess, "call", lambda cmd, **kw: tune(cmd))
     # the segment is cut to the time left of --max-minutes; too little left for a segment: nothing launched
     invocations.clear()
