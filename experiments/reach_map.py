@@ -391,8 +391,9 @@ def main(argv=None) -> int:
     ap.add_argument("--tuned", default=DEFAULT_TUNED, help="a tuning study's results.json (variant 'tuned')")
     ap.add_argument("--tuned-method", default="gradient", help="which of its methods (e.g. gradient)")
     ap.add_argument("--tuned-run", action="append", default=[], metavar="NAME:PATH:METHOD[:field=value,...]",
-                    help="a further variant NAME: METHOD's parameters from the tuning results.json PATH, optionally "
-                         "with CrawlParams.make settings of fields it did not tune (repeatable)")
+                    help="a further variant NAME: METHOD's parameters from the tuning results.json PATH (METHOD@10min: "
+                         "the iterate it held at its 10-minute checkpoint), optionally with CrawlParams.make settings "
+                         "of fields it did not tune (repeatable)")
     ap.add_argument("--seed", type=int, default=4242)
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run")
     ap.add_argument("--chunk", type=int, default=0,

@@ -18,9 +18,14 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
 2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
    same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
    seed and heights the tuner never saw), in ``DIR/heldout``.
+   ``--runs-only`` stops here (exit 0 once every run is finished): runs made in several directories (or on several
+   machines) are then judged together from one directory holding them all.
+   A run that recorded checkpoints before the end of its budget (the tuner's default ``--wall-minutes 3 10 30``;
+   a driver given ``--wall-minutes`` passes only that one budget) also puts the iterate it held at each of them
+   on the map, as ``run_S@3min`` and ``run_S@10min``.
 3. ``targets``: per set, clean success pooled up to 26 cm, the worst clean rate at a height up to 24 cm, h90 and
    clean success at the farthest starts (10-15 cm), and the iterate each run returned; over the runs, the mean with its 95% t-interval, the range, and the four targets (``DIR/targets.json``,
-   ``DIR/targets.md``). ``--judge-only`` runs nothing and judges what ``DIR`` holds again.
+   ``DIR/targets.md``); with checkpoints, the same mean and interval per budget (3, 10, 30 minutes). ``--judge-only`` runs nothing and judges what ``DIR`` holds again.
 """
 from __future__ import annotations
 
@@ -65,6 +70,8 @@ def parse(argv):
     ap.add_argument("--map-seed", type=int, default=None,
                     help=f"the held-out map's draw seed (default {targets.HELDOUT['seed']}); a new one gives instances "
                          "that no earlier study or preset choice saw")
+    ap.add_argument("--runs-only", action="store_true",
+                    help="run the tuner runs and stop (exit 0 once all are finished): no held-out map, no judgement")
     ap.add_argument("--judge-only", action="store_true",
                     help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
     ap.add_argument("--max-minutes", type=float, default=None,
@@ -87,6 +94,8 @@ def parse(argv):
         raise ValueError(f"--instances {args.instances}: must be in [1, 100000]")
     if args.max_minutes is not None and args.max_minutes <= 0:
         raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
+    if args.runs_only and args.judge_only:
+        raise ValueError("--runs-only and --judge-only: give one (the first runs, the second judges)")
     if args.segment_minutes is not None and not MIN_SEGMENT_MINUTES <= args.segment_minutes <= 600:
         raise ValueError(f"--segment-minutes {args.segment_minutes}: must be in [{MIN_SEGMENT_MINUTES:g}, 600]")
     if args.map_seed is not None and not 0 <= args.map_seed < 2**31:
@@ -144,12 +153,22 @@ def main(argv=None) -> int:
     rc = 0 if args.judge_only else _run_all(args, t0, budget)
     if rc:
         return rc
+    if args.runs_only:
+        print(f"tune_default_repeats: every run is finished under {args.out} (--runs-only: no held-out map)")
+        return 0
     from experiments import reach_map
 
     runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
+    checkpoints = {name: earlier_checkpoints(path) for name, path in runs.items()}
+    budgets = None
+    if any(checkpoints.values()):
+        budgets = {budget: list(runs)}
+        for name, minutes in checkpoints.items():
+            for m in minutes:
+                budgets.setdefault(m, []).append(targets.checkpoint_variant(name, m))
     heldout = os.path.join(args.out, "heldout")
     rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances,
-                                          args.map_seed)
+                                          args.map_seed, checkpoints=checkpoints)
     if args.gpus > 1:
         rm_argv += ["--devices", "all"]
     if not args.judge_only:
@@ -169,7 +188,8 @@ def main(argv=None) -> int:
     try:
         summary = targets.judge(cells, list(runs),
                                 list(args.references) + [t.split(":", 1)[0] for t in args.extra_run],
-                                seed=(heldout_map.get("provenance") or {}).get("seed", args.map_seed))
+                                seed=(heldout_map.get("provenance") or {}).get("seed", args.map_seed),
+                                budgets=budgets)
     except ValueError as e:
         print(f"tune_default_repeats: {heldout}/reach_map.json: {e}", file=sys.stderr)
         return 2
@@ -290,6 +310,18 @@ def _run_all(args, t0: float, budget: float) -> int:
             if failure and not status:
                 status = failure
     return status or (stop() if paused else 0)
+
+
+def earlier_checkpoints(path: str) -> list[float]:
+    """The checkpoints (minutes) before the end of its budget at which the run at ``path`` (its ``results.json``)
+    recorded the iterate it held; none for a run that cannot be read (the judgement names it)."""
+    from hyqjax.studies.tune import tuned
+
+    try:
+        res = tuned.read(path)
+        return tuned.checkpoint_minutes(res, tuned.pick_run(res, None, path))[:-1]
+    except ValueError:
+        return []
 
 
 def _read_targets(d: str) -> dict:

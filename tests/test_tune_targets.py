@@ -335,7 +335,7 @@ def test_repeats_driver_spreads_runs_over_gpus_one_run_per_gpu(tmp_path, capsys,
     monkeypatch.setattr(tdr.subprocess, "Popen", Proc)
     monkeypatch.setattr(tdr.time, "sleep", lambda s: None)
     monkeypatch.setattr(reach_map, "main", lambda argv: maps.append(argv) or 9)
-    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a: ["--variants", *runs])
+    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a, **kw: ["--variants", *runs])
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
     fail_seed = None
     argv = ["--out", str(tmp_path / "a"), "--wall-minutes", "3", "--gpus", "2"]
@@ -394,7 +394,7 @@ def test_repeats_driver_runs_long_budgets_in_segments(tmp_path, capsys, monkeypa
     monkeypatch.setattr(tdr.subprocess, "Popen", Proc)
     monkeypatch.setattr(tdr.time, "sleep", lambda s: None)
     monkeypatch.setattr(reach_map, "main", lambda argv: maps.append(argv) or 9)
-    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a: ["--variants", *runs])
+    monkeypatch.setattr(targets, "reach_map_arguments", lambda runs, *a, **kw: ["--variants", *runs])
     monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
     one = ["--out", str(tmp_path / "one"), "--seeds", "0", "1", "--wall-minutes", "30", "--segment-minutes", "8"]
     assert tdr.main(one) == 75 and not maps  # run 0 stopped after its segment
@@ -478,3 +478,101 @@ def test_clean_refined_on_the_confirmation_map_runs_its_instances_and_beats_clea
     paired_fig = figs["clean success minus clean's on the same step-downs up to 26 cm (paired)"]
     assert paired_fig["value"] == round(d["d"], 3) and paired_fig["interval"] == [round(x, 3) for x in d["ci95"]]
     assert stepdown.CLEAN_PRESET == "clean_refined"
+
+
+def _with_checkpoints(tmp_path, name, theta_3, theta_end=None):
+    """A stored default run (run 2 of the first-step-0.1 study) rewritten as a run that recorded checkpoints at 3
+    and 10 minutes (``theta_3``, then its returned ``theta``) and, with ``theta_end``, returned that instead."""
+    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
+        res = json.load(f)
+    run = res["runs"]["cma_es/per_leg"]
+    run["points"] = [dict(run["points"][0], seconds=180.0, theta=list(theta_3)),
+                     dict(run["points"][0], seconds=600.0, theta=run["theta"])]
+    if theta_end is not None:
+        run["theta"] = list(theta_end)
+    d = tmp_path / name
+    d.mkdir()
+    (d / "results.json").write_text(json.dumps(res))
+    return str(d / "results.json"), np.asarray(run["theta"] if theta_end is None else theta_end)
+
+
+def test_a_run_named_at_a_checkpoint_gives_the_iterate_it_held_there(tmp_path):
+    """``cma_es/per_leg@3min``: the iterate the run recorded at its 3-minute checkpoint, mapped like a returned set
+    (the same crawl as a run that returned that iterate); the last checkpoint's iterate; a checkpoint the run did
+    not record, or not a number of minutes, refused in one line naming what it has."""
+    import jax
+
+    from hyqjax.studies.tune import tuned
+
+    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
+        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
+    early = theta - 0.1
+    path, _ = _with_checkpoints(tmp_path, "a", early)
+    same, _ = _with_checkpoints(tmp_path, "b", early, theta_end=early)  # a run that returned the 3-minute iterate
+
+    def leaves(p):
+        return [np.asarray(x) for x in jax.tree_util.tree_leaves(p)]
+
+    at3, ret_early = leaves(tuned.crawl_params(path, "cma_es/per_leg@3min")), leaves(tuned.crawl_params(same))
+    assert all(np.array_equal(a, b) for a, b in zip(at3, ret_early)) and len(at3) == len(ret_early) > 10
+    at10, end = leaves(tuned.crawl_params(path, "cma_es@10")), leaves(tuned.crawl_params(path, "cma_es/per_leg"))
+    assert all(np.array_equal(a, b) for a, b in zip(at10, end))
+    assert not all(np.array_equal(a, b) for a, b in zip(at3, end))
+    assert tuned.checkpoint_minutes(tuned.read(path), "cma_es/per_leg") == [3.0, 10.0]
+    with pytest.raises(ValueError, match=r"no checkpoint at 20 min \(its checkpoints, minutes: 3, 10\)"):
+        tuned.crawl_params(path, "cma_es/per_leg@20min")
+    with pytest.raises(ValueError, match="minutes > 0"):
+        tuned.crawl_params(path, "cma_es/per_leg@soon")
+
+
+def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
+    """Runs with checkpoints before the end of their budget: the map's arguments run each run's earlier iterates as
+    ``run_S@Mmin`` variants, and the judgement gives per budget the mean over runs, its interval and range (the
+    end of the budget: the returned sets), in ``targets.md`` too; the targets stay the returned sets'."""
+    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
+        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
+    p0, _ = _with_checkpoints(tmp_path, "r0", theta - 0.1)
+    p1, _ = _with_checkpoints(tmp_path, "r1", theta + 0.1)
+    from experiments import tune_default_repeats as tdr
+
+    assert tdr.earlier_checkpoints(p0) == [3.0] and tdr.earlier_checkpoints(str(tmp_path / "none")) == []
+    argv = targets.reach_map_arguments({"run_0": p0, "run_1": p1}, ["clean"], out="o",
+                                       checkpoints={"run_0": [3.0], "run_1": [3.0]})
+    assert f"run_0@3min:{p0}:cma_es/per_leg@3min" in argv and f"run_1@3min:{p1}:cma_es/per_leg@3min" in argv
+    assert argv[argv.index("--variants") + 1:] == ["clean", "run_0", "run_1", "run_0@3min", "run_1@3min"]
+    hs = targets.HELDOUT["heights"]
+    cells = [cell("run_0", [0.9] * len(hs)), cell("run_1", [0.8] * len(hs)), cell("clean", [0.85] * len(hs)),
+             cell("run_0@3min", [0.7] * len(hs)), cell("run_1@3min", [0.6] * len(hs))]
+    s = targets.judge(cells, ["run_0", "run_1"], ["clean"], budgets={10.0: ["run_0", "run_1"],
+                                                                     3.0: ["run_0@3min", "run_1@3min"]})
+    assert [b["minutes"] for b in s["budgets"]] == [3.0, 10.0]
+    assert s["budgets"][0]["mean"] == pytest.approx(0.65) and s["budgets"][0]["range"] == pytest.approx(0.1)
+    assert s["budgets"][1]["mean"] == pytest.approx(s["over_runs"]["mean"]) and s["budgets"][1]["n"] == 2
+    assert s["over_runs"]["clean"] == pytest.approx([0.9, 0.8])
+    text = targets.table(s)
+    assert "| 3 min | 2 | 0.650 [" in text and "| 0.100 | 0.700 / 0.600 |" in text
+    with pytest.raises(ValueError, match="variant run_2@3min"):
+        targets.judge(cells, ["run_0"], budgets={3.0: ["run_2@3min"]})
+
+
+def test_repeats_driver_runs_only_leaves_the_map_to_a_later_call(tmp_path, capsys, monkeypatch):
+    """``--runs-only``: the runs go on as usual and the driver exits 0 once they are finished, without the held-out
+    map; with ``--judge-only`` it is refused in one line."""
+    from experiments import reach_map
+    from experiments import tune_default_repeats as tdr
+
+    def call(cmd, **kw):
+        out = cmd[cmd.index("--out") + 1]
+        with open(os.path.join(out, "results.json"), "w") as f:
+            json.dump(dict(complete=True), f)
+        return 0
+
+    maps = []
+    monkeypatch.setattr(tdr.subprocess, "call", call)
+    monkeypatch.setattr(reach_map, "main", lambda argv: maps.append(argv) or 0)
+    argv = ["--out", str(tmp_path), "--seeds", "2", "3", "--wall-minutes", "3", "--runs-only"]
+    assert tdr.main(argv) == 0 and not maps
+    assert tdr.complete(str(tmp_path / "run_2")) and tdr.complete(str(tmp_path / "run_3"))
+    assert "--runs-only: no held-out map" in capsys.readouterr().out
+    assert tdr.main(argv + ["--judge-only"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith("tune_default_repeats: --runs-only and")

@@ -14,6 +14,11 @@ rows also move with features the controller measures) gives a
 :class:`hyqjax.studies.tune.schedule.ConditionedCrawlParams`. The crawl runs each wherever it runs a
 ``CrawlParams``.
 
+A run named with a checkpoint, ``cma_es/per_leg@10min``, gives the iterate the run held at that checkpoint of its
+budget (``res["runs"][run]["points"]``: ``hyqjax tune``'s default records 3, 10 and 30 minutes), the set its held-out
+evaluation at that checkpoint ran (``res["heldout"]["cma_es/per_leg@10min"]``); without one, the set the run
+returned at its end (after the final re-evaluation).
+
 ``theta`` is mapped on a base crawl: the run's start point (``shin_remedy`` as the run had it; a start preset's
 values of the fields the run did not tune, such as an edge probe: :func:`start_base`) with the caller's other
 settings (speed, fields the run did not tune); a setting that the run tuned is refused, since the tuned value
@@ -80,9 +85,40 @@ def pick_run(res: dict, run: str | None, path: str = "results.json") -> str:
     return next(iter(found))
 
 
+def split_checkpoint(run: str | None) -> tuple[str | None, float | None]:
+    """``"cma_es/per_leg@10min"`` -> ``("cma_es/per_leg", 10.0)`` (``@10`` too); a run without ``@`` -> ``(run,
+    None)``. A ``ValueError`` for a checkpoint that is not a positive number of minutes."""
+    if not run or "@" not in run:
+        return run, None
+    name, _, at = run.rpartition("@")
+    try:
+        minutes = float(at.removesuffix("min"))
+    except ValueError:
+        minutes = float("nan")
+    if not (minutes > 0 and np.isfinite(minutes)):
+        raise ValueError(f"run {run!r}: the checkpoint after '@' must be minutes > 0, e.g. {name or 'cma_es'}@10min")
+    return name or None, minutes
+
+
+def checkpoint_minutes(res: dict, key: str) -> list[float]:
+    """The checkpoints (minutes) at which run ``key`` of ``res`` recorded the iterate it held, in order."""
+    points = ((res.get("runs") or {}).get(key) or {}).get("points") or []
+    return [round(float(p["seconds"]) / 60.0, 6) for p in points if isinstance(p, dict) and "seconds" in p]
+
+
+def checkpoint_theta(res: dict, key: str, minutes: float, path: str = "results.json") -> np.ndarray:
+    """``theta`` run ``key`` held at its checkpoint of ``minutes``; a ``ValueError`` naming the checkpoints it has."""
+    for p in ((res.get("runs") or {}).get(key) or {}).get("points") or []:
+        if isinstance(p, dict) and abs(float(p.get("seconds", -1.0)) - 60.0 * minutes) < 1e-6 and "theta" in p:
+            return np.asarray(p["theta"], np.float64)
+    have = ", ".join(f"{m:g}" for m in checkpoint_minutes(res, key)) or "none"
+    raise ValueError(f"run {key} of {path} has no checkpoint at {minutes:g} min (its checkpoints, minutes: {have})")
+
+
 def crawl_params(path: str, run: str | None = None, **settings):
     """``CrawlParams`` (a ``shared`` run) or :class:`hyqjax.crawl.scheduled.PerLegCrawlParams` (a ``per_leg``
-    run) of ``run`` in the tuning results at ``path`` (module docstring): the run's ``theta`` on the
+    run) of ``run`` in the tuning results at ``path`` (module docstring; ``run@10min``: the iterate held at that
+    checkpoint): the run's ``theta`` on the
     ``ParamSpace`` of its ``groups`` (per leg: row by row), over ``CrawlParams.make(shin_remedy=<the run's remedy>,
     **settings)``. A ``ValueError`` naming the problem (unreadable file, unknown or ambiguous run, a setting the run
     tuned, a parameter out of its declared range)."""
@@ -91,8 +127,10 @@ def crawl_params(path: str, run: str | None = None, **settings):
     from hyqjax.studies.tune import space as tspace
 
     res = read(path)
+    run, minutes = split_checkpoint(run)
     key = pick_run(res, run, path)
-    theta = np.asarray(runs_of(res)[key], np.float64)
+    theta = np.asarray(runs_of(res)[key] if minutes is None else checkpoint_theta(res, key, minutes, path),
+                       np.float64)
     cfg = res["config"]
     try:
         space = tspace.ParamSpace.make(cfg["groups"])

@@ -18,6 +18,11 @@ range (max - min), and the issue's four targets, each ``pass`` / ``fail`` with t
 * ``per_height``: every run >= :data:`PER_HEIGHT_CLEAN` (0.85) at every height up to 24 cm;
 * ``h90``: every run's ``h90`` >= :data:`H90` (27 cm);
 * ``spread``: the range of ``clean`` over runs <= :data:`SPREAD` (0.05).
+
+With runs that recorded checkpoints before the end of their budget (``hyqjax tune``'s default records 3, 10 and 30
+minutes), the iterate each run held at each earlier checkpoint runs on the same map as ``<run>@<minutes>min``
+(:func:`checkpoint_variant`), and ``budgets`` gives per budget the mean clean success over the runs with its
+t-interval and range: what a user gets at 3, 10 and 30 minutes (the last is the returned set).
 """
 from __future__ import annotations
 
@@ -56,15 +61,23 @@ def variant_summary(cell: dict) -> dict:
                 h90=cell.get("h90"), diverged=int(cell.get("diverged", 0)), n=int(cell.get("n", 0)))
 
 
-def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: int | None = None) -> dict:
+def checkpoint_variant(run: str, minutes: float) -> str:
+    """The reach-map variant of the iterate run ``run`` held at its checkpoint of ``minutes``."""
+    return f"{run}@{minutes:g}min"
+
+
+def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: int | None = None,
+          budgets: dict | None = None) -> dict:
     """The targets over ``runs`` (variant names of the reach map ``cells``), with ``references`` summarised beside
-    them; ``seed`` is the map's draw seed (default :data:`HELDOUT`'s). A run or reference missing from the map is a
-    ``ValueError`` naming it."""
+    them; ``seed`` is the map's draw seed (default :data:`HELDOUT`'s). ``budgets`` maps minutes to the variants of
+    the runs at that budget (:func:`checkpoint_variant`; the end of the budget: ``runs``), summarised over runs
+    as ``budgets``. A run, reference or checkpoint variant missing from the map is a ``ValueError`` naming it."""
     by = {c["variant"]: c for c in cells if c.get("spread", HELDOUT["spread"]) == HELDOUT["spread"]}
-    missing = [v for v in list(runs) + list(references) if v not in by]
+    extra = [v for vs in (budgets or {}).values() for v in vs if v not in runs]
+    missing = [v for v in list(runs) + list(references) + extra if v not in by]
     if missing:
         raise ValueError(f"variant {missing[0]} is not in the reach map (it has {', '.join(sorted(by))})")
-    per = {v: variant_summary(by[v]) for v in list(runs) + list(references)}
+    per = {v: variant_summary(by[v]) for v in list(runs) + list(references) + extra}
     clean = [per[v]["clean"] for v in runs]
     stats = over_runs(clean) if runs else dict(n=0, mean=None, sd=None, ci95=None)
     rng = float(max(clean) - min(clean)) if runs else None
@@ -77,10 +90,16 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
         h90=dict(value=min((h for h in h90s if h is not None), default=None) if all(h is not None for h in h90s)
                  else None, target=H90, ok=bool(runs) and all(h is not None and h >= H90 - 1e-9 for h in h90s)),
         spread=dict(value=rng, target=SPREAD, ok=rng is not None and rng <= SPREAD))
+    curve = []
+    for minutes, names in sorted((budgets or {}).items(), key=lambda kv: float(kv[0])):
+        c = [per[v]["clean"] for v in names]
+        curve.append(dict(minutes=float(minutes), variants=list(names), clean=c,
+                          range=float(max(c) - min(c)) if c else None,
+                          **(over_runs(c) if c else dict(n=0, mean=None, sd=None, ci95=None))))
     return dict(heldout=dict(HELDOUT, seed=HELDOUT["seed"] if seed is None else int(seed),
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
-                over_runs=dict(stats, range=rng, clean=clean), targets=targets,
+                over_runs=dict(stats, range=rng, clean=clean), targets=targets, budgets=curve,
                 diverged=sum(per[v]["diverged"] for v in per))
 
 
@@ -118,24 +137,40 @@ def table(summary: dict) -> str:
             ("h90 on the wide spread (lowest run)", cm(t["h90"]["value"]), f">= {cm(H90)}", t["h90"]["ok"]),
             ("range of clean over runs", f(t["spread"]["value"]), f"<= {SPREAD:.2f}", t["spread"]["ok"])]
     lines += [f"| {a} | {b} | {c} | {'yes' if ok else 'no'} |" for a, b, c, ok in rows]
+    if summary.get("budgets"):
+        lines += ["", f"| budget | runs | clean (<= {100 * CLEAN_MAX_HEIGHT:.0f} cm) over runs [95%] | range | per run |",
+                  "|---|---|---|---|---|"]
+        for b in summary["budgets"]:
+            ci = b.get("ci95")
+            lines.append(f"| {b['minutes']:g} min | {b['n']} | {f(b['mean'])}"
+                         + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "") + f" | {f(b['range'])} | "
+                         + " / ".join(f(c) for c in b["clean"]) + " |")
     return "\n".join(lines)
 
 
 def reach_map_arguments(runs: dict, references=(), extra_runs=(), impl: str = "auto", out: str = "",
-                        instances: int | None = None, seed: int | None = None) -> list[str]:
+                        instances: int | None = None, seed: int | None = None,
+                        checkpoints: dict | None = None) -> list[str]:
     """``python -m experiments.reach_map`` arguments of the targets' held-out map: ``runs`` maps a variant name to
     a tuning ``results.json`` (its one run), ``references`` are presets, ``extra_runs`` further
-    ``NAME:PATH:METHOD[:settings]`` variants; ``seed`` draws the map's instances (default :data:`HELDOUT`'s)."""
+    ``NAME:PATH:METHOD[:settings]`` variants; ``seed`` draws the map's instances (default :data:`HELDOUT`'s);
+    ``checkpoints`` maps a run's variant name to the minutes of its earlier checkpoints, each a further variant
+    (:func:`checkpoint_variant`: the iterate the run held there)."""
     h = HELDOUT
     argv = ["--out", out, "--impl", impl, "--instances", str(instances or h["instances"]), "--spread", h["spread"],
             "--seed", str(h["seed"] if seed is None else seed), "--heights", *[f"{x:g}" for x in h["heights"]]]
     if references:
         argv += ["--preset", *references]
+    at = []
     for name, path in runs.items():
-        argv += ["--tuned-run", f"{name}:{path}:{_only_run(path)}"]
+        key = _only_run(path)
+        argv += ["--tuned-run", f"{name}:{path}:{key}"]
+        for m in (checkpoints or {}).get(name, ()):
+            at.append(checkpoint_variant(name, m))
+            argv += ["--tuned-run", f"{at[-1]}:{path}:{key}@{m:g}min"]
     for t in extra_runs:
         argv += ["--tuned-run", t]
-    names = list(references) + list(runs) + [t.split(":", 1)[0] for t in extra_runs]
+    names = list(references) + list(runs) + at + [t.split(":", 1)[0] for t in extra_runs]
     return argv + ["--variants", *names]
 
 
