@@ -15,17 +15,18 @@ step-downs against the default tuner's targets (:mod:`hyqjax.studies.tune.study.
    goes on from there. ``--gpus K`` runs K at a time, each on a GPU of its own (``CUDA_VISIBLE_DEVICES``), so
    that every run still has one whole GPU for its wall-clock budget (on a fresh machine each builds MuJoCo Warp's
    kernels, which its clock leaves out of its budget); the held-out map then runs on every device.
-2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
-   same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
-   seed and heights the tuner never saw), in ``DIR/heldout``.
    ``--runs-only`` stops here (exit 0 once every run is finished): runs made in several directories (or on several
    machines) are then judged together from one directory holding them all.
-   A run that recorded checkpoints before the end of its budget (the tuner's default ``--wall-minutes 3 10 30``;
-   a driver given ``--wall-minutes`` passes only that one budget) also puts the iterate it held at each of them
-   on the map, as ``run_S@3min`` and ``run_S@10min``.
+2. ``heldout``: the returned sets (variants ``run_S``), the ``--references`` presets and any ``--extra-run`` on the
+   same held-out instances (``python -m experiments.reach_map`` with :data:`targets.HELDOUT`: the wide spread, a
+   seed and heights the tuner never saw), in ``DIR/heldout``. A run that recorded checkpoints before the end of
+   its budget (the tuner's default ``--wall-minutes 3 10 30``; a driver given ``--wall-minutes`` passes that one
+   budget alone) also puts the iterate it held at each of them on the map, as ``run_S@3min`` and ``run_S@10min``.
 3. ``targets``: per set, clean success pooled up to 26 cm, the worst clean rate at a height up to 24 cm, h90 and
-   clean success at the farthest starts (10-15 cm), and the iterate each run returned; over the runs, the mean with its 95% t-interval, the range, and the four targets (``DIR/targets.json``,
-   ``DIR/targets.md``); with checkpoints, the same mean and interval per budget (3, 10, 30 minutes). ``--judge-only`` runs nothing and judges what ``DIR`` holds again.
+   clean success at the farthest starts (10-15 cm), and the iterate each run returned; over the runs, the mean
+   with its 95% t-interval, the range, and the four targets (``DIR/targets.json``, ``DIR/targets.md``); with
+   checkpoints, the same mean, interval and range per budget (3, 10, 30 minutes). ``--judge-only`` runs nothing
+   and judges what ``DIR`` holds again.
 """
 from __future__ import annotations
 
