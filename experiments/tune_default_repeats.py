@@ -160,13 +160,14 @@ def main(argv=None) -> int:
     from experiments import reach_map
 
     runs = {f"run_{s}": os.path.join(run_dir(args, s), "results.json") for s in args.seeds}
-    checkpoints = {name: earlier_checkpoints(path) for name, path in runs.items()}
+    recorded = {name: run_checkpoints(path) for name, path in runs.items()}
+    checkpoints = {name: minutes[:-1] for name, minutes in recorded.items()}  # the end: the returned set, run_S
     budgets = None
     if any(checkpoints.values()):
-        budgets = {budget: list(runs)}
-        for name, minutes in checkpoints.items():
+        budgets = {}
+        for name, minutes in recorded.items():
             for m in minutes:
-                budgets.setdefault(m, []).append(targets.checkpoint_variant(name, m))
+                budgets.setdefault(m, []).append(name if m == minutes[-1] else targets.checkpoint_variant(name, m))
     heldout = os.path.join(args.out, "heldout")
     rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances,
                                           args.map_seed, checkpoints=checkpoints)
@@ -200,7 +201,8 @@ def main(argv=None) -> int:
             command = _read_targets(args.out).get("reach_map_command") or command
         except (OSError, ValueError):
             pass
-    summary.update(budget_minutes=budget, seeds=args.seeds, reach_map_command=command,
+    ends = {minutes[-1] for minutes in recorded.values() if minutes}
+    summary.update(budget_minutes=ends.pop() if len(ends) == 1 else budget, seeds=args.seeds, reach_map_command=command,
                    heldout_device=heldout_map.get("device"), heldout_wall_s=heldout_map.get("wall_s"),
                    run_walls_s={k: r.get("wall_s") for k, r in zip(runs, stored)},
                    returned={k: _returned(r) for k, r in zip(runs, stored)})
@@ -313,14 +315,14 @@ def _run_all(args, t0: float, budget: float) -> int:
     return status or (stop() if paused else 0)
 
 
-def earlier_checkpoints(path: str) -> list[float]:
-    """The checkpoints (minutes) before the end of its budget at which the run at ``path`` (its ``results.json``)
-    recorded the iterate it held; none for a run that cannot be read (the judgement names it)."""
+def run_checkpoints(path: str) -> list[float]:
+    """The checkpoints (minutes, the last the end of its budget) at which the run at ``path`` (its
+    ``results.json``) recorded the iterate it held; none for a run that cannot be read (the judgement names it)."""
     from hyqjax.studies.tune import tuned
 
     try:
         res = tuned.read(path)
-        return tuned.checkpoint_minutes(res, tuned.pick_run(res, None, path))[:-1]
+        return tuned.checkpoint_minutes(res, tuned.pick_run(res, None, path))
     except ValueError:
         return []
 

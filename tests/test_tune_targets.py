@@ -535,7 +535,7 @@ def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
     p1, _ = _with_checkpoints(tmp_path, "r1", theta + 0.1)
     from experiments import tune_default_repeats as tdr
 
-    assert tdr.earlier_checkpoints(p0) == [3.0] and tdr.earlier_checkpoints(str(tmp_path / "none")) == []
+    assert tdr.run_checkpoints(p0) == [3.0, 10.0] and tdr.run_checkpoints(str(tmp_path / "none")) == []
     argv = targets.reach_map_arguments({"run_0": p0, "run_1": p1}, ["clean"], out="o",
                                        checkpoints={"run_0": [3.0], "run_1": [3.0]})
     assert f"run_0@3min:{p0}:cma_es/per_leg@3min" in argv and f"run_1@3min:{p1}:cma_es/per_leg@3min" in argv
