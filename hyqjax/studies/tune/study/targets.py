@@ -138,8 +138,8 @@ def table(summary: dict) -> str:
             ("range of clean over runs", f(t["spread"]["value"]), f"<= {SPREAD:.2f}", t["spread"]["ok"])]
     lines += [f"| {a} | {b} | {c} | {'yes' if ok else 'no'} |" for a, b, c, ok in rows]
     if summary.get("budgets"):
-        lines += ["", f"| budget | runs | clean (<= {100 * CLEAN_MAX_HEIGHT:.0f} cm) over runs [95%] | range | per run |",
-                  "|---|---|---|---|---|"]
+        head = f"| budget | runs | clean (<= {100 * CLEAN_MAX_HEIGHT:.0f} cm) over runs [95%] | range | per run |"
+        lines += ["", head, "|---|---|---|---|---|"]
         for b in summary["budgets"]:
             ci = b.get("ci95")
             lines.append(f"| {b['minutes']:g} min | {b['n']} | {f(b['mean'])}"
