@@ -525,6 +525,29 @@ def test_a_run_named_at_a_checkpoint_gives_the_iterate_it_held_there(tmp_path):
         tuned.crawl_params(path, "cma_es/per_leg@soon")
 
 
+def test_a_checkpoint_the_run_lacks_is_refused_by_stepdown_and_presets_keep_returned_sets(tmp_path, capsys,
+                                                                                           monkeypatch):
+    """``hyqjax stepdown --params RESULTS:RUN@7min`` for a run without that checkpoint: exit 2, one line naming the
+    checkpoints it has, no output directory (nothing compiled); ``hyqjax presets save --from RESULTS:RUN@3min``:
+    one line saying a preset keeps a returned set, and no preset written."""
+    from hyqjax.cli.app import main
+
+    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
+        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
+    path, _ = _with_checkpoints(tmp_path, "a", theta - 0.1)
+    out = tmp_path / "never"
+    assert main(["stepdown", "--params", f"{path}:cma_es/per_leg@7min", "--instances", "1", "--no-figures",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no checkpoint at 7 min (its checkpoints, minutes: 3, 10)" in err[0], err
+    assert not out.exists()
+    monkeypatch.setenv("HYQJAX_PRESETS_DIR", str(tmp_path / "presets"))
+    assert main(["presets", "save", "mine", "--from", f"{path}:cma_es/per_leg@3min"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a preset keeps the set a run returned" in err[0], err
+    assert not (tmp_path / "presets" / "mine.json").exists()
+
+
 def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
     """Runs with checkpoints before the end of their budget: the map's arguments run each run's earlier iterates as
     ``run_S@Mmin`` variants, and the judgement gives per budget the mean over runs, its interval and range (the

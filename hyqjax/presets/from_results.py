@@ -114,6 +114,9 @@ def run_key(path: str, run: str | None = None) -> str:
     run of it; None: the only run), refused in one line when it is not in the file or returned no set."""
     from hyqjax.studies.tune import tuned
 
+    if run and "@" in run:
+        raise PresetError(f"run {run} of {path}: a preset keeps the set a run returned, not the iterate it held at a "
+                          f"checkpoint (run that one with `hyqjax stepdown --params {path}:{run}`)")
     res = _read(path)
     runs = res.get("runs") if isinstance(res.get("runs"), dict) else {}
     if run and isinstance(runs.get(run), dict) and "theta" not in runs[run]:
