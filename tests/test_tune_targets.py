@@ -480,9 +480,16 @@ def test_clean_refined_on_the_confirmation_map_runs_its_instances_and_beats_clea
     assert stepdown.CLEAN_PRESET == "clean_refined"
 
 
+def _stored_theta():
+    """The set run 2 of the first-step-0.1 study returned (``theta``)."""
+    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
+        return np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
+
+
 def _with_checkpoints(tmp_path, name, theta_3, theta_end=None):
     """A stored default run (run 2 of the first-step-0.1 study) rewritten as a run that recorded checkpoints at 3
-    and 10 minutes (``theta_3``, then its returned ``theta``) and, with ``theta_end``, returned that instead."""
+    and 10 minutes (``theta_3``, then its returned ``theta``) and, with ``theta_end``, returned that instead; the
+    path of its ``results.json``."""
     with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
         res = json.load(f)
     run = res["runs"]["cma_es/per_leg"]
@@ -493,7 +500,7 @@ def _with_checkpoints(tmp_path, name, theta_3, theta_end=None):
     d = tmp_path / name
     d.mkdir()
     (d / "results.json").write_text(json.dumps(res))
-    return str(d / "results.json"), np.asarray(run["theta"] if theta_end is None else theta_end)
+    return str(d / "results.json")
 
 
 def test_a_run_named_at_a_checkpoint_gives_the_iterate_it_held_there(tmp_path):
@@ -504,11 +511,10 @@ def test_a_run_named_at_a_checkpoint_gives_the_iterate_it_held_there(tmp_path):
 
     from hyqjax.studies.tune import tuned
 
-    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
-        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
+    theta = _stored_theta()
     early = theta - 0.1
-    path, _ = _with_checkpoints(tmp_path, "a", early)
-    same, _ = _with_checkpoints(tmp_path, "b", early, theta_end=early)  # a run that returned the 3-minute iterate
+    path = _with_checkpoints(tmp_path, "a", early)
+    same = _with_checkpoints(tmp_path, "b", early, theta_end=early)  # a run that returned the 3-minute iterate
 
     def leaves(p):
         return [np.asarray(x) for x in jax.tree_util.tree_leaves(p)]
@@ -532,9 +538,8 @@ def test_a_checkpoint_the_run_lacks_is_refused_by_stepdown_and_presets_keep_retu
     one line saying a preset keeps a returned set, and no preset written."""
     from hyqjax.cli.app import main
 
-    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
-        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
-    path, _ = _with_checkpoints(tmp_path, "a", theta - 0.1)
+    theta = _stored_theta()
+    path = _with_checkpoints(tmp_path, "a", theta - 0.1)
     out = tmp_path / "never"
     assert main(["stepdown", "--params", f"{path}:cma_es/per_leg@7min", "--instances", "1", "--no-figures",
                  "--out", str(out)]) == 2
@@ -552,10 +557,9 @@ def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
     """Runs with checkpoints before the end of their budget: the map's arguments run each run's earlier iterates as
     ``run_S@Mmin`` variants, and the judgement gives per budget the mean over runs, its interval and range (the
     end of the budget: the returned sets), in ``targets.md`` too; the targets stay the returned sets'."""
-    with open(os.path.join(STORED_S01, "run_2", "results.json")) as f:
-        theta = np.asarray(json.load(f)["runs"]["cma_es/per_leg"]["theta"])
-    p0, _ = _with_checkpoints(tmp_path, "r0", theta - 0.1)
-    p1, _ = _with_checkpoints(tmp_path, "r1", theta + 0.1)
+    theta = _stored_theta()
+    p0 = _with_checkpoints(tmp_path, "r0", theta - 0.1)
+    p1 = _with_checkpoints(tmp_path, "r1", theta + 0.1)
     from experiments import tune_default_repeats as tdr
 
     assert tdr.run_checkpoints(p0) == [3.0, 10.0] and tdr.run_checkpoints(str(tmp_path / "none")) == []

@@ -114,7 +114,11 @@ def run_key(path: str, run: str | None = None) -> str:
     run of it; None: the only run), refused in one line when it is not in the file or returned no set."""
     from hyqjax.studies.tune import tuned
 
-    if run and "@" in run:
+    try:
+        at_checkpoint = tuned.split_checkpoint(run)[1] is not None
+    except ValueError as e:
+        raise PresetError(str(e)) from None
+    if at_checkpoint:
         raise PresetError(f"run {run} of {path}: a preset keeps the set a run returned, not the iterate it held at a "
                           f"checkpoint (run that one with `hyqjax stepdown --params {path}:{run}`)")
     res = _read(path)

@@ -100,16 +100,21 @@ def split_checkpoint(run: str | None) -> tuple[str | None, float | None]:
     return name or None, minutes
 
 
+def _points(res: dict, key: str) -> list[dict]:
+    """The checkpoint records of run ``key`` of ``res`` (``seconds``, ``theta``, ...), in order."""
+    points = ((res.get("runs") or {}).get(key) or {}).get("points") or []
+    return [p for p in points if isinstance(p, dict) and "seconds" in p]
+
+
 def checkpoint_minutes(res: dict, key: str) -> list[float]:
     """The checkpoints (minutes) at which run ``key`` of ``res`` recorded the iterate it held, in order."""
-    points = ((res.get("runs") or {}).get(key) or {}).get("points") or []
-    return [round(float(p["seconds"]) / 60.0, 6) for p in points if isinstance(p, dict) and "seconds" in p]
+    return [round(float(p["seconds"]) / 60.0, 6) for p in _points(res, key)]
 
 
 def checkpoint_theta(res: dict, key: str, minutes: float, path: str = "results.json") -> np.ndarray:
     """``theta`` run ``key`` held at its checkpoint of ``minutes``; a ``ValueError`` naming the checkpoints it has."""
-    for p in ((res.get("runs") or {}).get(key) or {}).get("points") or []:
-        if isinstance(p, dict) and abs(float(p.get("seconds", -1.0)) - 60.0 * minutes) < 1e-6 and "theta" in p:
+    for p in _points(res, key):
+        if abs(float(p["seconds"]) - 60.0 * minutes) < 1e-6 and "theta" in p:
             return np.asarray(p["theta"], np.float64)
     have = ", ".join(f"{m:g}" for m in checkpoint_minutes(res, key)) or "none"
     raise ValueError(f"run {key} of {path} has no checkpoint at {minutes:g} min (its checkpoints, minutes: {have})")
