@@ -155,7 +155,8 @@ def main(argv=None) -> int:
     if rc:
         return rc
     if args.runs_only:
-        print(f"tune_default_repeats: every run is finished under {args.out} (--runs-only: no held-out map)")
+        print(f"tune_default_repeats: every run is finished under {args.out} (--runs-only: no held-out map); wall "
+              f"{time.time() - t0:.1f} s in all (this process: the runs it launched)")
         return 0
     from experiments import reach_map
 
