@@ -210,10 +210,20 @@ def run_python(code: str, timeout: float, env: dict[str, str] | None = None) -> 
                           capture_output=True, text=True, timeout=timeout)
 
 
-def start_python(code: str, env: dict[str, str] | None = None) -> subprocess.Popen:
-    """Start ``code`` in a fresh Python in the background (see :func:`run_python`); ``.communicate(timeout=...)`` it."""
+def start_python(code: str, env: dict[str, str] | None = None, log: str | None = None) -> subprocess.Popen:
+    """Start ``code`` in a fresh Python in the background (see :func:`run_python`); ``.communicate(timeout=...)`` it.
+
+    ``log``: a file that takes the process's stdout and stderr instead of pipes, for a caller that waits on
+    something else than the process's output (a pipe nobody reads blocks the process once its 64 KiB are full:
+    XLA:CPU logs two error lines of about 1.7 kB per program loaded from the persistent cache on hosts whose
+    compile-time features it does not recognise, such as AMD EPYC)."""
     full_env = dict(os.environ)
     full_env["PYTHONPATH"] = REPO_ROOT + os.pathsep + full_env.get("PYTHONPATH", "")
     full_env.update(env or {})
-    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO_ROOT, env=full_env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    out = subprocess.PIPE if log is None else open(log, "w")
+    try:
+        return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=REPO_ROOT, env=full_env,
+                                stdout=out, stderr=subprocess.PIPE if log is None else subprocess.STDOUT, text=True)
+    finally:
+        if log is not None:
+            out.close()

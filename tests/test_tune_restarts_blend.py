@@ -273,7 +273,8 @@ def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
 
     out = tmp_path / "k"
     argv = ["--out", str(out), "--methods", "ipop_cma_es", "--wall-minutes", "0.4"] + TINY
-    proc = start_python(f"from experiments import tune_study; tune_study.main({argv!r})")
+    log = tmp_path / "killed.log"
+    proc = start_python(f"from experiments import tune_study; tune_study.main({argv!r})", log=str(log))
     part = out / "partial" / "ipop_cma_es__shared.json"
     t0 = time.time()
     try:
@@ -283,11 +284,11 @@ def test_ipop_on_the_step_down_resumes_after_a_kill(tmp_path, capsys):
                 if len(state["state"]["trace"]["log"]) >= 3:
                     break
             time.sleep(0.2)
-        assert proc.poll() is None, proc.communicate()[1][-2000:]
+        assert proc.poll() is None, log.read_text()[-2000:]
     finally:
         proc.kill()
-        proc.communicate()
-    assert part.exists()
+        proc.wait()
+    assert part.exists(), log.read_text()[-2000:]
     if (out / "results.json").exists():
         assert "ipop_cma_es/shared" not in json.loads((out / "results.json").read_text()).get("runs", {})
     stored = resume.unpack(json.loads(json.loads(part.read_text())["payload"])["state"])

@@ -14,6 +14,8 @@ STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "
 STORED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_h200x2")
 STORED_S01 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_sigma01_h200x2")
 CONFIRM_C = os.path.join(STORED_S01, "confirm_c_90210")
+STORED_30 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_30_h200x2",
+                         "study")
 
 
 def cell(name, rates, n=100, completed=None):
@@ -603,3 +605,42 @@ def test_repeats_driver_runs_only_leaves_the_map_to_a_later_call(tmp_path, capsy
     assert "--runs-only: no held-out map" in capsys.readouterr().out
     assert tdr.main(argv + ["--judge-only"]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1].startswith("tune_default_repeats: --runs-only and")
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_stored_30_minute_runs_resume_under_the_documented_command(tmp_path, seed):
+    """The five 30-minute default runs go on over several machines from their stored state
+    (``docs/results/tune_default_repeats_clean_30_h200x2/study``): the tuner command the repeats driver gives run
+    ``seed`` (docs/tuning.md's command) accepts the stored directory as its own, and its stored mid-budget state
+    loads under that command's configuration (checksum, run and fingerprint), with the budget spent, the
+    generations and the iterates held at the 3- and 10-minute checkpoints, so that the next call resumes it and
+    does not start it over."""
+    import shutil
+
+    from experiments import tune_default_repeats as driver
+
+    from hyqjax.cli import tune
+    from hyqjax.cli.app import build_parser
+    from hyqjax.studies.tune import resume, wallclock
+
+    d = tmp_path / "study"
+    shutil.copytree(STORED_30, d)
+    args = driver.parse(["--out", str(d), "--impl", "warp", "--heldout", "256", "--gpus", "2", "--segment-minutes",
+                         "9", "--max-minutes", "9.4", "--runs-only"])
+    argv = driver.tune_argv(args, seed, segment=8.9)
+    assert argv[1:4] == ["-m", "hyqjax.cli", "tune"]
+    a = build_parser().parse_args(argv[3:])
+    tune.validate(a)  # refuses a directory holding a study of another configuration
+    cfg = a.wallclock_config
+    assert (cfg.methods, cfg.dims, cfg.wall_minutes, cfg.start_preset, cfg.sigma, cfg.train_spread) == (
+        ("cma_es",), ("per_leg",), (3.0, 10.0, 30.0), "clean", 0.1, "wide")
+    logs = []
+    store = resume.RunCheckpoint(driver.run_dir(args, seed), "cma_es/per_leg",
+                                 wallclock._fingerprint(wallclock._config(cfg)), log=logs.append)
+    state = store.load()
+    assert state is not None, logs
+    assert 1440.0 < state["clock"]["elapsed"] < 1800.0 and state["trace"]["iterations"] >= 140
+    assert state["segments"] == 3
+    points = state["trace"]["points"]  # the checkpoints passed, each with the iterate the run held there
+    assert [p["seconds"] for p in points] == [180.0, 600.0] and all(len(p["theta"]) == 56 for p in points)
+    assert points[0]["validation_clean"] <= points[1]["validation_clean"]  # the selection only moves up
