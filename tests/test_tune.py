@@ -50,11 +50,11 @@ def test_space_roundtrip_and_always_valid():
         sp.concrete(th)
     from hyqjax.core.params import param_ranges
 
-    ranges = param_ranges(hreflex.ReflexParams)
+    ranges = {"reflex": param_ranges(hreflex.ReflexParams), "crawl": param_ranges(crawl.CrawlParams)}
     for c in sp.coords:
-        if c.owner == "reflex" and c.kind in ("log", "box"):
+        if c.kind in ("log", "box"):
             eps = 1e-9 * max(1.0, c.hi)  # sigmoid maps onto the open interval
-            assert ranges[c.name].in_range(np.asarray([c.lo + eps, c.hi - eps])).all(), c.name
+            assert ranges[c.owner][c.name].in_range(np.asarray([c.lo + eps, c.hi - eps])).all(), c.name
 
 
 @pytest.mark.slow
@@ -1490,6 +1490,62 @@ def test_a_run_from_a_preset_keeps_and_returns_its_untuned_values(tmp_path):
                                            err_msg=jax.tree_util.keystr(k))
     table1 = wallclock.start_params(wallclock.WallClockConfig())
     assert float(table1.edge_probe) == 0.0 and float(table1.shin_remedy) == 1.0
+
+
+def test_edge_groups_tune_the_probe_and_the_gate_from_a_start_with_the_probe_on(tmp_path, capsys):
+    """``--groups ...,edge_probe,edge_gate`` adds the edge probe's step and depth and the depth gate's five settings
+    as coordinates (per leg: 14 + 7 = 21 a leg, 84 in all): from ``clean`` the start ``theta`` reads back as
+    ``clean`` itself, edge values included; moving one edge coordinate moves that field alone, inside its
+    declared range; from a start with the probe off (Table I, ``--preset none``) the groups are refused in one
+    line before anything runs."""
+    import json
+
+    import jax
+
+    from hyqjax import presets
+    from hyqjax.cli import tune as tune_cli
+    from hyqjax.cli.app import build_parser, main
+    from hyqjax.core.params import param_ranges
+    from hyqjax.studies.tune import schedule, tuned, wallclock
+    from hyqjax.studies.tune.wallclock_config import start_point, start_settings, start_theta
+
+    groups = spmod.DEFAULT_GROUPS + spmod.EDGE_GROUPS
+    a = build_parser().parse_args(["tune", "--out", str(tmp_path / "ok"), "--groups", ",".join(groups)])
+    tune_cli.validate(a)
+    cfg = a.wallclock_config
+    assert cfg.start_preset == "clean" and cfg.groups == groups
+    p = schedule.make("per_leg", cfg.groups)
+    assert p.size == 4 * 21
+    clean = presets.load("clean")
+    theta = start_theta(p, start_point(cfg))
+    res = dict(kind="wallclock", config=cfg.to_dict(), start_base=start_settings("clean"),
+               runs={"cma_es/per_leg": dict(theta=theta.tolist())})
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(res))
+    back = tuned.crawl_params(str(path), "cma_es")
+    for leg in range(4):
+        for (k, x), (_, y) in zip(jax.tree_util.tree_flatten_with_path(back.row(leg))[0],
+                                  jax.tree_util.tree_flatten_with_path(clean.row(leg))[0]):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=2e-5, atol=1e-6,
+                                       err_msg=jax.tree_util.keystr(k))
+    ranges = param_ranges(crawl.CrawlParams)
+    names = p.space.names
+    for field in ("edge_probe", "edge_probe_depth", "edge_tilt", "edge_margin", "edge_lowering", "edge_deep",
+                  "edge_tilt_deep"):
+        moved = theta.copy()
+        moved[names.index(field)] += 1.5  # the first leg's row (LF) of that coordinate
+        path.write_text(json.dumps(dict(res, runs={"cma_es/per_leg": dict(theta=moved.tolist())})))
+        row = tuned.crawl_params(str(path), "cma_es").row(0)
+        changed = [f for f in ranges if f != "foot_sequence"
+                   and not np.allclose(np.asarray(getattr(row, f)), np.asarray(getattr(clean.row(0), f)), rtol=2e-5)]
+        assert changed == [field], (field, changed)
+        assert ranges[field].in_range(np.asarray(getattr(row, field))).all()
+    for argv in (["--preset", "none"], ["--dim", "shared", "--preset", "none"]):
+        out = tmp_path / f"no{len(argv)}"
+        assert main(["tune", "--out", str(out), "--groups", "k_base,edge_gate", *argv]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("hyqjax tune: --groups edge_gate:") and "probe off" in lines[0]
+        assert not out.exists() or not any(out.iterdir())
 
 
 @pytest.mark.parametrize("argv, match", [(["--preset", "bound_robust"], "bound preset"),

@@ -92,7 +92,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--groups", default="k_base,damping,mobility,k_x,delta,body_height,step_length,step_height,"
                                        "search_forward,terrain_adaptation",
                    help="tuned groups, comma-separated, from k_base, damping, mobility, k_x, delta, k_kl, "
-                        "body_height, step_length, step_height, search_speed, search_forward, terrain_adaptation")
+                        "body_height, step_length, step_height, search_speed, search_forward, terrain_adaptation, "
+                        "edge_probe (the probe's step and depth), edge_gate (the depth gate's tilts, margin and "
+                        "lowering); the edge groups need a start with the edge probe on, such as --preset clean")
     p.add_argument("--popsize", type=int, default=16, help="population per generation")
     p.add_argument("--sigma", type=float, default=None,
                    help="the search's first step in the tuner's normalised coordinates (default: 0.1 from a tuned "
@@ -259,6 +261,7 @@ def validate_wallclock(args) -> None:
     except RuntimeError as e:
         raise UsageError(str(e)) from None
     _load_preset(preset)
+    _check_edge_start(cfg)
     prepare_out(args.out)
     args.wallclock_config = cfg
     args.options_checked = True
@@ -324,6 +327,24 @@ def _load_preset(name: str) -> None:
         presets.load(name)
     except ValueError as e:
         raise UsageError(f"--preset: {e}") from None
+
+
+def _check_edge_start(cfg) -> None:
+    """The edge groups (:data:`hyqjax.studies.tune.space.EDGE_GROUPS`) act only with the edge probe on, and a
+    ``box`` coordinate cannot hold the probe's ``0`` (off): from a start with the probe off they are refused in one
+    line, since their start point would turn the probe on (a step of 0.2 um) instead of running the start."""
+    from hyqjax.cli.common import UsageError
+    from hyqjax.studies.tune import space, wallclock
+
+    edge = [g for g in cfg.groups if g in space.EDGE_GROUPS]
+    if not edge:
+        return
+    start = wallclock.start_params(cfg)
+    if not float(start.edge_probe) > 0.0:
+        where = f"the preset {cfg.start_preset}" if cfg.start_preset else "Table I's crawl"
+        raise UsageError(f"--groups {','.join(edge)}: the start ({where}) has the edge probe off (edge_probe 0), "
+                         f"and these groups act only with it on; start from a preset with the probe on "
+                         f"(--preset clean or reach)")
 
 
 def _defaults():

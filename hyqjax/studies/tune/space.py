@@ -11,8 +11,8 @@ parameter inside its allowed range, so every ``theta`` gives valid parameters (`
   ``g`` = :data:`SEPARATION` keeps the two apart where ``sigmoid`` underflows (a search that drives ``theta``
   far negative otherwise rounds ``D_max`` onto ``D_min``, which ``ReflexParams`` refuses);
 * ``box``: ``p = lo + (hi - lo) sigmoid(theta)`` for a parameter in ``(lo, hi)`` (``K_x`` in
-  ``(0, K_x,max)``, ``Delta`` in ``(0, 0.5)``, the crawl's trunk height, step length, apex, search speed, and the remedy's
-  forward search per metre of depth and terrain adaptation);
+  ``(0, K_x,max)``, ``Delta`` in ``(0, 0.5)``, the crawl's trunk height, step length, apex, search speed, the remedy's
+  forward search per metre of depth and terrain adaptation, and the edge probe's and depth gate's settings);
 * ``ratio``: ``m_min = m_max (g + (1 - 2 g) sigmoid(theta))`` (``0 < m_min < m_max``, in float32 too:
   ``sigmoid`` rounds to 1 above ``theta`` of about 17 and to 0 far below).
 
@@ -72,12 +72,20 @@ GROUPS: dict[str, tuple[Coord, ...]] = {
     "search_speed": (Coord("search_speed", "box", "crawl", 0.05, 0.35),),
     "search_forward": (Coord("search_forward", "box", "crawl", 0.0, 1.5),),
     "terrain_adaptation": (Coord("terrain_adaptation", "box", "crawl", 0.0, 1.0),),
+    "edge_probe": (Coord("edge_probe", "box", "crawl", 0.0, 0.2), Coord("edge_probe_depth", "box", "crawl", 0.0, 0.15)),
+    "edge_gate": (Coord("edge_tilt", "box", "crawl", 0.0, 1.0), Coord("edge_margin", "box", "crawl", -0.3, 0.3),
+                  Coord("edge_lowering", "box", "crawl", 0.0, 0.1), Coord("edge_deep", "box", "crawl", 0.0, 1.0),
+                  Coord("edge_tilt_deep", "box", "crawl", 0.0, 1.0)),
 }
 REFLEX_GROUPS = ("k_base", "damping", "mobility", "k_x", "delta")
 CRAWL_GROUPS = ("body_height", "step_length", "step_height")
 #: The shin-strike remedy's continuous parameters (:mod:`hyqjax.crawl.remedy`; they act with ``shin_remedy`` on).
 REMEDY_GROUPS = ("search_forward", "terrain_adaptation")
 DEFAULT_GROUPS = REFLEX_GROUPS + CRAWL_GROUPS + REMEDY_GROUPS
+#: The edge probe's step and depth and the depth gate's tilts, margin and lowering (:mod:`hyqjax.crawl.edge`; they act
+#: with the probe on, ``edge_probe > 0``): tuned from a start whose probe is on (the presets ``reach`` and
+#: ``clean``), since a ``box`` coordinate cannot hold the probe's ``0`` (off) exactly.
+EDGE_GROUPS = ("edge_probe", "edge_gate")
 
 
 #: The smallest share of its range that separates a ``gap`` coordinate from its lower bound, and a ``ratio``
