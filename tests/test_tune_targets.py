@@ -580,6 +580,10 @@ def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
     assert s["over_runs"]["clean"] == pytest.approx([0.9, 0.8])
     text = targets.table(s)
     assert "| 3 min | 2 | 0.650 [" in text and "| 0.100 | 0.700 / 0.600 |" in text
+    g = s["budget_gains"]  # run by run: +0.2 each, so the interval is a point above 0
+    assert len(g) == 1 and (g[0]["from"], g[0]["to"], g[0]["runs"]) == (3.0, 10.0, ["run_0", "run_1"])
+    assert g[0]["gain"] == pytest.approx([0.2, 0.2]) and g[0]["verdict"] == "more"
+    assert "| 3 -> 10 min | 2 | +0.200 [+0.200, +0.200] | more | +0.200 / +0.200 |" in text
     with pytest.raises(ValueError, match="variant run_2@3min"):
         targets.judge(cells, ["run_0"], budgets={3.0: ["run_2@3min"]})
 
@@ -644,3 +648,19 @@ def test_the_stored_30_minute_runs_resume_under_the_documented_command(tmp_path,
     points = state["trace"]["points"]  # the checkpoints passed, each with the iterate the run held there
     assert [p["seconds"] for p in points] == [180.0, 600.0] and all(len(p["theta"]) == 56 for p in points)
     assert points[0]["validation_clean"] <= points[1]["validation_clean"]  # the selection only moves up
+
+
+def test_budget_gains_pair_runs_and_call_an_interval_across_zero_a_tie():
+    """The gain of a longer budget is paired run by run (a run missing at one budget is left out of that pair, not
+    matched to another run's value), and only an interval above zero says the longer budget returns more."""
+    curve = [dict(minutes=3.0, variants=["run_0@3min", "run_1@3min", "run_2@3min"], clean=[0.90, 0.80, 0.70]),
+             dict(minutes=10.0, variants=["run_0@10min", "run_1@10min"], clean=[0.95, 0.78]),
+             dict(minutes=30.0, variants=["run_1", "run_0"], clean=[0.70, 0.87])]
+    g = targets.budget_gains(curve)
+    assert [(x["from"], x["to"], x["runs"]) for x in g] == [(3.0, 10.0, ["run_0", "run_1"]),
+                                                          (10.0, 30.0, ["run_1", "run_0"])]
+    assert g[0]["gain"] == pytest.approx([0.05, -0.02]) and g[0]["verdict"] == "tie"
+    assert g[1]["gain"] == pytest.approx([-0.08, -0.08]) and g[1]["verdict"] == "less"
+    curve[2]["clean"] = [0.70, 0.85]  # -0.08 and -0.10: the t-interval over two runs reaches above zero
+    assert targets.budget_gains(curve)[1]["verdict"] == "tie"
+    assert targets.budget_gains(curve[:1]) == []

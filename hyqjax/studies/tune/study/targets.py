@@ -22,7 +22,11 @@ range (max - min), and the issue's four targets, each ``pass`` / ``fail`` with t
 With runs that recorded checkpoints before the end of their budget (``hyqjax tune``'s default records 3, 10 and 30
 minutes), the iterate each run held at each earlier checkpoint runs on the same map as ``<run>@<minutes>min``
 (:func:`checkpoint_variant`), and ``budgets`` gives per budget the mean clean success over the runs with its
-t-interval and range: what a user gets at 3, 10 and 30 minutes (the last is the returned set).
+t-interval and range: what a user gets at 3, 10 and 30 minutes (the last is the returned set). ``budget_gains``
+compares each budget with the one before it, paired run by run (the same run's clean success at the longer budget
+minus at the shorter, over the runs that have both): the mean gain with its t-interval over runs, and ``more``
+(the interval above 0: the longer budget returns more), ``less`` (below 0) or ``tie``. A longer default budget is
+worth its minutes only where it is ``more``.
 """
 from __future__ import annotations
 
@@ -100,7 +104,29 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
                 over_runs=dict(stats, range=rng, clean=clean), targets=targets, budgets=curve,
-                diverged=sum(per[v]["diverged"] for v in per))
+                budget_gains=budget_gains(curve), diverged=sum(per[v]["diverged"] for v in per))
+
+
+def run_of(variant: str) -> str:
+    """The run a variant belongs to: ``run_0@10min`` -> ``run_0`` (:func:`checkpoint_variant`), ``run_0`` itself."""
+    return variant.split("@", 1)[0]
+
+
+def budget_gains(curve: list[dict]) -> list[dict]:
+    """Each budget of ``curve`` (:func:`judge`'s ``budgets``, shortest first) against the one before it, paired by
+    run (module docstring): ``from``/``to`` minutes, the runs paired, each run's gain, the mean gain, its 95%
+    t-interval over runs and the verdict ``more`` / ``less`` / ``tie``."""
+    out = []
+    for a, b in zip(curve, curve[1:]):
+        before = {run_of(v): c for v, c in zip(a["variants"], a["clean"])}
+        pairs = [(run_of(v), c - before[run_of(v)]) for v, c in zip(b["variants"], b["clean"]) if run_of(v) in before]
+        gains = [g for _, g in pairs]
+        stats = over_runs(gains) if gains else dict(n=0, mean=None, sd=None, ci95=None)
+        ci = stats.get("ci95")
+        verdict = None if ci is None else "more" if ci[0] > 0 else "less" if ci[1] < 0 else "tie"
+        out.append(dict(stats, **{"from": a["minutes"], "to": b["minutes"]}, runs=[r for r, _ in pairs], gain=gains,
+                        verdict=verdict))
+    return out
 
 
 def table(summary: dict) -> str:
@@ -145,6 +171,15 @@ def table(summary: dict) -> str:
             lines.append(f"| {b['minutes']:g} min | {b['n']} | {f(b['mean'])}"
                          + (f" [{f(ci[0])}, {f(ci[1])}]" if ci else "") + f" | {f(b['range'])} | "
                          + " / ".join(f(c) for c in b["clean"]) + " |")
+    if summary.get("budget_gains"):
+        lines += ["", "| longer budget | runs paired | gain in clean over runs [95%] | verdict | per run |",
+                  "|---|---|---|---|---|"]
+        for g in summary["budget_gains"]:
+            ci = g.get("ci95")
+            lines.append(f"| {g['from']:g} -> {g['to']:g} min | {g['n']} | "
+                         + ("-" if g["mean"] is None else f"{g['mean']:+.3f}")
+                         + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else "") + f" | {g['verdict'] or '-'} | "
+                         + " / ".join(f"{x:+.3f}" for x in g["gain"]) + " |")
     return "\n".join(lines)
 
 
