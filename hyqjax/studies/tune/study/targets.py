@@ -107,15 +107,15 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
                 budget_gains=budget_gains(curve), diverged=sum(per[v]["diverged"] for v in per))
 
 
-def run_of(variant: str) -> str:
-    """The run a variant belongs to: ``run_0@10min`` -> ``run_0`` (:func:`checkpoint_variant`), ``run_0`` itself."""
-    return variant.split("@", 1)[0]
-
-
 def budget_gains(curve: list[dict]) -> list[dict]:
     """Each budget of ``curve`` (:func:`judge`'s ``budgets``, shortest first) against the one before it, paired by
     run (module docstring): ``from``/``to`` minutes, the runs paired, each run's gain, the mean gain, its 95%
     t-interval over runs and the verdict ``more`` / ``less`` / ``tie``."""
+    from hyqjax.studies.tune.tuned import split_checkpoint  # the one parser of NAME@Nmin
+
+    def run_of(variant: str) -> str:  # run_0@10min (checkpoint_variant) -> run_0
+        return split_checkpoint(variant)[0]
+
     out = []
     for a, b in zip(curve, curve[1:]):
         before = {run_of(v): c for v, c in zip(a["variants"], a["clean"])}
