@@ -1,0 +1,160 @@
+"""Whether MuJoCo Warp repeats a batch bit for bit, with and without Warp's deterministic execution mode, and at what
+cost.
+
+Usage: ``PYTHONPATH=. python benchmarks/warp_determinism.py [--modes not_guaranteed,run_to_run] [--processes 2]
+[--reps 2] [--instances 544] [--duration 24] [--impl warp] [--out determinism.json]``.
+
+The batch is the one whose run-to-run differences were measured (benchmarks/RESULTS.md, docs/warp.md): ``hyqjax
+tune``'s default start (the preset ``clean``, the 56 per-leg coordinates) on its selection batch (``select_seed``
+5555, the training heights, the wide spread; ``--instances`` of them, 544 by default), through the tuner's own
+forward evaluator (:class:`hyqjax.studies.tune.forward.SuccessEvaluator`). For each mode
+(``warp.config.deterministic``: ``not_guaranteed``, Warp's default, ``run_to_run`` or ``gpu_to_gpu``), each of
+``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each mode with a kernel cache
+of its own, so that no kernel built under another mode is reused), then runs the batch ``--reps`` times. Every run is
+compared with the mode's first: the step-downs whose ``clean`` or ``completed`` outcome differs, and those whose
+outcome columns (tilts, progress, forces, times) differ in any bit. A mode that fails to build or run is reported
+with its error. The walls are those of the runs after the first (the first includes the compiles).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+
+MODES = ("not_guaranteed", "run_to_run", "gpu_to_gpu")
+
+
+def worker(a) -> dict:
+    """One process: set the mode, build the evaluator, run the batch ``a.reps`` times (module docstring)."""
+    os.environ["WARP_CACHE_PATH"] = a.kernel_cache
+    import warp as wp
+
+    wp.config.kernel_cache_dir = a.kernel_cache
+    wp.config.deterministic = wp.DeterministicMode[a.mode.upper()]
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from hyqjax.cli import tune as tune_cli
+    from hyqjax.cli.app import build_parser
+    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_run
+    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+    args = build_parser().parse_args(["tune", "--out", os.path.join(a.kernel_cache, "tune"), "--impl", a.impl])
+    tune_cli.validate(args)
+    cfg = dataclasses.replace(args.wallclock_config, select_instances=a.instances)
+    param = schedule.make(cfg.dims[0], cfg.groups)
+    theta = start_theta(param, start_point(cfg))
+    ev = forward.SuccessEvaluator(param, wallclock.start_params(cfg), a.duration, cfg.impl, cfg.completed_weight)
+    sc = wallclock_run.validation_scenarios(cfg)
+    runs = []
+    for _ in range(a.reps):
+        t = time.perf_counter()
+        r = ev(jnp.asarray(theta[None], jnp.float32), sc)
+        wall = time.perf_counter() - t
+        cols = {k: np.asarray(v)[0] for k, v in r["columns"].items()}
+        runs.append(dict(wall_s=wall, clean=cols["clean"].astype(bool).tolist(),
+                         completed=cols["completed"].astype(bool).tolist(),
+                         bits={k: v.tobytes().hex() for k, v in cols.items()}))
+    return dict(mode=a.mode, device=str(jax.devices()[0].device_kind), impl=ev.setup.impl, warp=wp.__version__,
+                runs=runs)
+
+
+def compare(first: dict, run: dict) -> dict:
+    """Step-downs of ``run`` whose outcome, or whose outcome columns in any bit, differ from ``first``'s."""
+    import numpy as np
+
+    flips = dict(clean=int(np.sum(np.asarray(first["clean"]) != np.asarray(run["clean"]))),
+                 completed=int(np.sum(np.asarray(first["completed"]) != np.asarray(run["completed"]))))
+    differ = [k for k in first["bits"] if first["bits"][k] != run["bits"].get(k)]
+    return dict(flips, columns_differing=differ, identical=not differ)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--modes", default="not_guaranteed,run_to_run", help=f"comma-separated, from {', '.join(MODES)}")
+    p.add_argument("--processes", type=int, default=2, help="fresh processes per mode")
+    p.add_argument("--reps", type=int, default=2, help="runs of the batch per process")
+    p.add_argument("--instances", type=int, default=544, help="step-downs of the batch (a multiple of 4)")
+    p.add_argument("--duration", type=float, default=24.0, help="seconds of each step-down")
+    p.add_argument("--impl", default="warp")
+    p.add_argument("--out", default="")
+    p.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--mode", default="not_guaranteed", help=argparse.SUPPRESS)
+    p.add_argument("--kernel-cache", default="", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    modes = [m for m in a.modes.split(",") if m]
+    bad = [m for m in modes if m not in MODES]
+    if bad or not modes:
+        p.error(f"--modes must name some of {', '.join(MODES)}, got {a.modes!r}")
+    if a.processes < 1 or a.reps < 1 or a.instances < 4 or a.instances % 4:
+        p.error("--processes and --reps must be >= 1, --instances a positive multiple of 4")
+    if a.worker:
+        print(json.dumps(worker(a)))
+        return 0
+    t0 = time.perf_counter()
+    root = tempfile.mkdtemp(prefix="hyqjax-warp-determinism-")
+    results = {}
+    for mode in modes:
+        cache = os.path.join(root, mode)
+        os.makedirs(cache, exist_ok=True)
+        procs = []
+        for i in range(a.processes):
+            cmd = [sys.executable, os.path.abspath(__file__), "--worker", "--mode", mode, "--kernel-cache", cache,
+                   "--reps", str(a.reps), "--instances", str(a.instances), "--duration", str(a.duration),
+                   "--impl", a.impl]
+            with tempfile.TemporaryFile("w+") as err:
+                c = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+                err.seek(0)
+                tail = err.read()[-1500:]
+            if c.returncode != 0:
+                procs.append(dict(error=f"exit {c.returncode}: {tail}"))
+                break
+            procs.append(json.loads(c.stdout.strip().splitlines()[-1]))
+        ok = [q for q in procs if "error" not in q]
+        runs = [r for q in ok for r in q["runs"]]
+        rows = [compare(runs[0], r) for r in runs[1:]] if runs else []
+        later = [r["wall_s"] for q in ok for r in q["runs"][1:]]
+        results[mode] = dict(processes=len(ok), error=next((q["error"] for q in procs if "error" in q), None),
+                             device=ok[0]["device"] if ok else None, impl=ok[0]["impl"] if ok else None,
+                             warp=ok[0]["warp"] if ok else None, comparisons=rows,
+                             first_clean=int(sum(runs[0]["clean"])) if runs else None,
+                             first_completed=int(sum(runs[0]["completed"])) if runs else None,
+                             wall_s_after_first=later)
+    import jax
+
+    out = dict(date=datetime.date.today().isoformat(), jax=jax.__version__, python=platform.python_version(),
+               settings={k: v for k, v in vars(a).items() if k not in ("worker", "mode", "kernel_cache")},
+               wall_s=time.perf_counter() - t0, modes=results)
+    print(f"| mode | processes x runs | clean / completed of {a.instances} (first run) | runs identical to the first "
+          "| largest clean / completed flips | wall of a later run (s) |")
+    print("|---|---|---|---|---|---|")
+    for mode, r in results.items():
+        if r["error"]:
+            print(f"| {mode} | failed: {r['error'].strip().splitlines()[-1] if r['error'].strip() else r['error']} "
+                  "| | | | |")
+            continue
+        cmp = r["comparisons"]
+        same = sum(c["identical"] for c in cmp)
+        flips = (max((c["clean"] for c in cmp), default=0), max((c["completed"] for c in cmp), default=0))
+        walls = r["wall_s_after_first"]
+        wall = f"{sorted(walls)[len(walls) // 2]:.2f}" if walls else "-"
+        print(f"| {mode} | {r['processes']} x {a.reps} | {r['first_clean']} / {r['first_completed']} | "
+              f"{same} of {len(cmp)} | {flips[0]} / {flips[1]} | {wall} |")
+    print(f"device {next((r['device'] for r in results.values() if r['device']), '-')}, wall "
+          f"{out['wall_s']:.1f} s in all")
+    if a.out:
+        with open(a.out, "w") as f:
+            json.dump(out, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
