@@ -12,7 +12,8 @@ STORED = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_
 STORED_LF = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_leading_foot_h200")
 STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_wide_h200")
 STORED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_h200x2")
-STORED_S01 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_sigma01_h200x2")
+STORED_S01 = os.path.join(os.path.dirname(__file__), "..", "docs", "results",
+                          "tune_default_repeats_clean_sigma01_h200x2")
 CONFIRM_C = os.path.join(STORED_S01, "confirm_c_90210")
 STORED_30 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_30_h200x2",
                          "study")
