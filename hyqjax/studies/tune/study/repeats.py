@@ -73,9 +73,11 @@ def t_quantile(df: int) -> float:
 
 
 def over_runs(values: list[float]) -> dict:
-    """Mean, sample standard deviation and the 95% t-interval of the mean of one value per run."""
+    """Mean, sample standard deviation and the 95% t-interval of the mean of one value per run (no runs: all None)."""
     v = np.asarray(values, np.float64)
     n = int(v.size)
+    if n == 0:
+        return dict(n=0, mean=None, sd=None, ci95=None)
     mean = float(v.mean())
     if n < 2:
         return dict(n=n, mean=mean, sd=None, ci95=None)

@@ -83,7 +83,7 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
         raise ValueError(f"variant {missing[0]} is not in the reach map (it has {', '.join(sorted(by))})")
     per = {v: variant_summary(by[v]) for v in list(runs) + list(references) + extra}
     clean = [per[v]["clean"] for v in runs]
-    stats = over_runs(clean) if runs else dict(n=0, mean=None, sd=None, ci95=None)
+    stats = over_runs(clean)
     rng = float(max(clean) - min(clean)) if runs else None
     worst = min((per[v]["worst_low"]["clean"] for v in runs if per[v]["worst_low"]), default=None)
     h90s = [per[v]["h90"] for v in runs]
@@ -99,7 +99,7 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
         c = [per[v]["clean"] for v in names]
         curve.append(dict(minutes=float(minutes), variants=list(names), clean=c,
                           range=float(max(c) - min(c)) if c else None,
-                          **(over_runs(c) if c else dict(n=0, mean=None, sd=None, ci95=None))))
+                          **over_runs(c)))
     return dict(heldout=dict(HELDOUT, seed=HELDOUT["seed"] if seed is None else int(seed),
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
@@ -121,7 +121,7 @@ def budget_gains(curve: list[dict]) -> list[dict]:
         before = {run_of(v): c for v, c in zip(a["variants"], a["clean"])}
         pairs = [(run_of(v), c - before[run_of(v)]) for v, c in zip(b["variants"], b["clean"]) if run_of(v) in before]
         gains = [g for _, g in pairs]
-        stats = over_runs(gains) if gains else dict(n=0, mean=None, sd=None, ci95=None)
+        stats = over_runs(gains)
         ci = stats.get("ci95")
         verdict = None if ci is None else "more" if ci[0] > 0 else "less" if ci[1] < 0 else "tie"
         out.append(dict(stats, **{"from": a["minutes"], "to": b["minutes"]}, runs=[r for r, _ in pairs], gain=gains,
