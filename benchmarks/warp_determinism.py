@@ -1,7 +1,8 @@
 """Whether MuJoCo Warp repeats a batch bit for bit, with and without Warp's deterministic execution mode, and at what
 cost.
 
-Usage: ``PYTHONPATH=. python benchmarks/warp_determinism.py [--modes not_guaranteed,run_to_run] [--processes 2]
+Usage: ``PYTHONPATH=. python benchmarks/warp_determinism.py [--modes not_guaranteed,run_to_run,run_to_run+xla]
+[--processes 2]
 [--reps 2] [--instances 544] [--duration 24] [--impl warp] [--out determinism.json]``.
 
 The batch is the one whose run-to-run differences were measured (benchmarks/RESULTS.md, docs/warp.md): ``hyqjax
@@ -9,11 +10,16 @@ tune``'s default start (the preset ``clean``, the 56 per-leg coordinates) on its
 5555, the training heights, the wide spread; ``--instances`` of them, 544 by default), through the tuner's own
 forward evaluator (:class:`hyqjax.studies.tune.forward.SuccessEvaluator`). For each mode
 (``warp.config.deterministic``: ``not_guaranteed``, Warp's default, ``run_to_run`` or ``gpu_to_gpu``), each of
-``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each mode with a kernel cache
-of its own, so that no kernel built under another mode is reused), then runs the batch ``--reps`` times. Every run is
+``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each of Warp's modes with a kernel
+cache of its own, so that no kernel built under another mode is reused), then runs the batch ``--reps`` times. Every run is
 compared with the mode's first: the step-downs whose ``clean`` or ``completed`` outcome differs, and those whose
 outcome columns (tilts, progress, forces, times) differ in any bit. A mode that fails to build or run is reported
 with its error. The walls are those of the runs after the first (the first includes the compiles).
+
+The controller, the scenario set-up and the outcome reductions around MuJoCo Warp's step are XLA programs, whose GPU
+reductions and scatters may themselves differ from run to run. A mode with the suffix ``+xla`` (``run_to_run+xla``)
+also starts its processes with XLA's deterministic GPU operations (``XLA_FLAGS=--xla_gpu_deterministic_ops=true``),
+so the modes together tell Warp's share of the differences from XLA's.
 """
 from __future__ import annotations
 
@@ -29,6 +35,24 @@ import tempfile
 import time
 
 MODES = ("not_guaranteed", "run_to_run", "gpu_to_gpu")
+XLA_SUFFIX = "+xla"
+XLA_DETERMINISTIC = "--xla_gpu_deterministic_ops=true"
+
+
+def split_mode(mode: str) -> tuple[str, bool]:
+    """``"run_to_run+xla"`` -> ``("run_to_run", True)``: Warp's mode, and whether XLA's GPU operations are deterministic
+    too (module docstring)."""
+    base = mode[: -len(XLA_SUFFIX)] if mode.endswith(XLA_SUFFIX) else mode
+    return base, base != mode
+
+
+def mode_env(mode: str, environ=None) -> dict:
+    """The environment of a worker of ``mode``: ``environ`` (default ``os.environ``) with XLA's deterministic GPU
+    operations added to ``XLA_FLAGS`` for a ``+xla`` mode."""
+    env = dict(os.environ if environ is None else environ)
+    if split_mode(mode)[1]:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " " + XLA_DETERMINISTIC).strip()
+    return env
 
 
 def worker(a) -> dict:
@@ -37,7 +61,7 @@ def worker(a) -> dict:
     import warp as wp
 
     wp.config.kernel_cache_dir = a.kernel_cache
-    wp.config.deterministic = wp.DeterministicMode[a.mode.upper()]
+    wp.config.deterministic = wp.DeterministicMode[split_mode(a.mode)[0].upper()]
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -64,7 +88,7 @@ def worker(a) -> dict:
                          completed=cols["completed"].astype(bool).tolist(),
                          bits={k: v.tobytes().hex() for k, v in cols.items()}))
     return dict(mode=a.mode, device=str(jax.devices()[0].device_kind), impl=ev.setup.impl, warp=wp.__version__,
-                runs=runs)
+                xla_flags=os.environ.get("XLA_FLAGS", ""), runs=runs)
 
 
 def compare(first: dict, run: dict) -> dict:
@@ -79,7 +103,9 @@ def compare(first: dict, run: dict) -> dict:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--modes", default="not_guaranteed,run_to_run", help=f"comma-separated, from {', '.join(MODES)}")
+    p.add_argument("--modes", default="not_guaranteed,run_to_run,run_to_run+xla",
+                   help=f"comma-separated, from {', '.join(MODES)}, each optionally with {XLA_SUFFIX} (XLA's "
+                        "deterministic GPU operations too)")
     p.add_argument("--processes", type=int, default=2, help="fresh processes per mode")
     p.add_argument("--reps", type=int, default=2, help="runs of the batch per process")
     p.add_argument("--instances", type=int, default=544, help="step-downs of the batch (a multiple of 4)")
@@ -91,9 +117,9 @@ def main(argv=None) -> int:
     p.add_argument("--kernel-cache", default="", help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     modes = [m for m in a.modes.split(",") if m]
-    bad = [m for m in modes if m not in MODES]
+    bad = [m for m in modes if split_mode(m)[0] not in MODES]
     if bad or not modes:
-        p.error(f"--modes must name some of {', '.join(MODES)}, got {a.modes!r}")
+        p.error(f"--modes must name some of {', '.join(MODES)} (each optionally with {XLA_SUFFIX}), got {a.modes!r}")
     if a.processes < 1 or a.reps < 1 or a.instances < 4 or a.instances % 4:
         p.error("--processes and --reps must be >= 1, --instances a positive multiple of 4")
     if a.worker:
@@ -106,7 +132,7 @@ def main(argv=None) -> int:
     results = {}
     for mode in modes:
         t_mode = time.perf_counter()
-        cache = os.path.join(root, mode)
+        cache = os.path.join(root, split_mode(mode)[0])  # XLA's flags do not change Warp's kernels
         os.makedirs(cache, exist_ok=True)
         procs = []
         for i in range(a.processes):
@@ -114,7 +140,7 @@ def main(argv=None) -> int:
                    "--reps", str(a.reps), "--instances", str(a.instances), "--duration", str(a.duration),
                    "--impl", a.impl]
             with tempfile.TemporaryFile("w+") as err:
-                c = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+                c = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=mode_env(mode))
                 err.seek(0)
                 tail = err.read()[-1500:]
             if c.returncode != 0:
@@ -127,7 +153,8 @@ def main(argv=None) -> int:
         later = [r["wall_s"] for q in ok for r in q["runs"][1:]]
         results[mode] = dict(processes=len(ok), error=next((q["error"] for q in procs if "error" in q), None),
                              device=ok[0]["device"] if ok else None, impl=ok[0]["impl"] if ok else None,
-                             warp=ok[0]["warp"] if ok else None, comparisons=rows,
+                             warp=ok[0]["warp"] if ok else None, xla_flags=ok[0].get("xla_flags") if ok else None,
+                             comparisons=rows,
                              first_clean=int(sum(runs[0]["clean"])) if runs else None,
                              first_completed=int(sum(runs[0]["completed"])) if runs else None,
                              wall_s_after_first=later, mode_wall_s=time.perf_counter() - t_mode)
