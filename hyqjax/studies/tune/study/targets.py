@@ -100,11 +100,21 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
         curve.append(dict(minutes=float(minutes), variants=list(names), clean=c,
                           range=float(max(c) - min(c)) if c else None,
                           **over_runs(c)))
-    return dict(heldout=dict(HELDOUT, seed=HELDOUT["seed"] if seed is None else int(seed),
+    return dict(heldout=dict(HELDOUT, **map_layout(by[runs[0]] if runs else None),
+                             seed=HELDOUT["seed"] if seed is None else int(seed),
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
                 over_runs=dict(stats, range=rng, clean=clean), targets=targets, budgets=curve,
                 budget_gains=budget_gains(curve), diverged=sum(per[v]["diverged"] for v in per))
+
+
+def map_layout(cell: dict | None) -> dict:
+    """The instances per height and the heights a reach map's ``cell`` ran (empty for none): a map made with other
+    ``--instances`` or ``--heights`` than :data:`HELDOUT`'s is reported as it ran."""
+    rows = (cell or {}).get("per_height") or []
+    if not rows:
+        return {}
+    return dict(instances=int(max(r["n"] for r in rows)), heights=tuple(float(r["height"]) for r in rows))
 
 
 def budget_gains(curve: list[dict]) -> list[dict]:
