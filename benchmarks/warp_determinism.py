@@ -2,19 +2,18 @@
 cost.
 
 Usage: ``PYTHONPATH=. python benchmarks/warp_determinism.py [--modes not_guaranteed,run_to_run,run_to_run+xla]
-[--processes 2]
-[--reps 2] [--instances 544] [--duration 24] [--impl warp] [--out determinism.json]``.
+[--processes 2] [--reps 2] [--instances 544] [--duration 24] [--impl warp] [--out determinism.json]``.
 
 The batch is the one whose run-to-run differences were measured (benchmarks/RESULTS.md, docs/warp.md): ``hyqjax
 tune``'s default start (the preset ``clean``, the 56 per-leg coordinates) on its selection batch (``select_seed``
 5555, the training heights, the wide spread; ``--instances`` of them, 544 by default), through the tuner's own
 forward evaluator (:class:`hyqjax.studies.tune.forward.SuccessEvaluator`). For each mode
 (``warp.config.deterministic``: ``not_guaranteed``, Warp's default, ``run_to_run`` or ``gpu_to_gpu``), each of
-``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each of Warp's modes with a kernel
-cache of its own, so that no kernel built under another mode is reused), then runs the batch ``--reps`` times. Every run is
-compared with the mode's first: the step-downs whose ``clean`` or ``completed`` outcome differs, and those whose
-outcome columns (tilts, progress, forces, times) differ in any bit. A mode that fails to build or run is reported
-with its error. The walls are those of the runs after the first (the first includes the compiles).
+``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each of Warp's modes with a
+kernel cache of its own, so that no kernel built under another mode is reused), then runs the batch ``--reps`` times.
+Every run is compared with the mode's first: the step-downs whose ``clean`` or ``completed`` outcome differs, and
+those whose outcome columns (tilts, progress, forces, times) differ in any bit. A mode that fails to build or run is
+reported with its error. The walls are those of the runs after the first (the first includes the compiles).
 
 The controller, the scenario set-up and the outcome reductions around MuJoCo Warp's step are XLA programs, whose GPU
 reductions and scatters may themselves differ from run to run. A mode with the suffix ``+xla`` (``run_to_run+xla``)
