@@ -6,7 +6,8 @@ Usage: ``PYTHONPATH=. python benchmarks/warp_determinism.py [--modes not_guarant
 
 The batch is the one whose run-to-run differences were measured (benchmarks/RESULTS.md, docs/warp.md): ``hyqjax
 tune``'s default start (the preset ``clean``, the 56 per-leg coordinates) on its selection batch (``select_seed``
-5555, the training heights, the wide spread; ``--instances`` of them, 544 by default), through the tuner's own
+5555, the training heights, the wide spread; 544 step-downs by default, and ``--instances`` draws a batch of another
+size from the same seed, not a subset), through the tuner's own
 forward evaluator (:class:`hyqjax.studies.tune.forward.SuccessEvaluator`). For each mode
 (``warp.config.deterministic``: ``not_guaranteed``, Warp's default, ``run_to_run`` or ``gpu_to_gpu``), each of
 ``--processes`` fresh processes sets the mode before MuJoCo Warp's kernels are built (each of Warp's modes with a

@@ -1,0 +1,147 @@
+"""Tuned sets on the default tuner's validation batch, in any simulator: whether a set's lead on the batch that
+chose it holds when the same step-downs run in another simulator.
+
+    python -m experiments.selection_batch --impl c --out DIR \\
+        --tuned-run run_0@10min:STUDY/run_0/results.json:cma_es/per_leg@10min --tuned-run ...
+
+The batch is the selection's validation batch of ``hyqjax tune`` with its defaults (``select_instances`` step-downs
+drawn from ``select_seed`` at the training heights on the training spread,
+:func:`hyqjax.studies.tune.wallclock_run.validation_scenarios`). The tuner's start point (its ``--preset``'s
+``theta``) and each ``--tuned-run`` (``NAME:PATH:RUN``, ``RUN`` a run of the tuning results at ``PATH``, with
+``@Nmin`` the iterate it held at that checkpoint) run on it in one batch through the tuner's own forward evaluator
+(:class:`hyqjax.studies.tune.forward.SuccessEvaluator`) with ``--impl``. Each set is reported with its clean and
+completed counts, the validation score its run recorded for it on the simulator it was tuned on, and its paired
+difference from the start on the same step-downs (``b`` step-downs clean with the set only, ``c`` with the start only;
+exact McNemar p).
+
+A set that leads the start here but not on held-out step-downs was chosen by the batch's draw (the selection's
+bias); a set whose recorded lead is gone here differs between the two simulators on the very step-downs that chose
+it. Writes ``DIR/selection_batch.json`` and ``.md``.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+from hyqjax.cli.common import HelpFormatter, UsageError
+
+
+def parse(argv=None):
+    from hyqjax.cli.app import Parser
+
+    ap = Parser(prog="python -m experiments.selection_batch", description=__doc__, formatter_class=HelpFormatter)
+    ap.add_argument("--tuned-run", action="append", required=True, metavar="NAME:PATH:RUN",
+                    help="a set to run: NAME, the tuning results.json, its run (RUN@Nmin: the iterate held then)")
+    ap.add_argument("--impl", default="c", help="the simulator (hyqjax stepdown's --impl)")
+    ap.add_argument("--instances", type=int, default=None,
+                    help="a batch of N drawn like the validation batch from its seed (default: the tuner's "
+                         "--select-instances, the batch itself; another size draws other step-downs)")
+    ap.add_argument("--out", required=True, help="output directory")
+    args = ap.parse_args(argv)
+    for t in args.tuned_run:
+        if len(t.split(":")) != 3 or not all(t.split(":")):
+            raise UsageError(f"--tuned-run {t!r}: must be NAME:PATH:RUN")
+    if args.instances is not None and not 1 <= args.instances <= 100000:
+        raise UsageError(f"--instances {args.instances}: must be in [1, 100000]")
+    return args
+
+
+def recorded_validation(res: dict, key: str, minutes: float | None) -> float | None:
+    """The validation clean rate run ``key`` of ``res`` recorded for the set it held at ``minutes`` (None: the set
+    it returned, its last checkpoint's record)."""
+    points = [p for p in (res.get("runs") or {}).get(key, {}).get("points") or [] if "seconds" in p]
+    if not points:
+        return None
+    if minutes is None:
+        return points[-1].get("validation_clean")
+    return next((p.get("validation_clean") for p in points if abs(p["seconds"] - 60.0 * minutes) < 1e-6), None)
+
+
+def main(argv=None) -> int:
+    from hyqjax.io.phases import process_age
+
+    t0 = time.perf_counter() - (process_age() or 0.0)
+    try:
+        args = parse(argv)
+    except UsageError as e:
+        print(f"selection_batch: {e}", file=sys.stderr)
+        return 2
+    import dataclasses
+
+    import numpy as np
+
+    from hyqjax.cli import tune as tune_cli
+    from hyqjax.cli.app import build_parser
+    from hyqjax.io.atomic import atomic_write, write_json
+    from hyqjax.studies.sweep.compare import mcnemar_exact
+    from hyqjax.studies.tune import forward, schedule, tuned, wallclock, wallclock_run
+    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+
+    os.makedirs(args.out, exist_ok=True)
+    targs = build_parser().parse_args(["tune", "--out", os.path.join(args.out, "tune"), "--impl", args.impl])
+    tune_cli.validate(targs)
+    cfg = targs.wallclock_config
+    if args.instances is not None:
+        cfg = dataclasses.replace(cfg, select_instances=args.instances)
+    param = schedule.make(cfg.dims[0], cfg.groups)
+    names, thetas, recorded = ["start"], [start_theta(param, start_point(cfg))], [None]
+    for t in args.tuned_run:
+        name, path, run = t.split(":")
+        try:
+            res = tuned.read(path)
+            base, minutes = tuned.split_checkpoint(run)
+            key = tuned.pick_run(res, base, path)
+            theta = (tuned.checkpoint_theta(res, key, minutes, path) if minutes
+                     else np.asarray(res["runs"][key]["theta"]))
+        except (OSError, ValueError, KeyError) as e:
+            print(f"selection_batch: --tuned-run {t}: {e}", file=sys.stderr)
+            return 2
+        stored = res.get("config") or {}
+        if (stored.get("start_preset"), tuple(stored.get("groups") or ())) != (cfg.start_preset, tuple(cfg.groups)) \
+                or len(theta) != param.size:
+            print(f"selection_batch: --tuned-run {t}: a run of another start or parameterisation than the default "
+                  f"tuner's ({cfg.start_preset}, {param.size} coordinates)", file=sys.stderr)
+            return 2
+        names.append(name)
+        thetas.append(theta)
+        recorded.append(recorded_validation(res, key, minutes))
+    ev = forward.SuccessEvaluator(param, wallclock.start_params(cfg), cfg.train_duration, cfg.impl,
+                                  cfg.completed_weight)
+    sc = wallclock_run.validation_scenarios(cfg)
+    t_run = time.perf_counter()
+    r = ev(np.stack(thetas), sc)
+    wall = time.perf_counter() - t_run
+    clean, completed = np.asarray(r["clean"]).astype(bool), np.asarray(r["completed"]).astype(bool)
+    n = clean.shape[1]
+    rows = []
+    for i, name in enumerate(names):
+        b = int(np.sum(clean[i] & ~clean[0]))
+        c = int(np.sum(~clean[i] & clean[0]))
+        rows.append(dict(name=name, clean=int(clean[i].sum()), completed=int(completed[i].sum()), n=n,
+                         recorded_validation_clean=recorded[i], only_set=b, only_start=c,
+                         d=(b - c) / n, p_mcnemar=mcnemar_exact(b, c) if i else None))
+    out = dict(impl=ev.setup.impl, instances=n, select_seed=cfg.select_seed, heights=list(cfg.train_heights),
+               spread=cfg.train_spread, duration=cfg.train_duration, wall_s_batch=wall,
+               physics_steps=int(ev.physics_steps), sets=rows, tuned_runs=args.tuned_run)
+    lines = [f"The default tuner's validation batch ({n} step-downs, select_seed {cfg.select_seed}) on "
+             f"{ev.setup.impl}, paired against the start on the same step-downs", "",
+             "| set | clean | completed | recorded validation clean | clean here | minus the start (only set / only "
+             "start) | McNemar p |", "|---|---:|---:|---:|---:|---|---:|"]
+    for row in rows:
+        rec = "" if row["recorded_validation_clean"] is None else f"{row['recorded_validation_clean']:.3f}"
+        diff = "" if row["p_mcnemar"] is None else f"{row['d']:+.3f} ({row['only_set']} / {row['only_start']})"
+        p = "" if row["p_mcnemar"] is None else f"{row['p_mcnemar']:.2g}"
+        lines.append(f"| {row['name']} | {row['clean']} | {row['completed']} | {rec} | {row['clean'] / n:.3f} | "
+                     f"{diff} | {p} |")
+    text = "\n".join(lines) + "\n"
+    write_json(os.path.join(args.out, "selection_batch.json"), out)
+    atomic_write(os.path.join(args.out, "selection_batch.md"), lambda f: f.write(text.encode()))
+    print(text)
+    print(f"wall {time.perf_counter() - t0:.1f} s in all (since the process started): the batch {wall:.1f} s "
+          f"(compile included); {args.out}/selection_batch.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
