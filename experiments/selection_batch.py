@@ -12,7 +12,7 @@ drawn from ``select_seed`` at the training heights on the training spread,
 (:class:`hyqjax.studies.tune.forward.SuccessEvaluator`) with ``--impl``. Each set is reported with its clean and
 completed counts, the validation score its run recorded for it on the simulator it was tuned on, and its paired
 difference from the start on the same step-downs (``b`` step-downs clean with the set only, ``c`` with the start only;
-exact McNemar p).
+exact McNemar p), pooled and by training height.
 
 A set that leads the start here but not on held-out step-downs was chosen by the batch's draw (the selection's
 bias); a set whose recorded lead is gone here differs between the two simulators on the very step-downs that chose
@@ -114,13 +114,20 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t_run
     clean, completed = np.asarray(r["clean"]).astype(bool), np.asarray(r["completed"]).astype(bool)
     n = clean.shape[1]
+    height = np.round(np.asarray(sc.terrain.platform_height, np.float64), 4)
     rows = []
     for i, name in enumerate(names):
         b = int(np.sum(clean[i] & ~clean[0]))
         c = int(np.sum(~clean[i] & clean[0]))
+        per_height = []
+        for h in np.unique(height):
+            at = height == h
+            bh, ch = int(np.sum((clean[i] & ~clean[0])[at])), int(np.sum((~clean[i] & clean[0])[at]))
+            per_height.append(dict(height=float(h), n=int(at.sum()), clean=int(clean[i][at].sum()),
+                                   completed=int(completed[i][at].sum()), only_set=bh, only_start=ch))
         rows.append(dict(name=name, clean=int(clean[i].sum()), completed=int(completed[i].sum()), n=n,
                          recorded_validation_clean=recorded[i], only_set=b, only_start=c,
-                         d=(b - c) / n, p_mcnemar=mcnemar_exact(b, c) if i else None))
+                         d=(b - c) / n, p_mcnemar=mcnemar_exact(b, c) if i else None, per_height=per_height))
     out = dict(impl=ev.setup.impl, instances=n, select_seed=cfg.select_seed, heights=list(cfg.train_heights),
                spread=cfg.train_spread, duration=cfg.train_duration, wall_s_batch=wall,
                physics_steps=int(ev.physics_steps), sets=rows, tuned_runs=args.tuned_run)
@@ -134,6 +141,9 @@ def main(argv=None) -> int:
         p = "" if row["p_mcnemar"] is None else f"{row['p_mcnemar']:.2g}"
         lines.append(f"| {row['name']} | {row['clean']} | {row['completed']} | {rec} | {row['clean'] / n:.3f} | "
                      f"{diff} | {p} |")
+    lines += ["", "Minus the start by height (only set / only start): "
+              + "; ".join(f"{row['name']}: " + ", ".join(f"{h['height'] * 100:g} cm {h['only_set']} / {h['only_start']}"
+                                                         for h in row["per_height"]) for row in rows[1:])]
     text = "\n".join(lines) + "\n"
     write_json(os.path.join(args.out, "selection_batch.json"), out)
     atomic_write(os.path.join(args.out, "selection_batch.md"), lambda f: f.write(text.encode()))

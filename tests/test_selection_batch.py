@@ -20,8 +20,8 @@ def test_a_malformed_set_is_refused_in_one_line(tmp_path, capsys):
 @pytest.mark.slow
 def test_a_set_gives_the_same_outcomes_at_any_batch_position_and_its_recorded_score(tmp_path):
     """The same stored iterate twice in one C MuJoCo batch (rows of other members between them) gives the same
-    outcome on every step-down, the start's row is the preset ``clean``'s, and the validation score shown is the one
-    the run recorded for that checkpoint on MuJoCo Warp (0.847 for run 0 at 10 minutes)."""
+    outcome on every step-down, the validation score shown is the one the run recorded for that checkpoint on MuJoCo
+    Warp (0.847 for run 0 at 10 minutes), and the rows by height add up to the pooled ones."""
     from experiments import selection_batch
 
     path = os.path.join(STUDY, "run_0", "results.json")
@@ -38,4 +38,8 @@ def test_a_set_gives_the_same_outcomes_at_any_batch_position_and_its_recorded_sc
     assert rows["start"]["recorded_validation_clean"] is None and rows["start"]["p_mcnemar"] is None
     for r in rows.values():
         assert r["d"] == pytest.approx((r["only_set"] - r["only_start"]) / 8)
-    assert (tmp_path / "selection_batch.md").read_text().count("\n| ") == 5
+        assert [h["height"] for h in r["per_height"]] == [0.16, 0.2, 0.24, 0.28]  # the training heights, 2 each
+        for k in ("n", "clean", "completed", "only_set", "only_start"):
+            assert sum(h[k] for h in r["per_height"]) == r[k], k
+    text = (tmp_path / "selection_batch.md").read_text()
+    assert text.count("\n| ") == 5 and "Minus the start by height" in text
