@@ -67,16 +67,11 @@ def worker(a) -> dict:
     import numpy as np
 
     from hyqjax.cli import tune as tune_cli
-    from hyqjax.cli.app import build_parser
-    from hyqjax.studies.tune import forward, schedule, wallclock, wallclock_run
-    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+    from hyqjax.studies.tune import wallclock, wallclock_run
 
-    args = build_parser().parse_args(["tune", "--out", os.path.join(a.kernel_cache, "tune"), "--impl", a.impl])
-    tune_cli.validate(args)
-    cfg = dataclasses.replace(args.wallclock_config, select_instances=a.instances)
-    param = schedule.make(cfg.dims[0], cfg.groups)
-    theta = start_theta(param, start_point(cfg))
-    ev = forward.SuccessEvaluator(param, wallclock.start_params(cfg), a.duration, cfg.impl, cfg.completed_weight)
+    cfg = tune_cli.default_config(os.path.join(a.kernel_cache, "tune"), a.impl)
+    cfg = dataclasses.replace(cfg, select_instances=a.instances)
+    _, theta, ev = wallclock.start_evaluator(cfg, a.duration)
     sc = wallclock_run.validation_scenarios(cfg)
     runs = []
     for _ in range(a.reps):

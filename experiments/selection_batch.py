@@ -47,17 +47,6 @@ def parse(argv=None):
     return args
 
 
-def recorded_validation(res: dict, key: str, minutes: float | None) -> float | None:
-    """The validation clean rate run ``key`` of ``res`` recorded for the set it held at ``minutes`` (None: the set
-    it returned, its last checkpoint's record)."""
-    points = [p for p in (res.get("runs") or {}).get(key, {}).get("points") or [] if "seconds" in p]
-    if not points:
-        return None
-    if minutes is None:
-        return points[-1].get("validation_clean")
-    return next((p.get("validation_clean") for p in points if abs(p["seconds"] - 60.0 * minutes) < 1e-6), None)
-
-
 def main(argv=None) -> int:
     from hyqjax.io.phases import process_age
 
@@ -72,20 +61,16 @@ def main(argv=None) -> int:
     import numpy as np
 
     from hyqjax.cli import tune as tune_cli
-    from hyqjax.cli.app import build_parser
     from hyqjax.io.atomic import atomic_write, write_json
     from hyqjax.studies.sweep.compare import mcnemar_exact
-    from hyqjax.studies.tune import forward, schedule, tuned, wallclock, wallclock_run
-    from hyqjax.studies.tune.wallclock_config import start_point, start_theta
+    from hyqjax.studies.tune import tuned, wallclock, wallclock_run
 
     os.makedirs(args.out, exist_ok=True)
-    targs = build_parser().parse_args(["tune", "--out", os.path.join(args.out, "tune"), "--impl", args.impl])
-    tune_cli.validate(targs)
-    cfg = targs.wallclock_config
+    cfg = tune_cli.default_config(os.path.join(args.out, "tune"), args.impl)
     if args.instances is not None:
         cfg = dataclasses.replace(cfg, select_instances=args.instances)
-    param = schedule.make(cfg.dims[0], cfg.groups)
-    names, thetas, recorded = ["start"], [start_theta(param, start_point(cfg))], [None]
+    param, theta0, ev = wallclock.start_evaluator(cfg)
+    names, thetas, recorded = ["start"], [theta0], [None]
     for t in args.tuned_run:
         name, path, run = t.split(":")
         try:
@@ -105,9 +90,7 @@ def main(argv=None) -> int:
             return 2
         names.append(name)
         thetas.append(theta)
-        recorded.append(recorded_validation(res, key, minutes))
-    ev = forward.SuccessEvaluator(param, wallclock.start_params(cfg), cfg.train_duration, cfg.impl,
-                                  cfg.completed_weight)
+        recorded.append((tuned.checkpoint_point(res, key, minutes) or {}).get("validation_clean"))
     sc = wallclock_run.validation_scenarios(cfg)
     t_run = time.perf_counter()
     r = ev(np.stack(thetas), sc)
@@ -117,14 +100,12 @@ def main(argv=None) -> int:
     height = np.round(np.asarray(sc.terrain.platform_height, np.float64), 4)
     rows = []
     for i, name in enumerate(names):
-        b = int(np.sum(clean[i] & ~clean[0]))
-        c = int(np.sum(~clean[i] & clean[0]))
-        per_height = []
-        for h in np.unique(height):
-            at = height == h
-            bh, ch = int(np.sum((clean[i] & ~clean[0])[at])), int(np.sum((~clean[i] & clean[0])[at]))
-            per_height.append(dict(height=float(h), n=int(at.sum()), clean=int(clean[i][at].sum()),
-                                   completed=int(completed[i][at].sum()), only_set=bh, only_start=ch))
+        only_set, only_start = clean[i] & ~clean[0], ~clean[i] & clean[0]
+        b, c = int(only_set.sum()), int(only_start.sum())
+        per_height = [dict(height=float(h), n=int(at.sum()), clean=int(clean[i][at].sum()),
+                           completed=int(completed[i][at].sum()), only_set=int(only_set[at].sum()),
+                           only_start=int(only_start[at].sum()))
+                      for h in np.unique(height) for at in [height == h]]
         rows.append(dict(name=name, clean=int(clean[i].sum()), completed=int(completed[i].sum()), n=n,
                          recorded_validation_clean=recorded[i], only_set=b, only_start=c,
                          d=(b - c) / n, p_mcnemar=mcnemar_exact(b, c) if i else None, per_height=per_height))

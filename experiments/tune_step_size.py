@@ -135,19 +135,17 @@ def main(argv=None) -> int:
     import os
 
     from hyqjax.io import atomic
-    from hyqjax.studies.tune import forward, schedule
-    from hyqjax.studies.tune.wallclock import start_params
-    from hyqjax.studies.tune.wallclock_config import WallClockConfig, start_point, start_theta
+    from hyqjax.studies.tune import forward
+    from hyqjax.studies.tune.wallclock import start_evaluator
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread="wide",
                           impl=a.impl, train_duration=a.duration)
-    param = schedule.make(a.dim, cfg.groups)
     try:
-        theta0 = start_theta(param, start_point(cfg))
+        param, theta0, evaluator = start_evaluator(cfg)
     except ValueError as e:
         print(f"tune_step_size: --preset {a.preset} on --dim {a.dim}: {e}", file=sys.stderr)
         return 2
-    evaluator = forward.SuccessEvaluator(param, start_params(cfg), a.duration, a.impl, cfg.completed_weight)
     sc = forward.train_scenarios(a.instances, a.seed, 0, cfg.train_heights, "wide")
     points = sample_points(theta0, a.sigmas, a.samples, a.seed)
     clock.lap("startup")

@@ -139,6 +139,16 @@ def validate(args) -> None:
     return validate_wallclock(args)
 
 
+def default_config(out: str, impl: str = "auto"):
+    """The configuration (``WallClockConfig``) of ``hyqjax tune --out OUT --impl IMPL`` with every other option at
+    its default, as the command builds it."""
+    from hyqjax.cli.app import build_parser
+
+    args = build_parser().parse_args(["tune", "--out", out, "--impl", impl])
+    validate(args)
+    return args.wallclock_config
+
+
 def validate_wallclock(args) -> None:
     """The tuner and the equal-wall-clock study (``python -m experiments.tune_study``): every setting checked in one
     line before anything compiles."""

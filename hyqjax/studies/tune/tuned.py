@@ -111,11 +111,20 @@ def checkpoint_minutes(res: dict, key: str) -> list[float]:
     return [round(float(p["seconds"]) / 60.0, 6) for p in _points(res, key)]
 
 
+def checkpoint_point(res: dict, key: str, minutes: float | None = None) -> dict | None:
+    """The record (``seconds``, ``theta``, ``validation_clean``, ...) run ``key`` of ``res`` stored at its
+    checkpoint of ``minutes`` (None: its last, the end of its budget); None where it has none."""
+    points = _points(res, key)
+    if minutes is None:
+        return points[-1] if points else None
+    return next((p for p in points if abs(float(p["seconds"]) - 60.0 * minutes) < 1e-6), None)
+
+
 def checkpoint_theta(res: dict, key: str, minutes: float, path: str = "results.json") -> np.ndarray:
     """``theta`` run ``key`` held at its checkpoint of ``minutes``; a ``ValueError`` naming the checkpoints it has."""
-    for p in _points(res, key):
-        if abs(float(p["seconds"]) - 60.0 * minutes) < 1e-6 and "theta" in p:
-            return np.asarray(p["theta"], np.float64)
+    p = checkpoint_point(res, key, minutes)
+    if p is not None and "theta" in p:
+        return np.asarray(p["theta"], np.float64)
     have = ", ".join(f"{m:g}" for m in checkpoint_minutes(res, key)) or "none"
     raise ValueError(f"run {key} of {path} has no checkpoint at {minutes:g} min (its checkpoints, minutes: {have})")
 

@@ -73,6 +73,17 @@ def start_params(cfg: WallClockConfig) -> crawl.CrawlParams:
     return start.base if is_per_leg(start) else start
 
 
+def start_evaluator(cfg: WallClockConfig, duration: float | None = None):
+    """``(param, theta0, evaluator)`` of ``cfg``'s first parameterisation: its start point's ``theta`` and the
+    tuner's forward evaluator (:class:`forward.SuccessEvaluator`) on the start crawl (:func:`start_params`),
+    ``duration`` seconds a step-down (default ``cfg.train_duration``)."""
+    param = schedule.make(cfg.dims[0], cfg.groups)
+    theta0 = start_theta(param, start_point(cfg))
+    evaluator = forward.SuccessEvaluator(param, start_params(cfg), cfg.train_duration if duration is None else duration,
+                                         cfg.impl, cfg.completed_weight)
+    return param, theta0, evaluator
+
+
 def previous(out_dir: str, cfg: WallClockConfig) -> dict | None:
     """``results.json`` of an earlier run of the same configuration (None if none or unreadable); another
     configuration there is refused."""
