@@ -33,7 +33,10 @@ def parse(argv=None):
     ap = Parser(prog="python -m experiments.selection_batch", description=__doc__, formatter_class=HelpFormatter)
     ap.add_argument("--tuned-run", action="append", required=True, metavar="NAME:PATH:RUN",
                     help="a set to run: NAME, the tuning results.json, its run (RUN@Nmin: the iterate held then)")
-    ap.add_argument("--impl", default="c", help="the simulator (hyqjax stepdown's --impl)")
+    from hyqjax.sim import backend
+
+    ap.add_argument("--impl", default="c", choices=["auto", *backend.ALL_IMPLS],
+                    help="simulator: " + backend.describe(backend.ALL_IMPLS))
     ap.add_argument("--instances", type=int, default=None,
                     help="a batch of N drawn like the validation batch from its seed (default: the tuner's "
                          "--select-instances, the batch itself; another size draws other step-downs)")
@@ -66,9 +69,13 @@ def main(argv=None) -> int:
     from hyqjax.studies.tune import tuned, wallclock, wallclock_run
 
     os.makedirs(args.out, exist_ok=True)
-    cfg = tune_cli.default_config(os.path.join(args.out, "tune"), args.impl)
-    if args.instances is not None:
-        cfg = dataclasses.replace(cfg, select_instances=args.instances)
+    try:
+        cfg = tune_cli.default_config(os.path.join(args.out, "tune"), args.impl)
+        if args.instances is not None:
+            cfg = dataclasses.replace(cfg, select_instances=args.instances)
+    except (UsageError, ValueError) as e:
+        print(f"selection_batch: {'--instances: ' if isinstance(e, ValueError) else ''}{e}", file=sys.stderr)
+        return 2
     param, theta0, ev = wallclock.start_evaluator(cfg)
     names, thetas, recorded = ["start"], [theta0], [None]
     for t in args.tuned_run:

@@ -9,12 +9,17 @@ STUDY = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_d
                      "study")
 
 
-def test_a_malformed_set_is_refused_in_one_line(tmp_path, capsys):
+@pytest.mark.parametrize("argv, says", [
+    (["--tuned-run", "run_0:only_two"], "--tuned-run 'run_0:only_two': must be NAME:PATH:RUN"),
+    (["--tuned-run", "a:b:c", "--instances", "6"], "--instances: select_instances must be a multiple of 4"),
+    (["--tuned-run", "a:/nowhere/results.json:c"], "--tuned-run a:/nowhere/results.json:c: cannot read"),
+])
+def test_bad_input_is_refused_in_one_line(tmp_path, capsys, argv, says):
     from experiments import selection_batch
 
-    assert selection_batch.main(["--out", str(tmp_path), "--tuned-run", "run_0:only_two"]) == 2
+    assert selection_batch.main(["--out", str(tmp_path)] + argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--tuned-run 'run_0:only_two': must be NAME:PATH:RUN" in err[0]
+    assert len(err) == 1 and says in err[0]
 
 
 @pytest.mark.slow
