@@ -34,6 +34,8 @@ import sys
 import tempfile
 import time
 
+from hyqjax.io.atomic import write_json
+
 MODES = ("not_guaranteed", "run_to_run", "gpu_to_gpu")
 XLA_SUFFIX = "+xla"
 XLA_DETERMINISTIC = "--xla_gpu_deterministic_ops=true"
@@ -96,6 +98,34 @@ def compare(first: dict, run: dict) -> dict:
     return dict(flips, columns_differing=differ, identical=not differ)
 
 
+def summarise_mode(procs: list[dict], wall_s: float) -> dict:
+    """One mode's record from its processes so far: each run compared with the mode's first (:func:`compare`), the
+    first run's counts, the walls of the runs after each process's first, and the first error."""
+    ok = [q for q in procs if "error" not in q]
+    runs = [r for q in ok for r in q["runs"]]
+    first = ok[0] if ok else {}
+    return dict(processes=len(ok), error=next((q["error"] for q in procs if "error" in q), None),
+                device=first.get("device"), impl=first.get("impl"), warp=first.get("warp"),
+                xla_flags=first.get("xla_flags"), comparisons=[compare(runs[0], r) for r in runs[1:]] if runs else [],
+                first_clean=int(sum(runs[0]["clean"])) if runs else None,
+                first_completed=int(sum(runs[0]["completed"])) if runs else None,
+                wall_s_after_first=[r["wall_s"] for q in ok for r in q["runs"][1:]], mode_wall_s=wall_s)
+
+
+def table_row(mode: str, r: dict, reps: int) -> str:
+    """A mode's row of the summary table (``main``'s header)."""
+    if r["error"]:
+        last = r["error"].strip().splitlines()[-1] if r["error"].strip() else r["error"]
+        return f"| {mode} | failed: {last} | | | | |"
+    cmp = r["comparisons"]
+    same = sum(c["identical"] for c in cmp)
+    flips = (max((c["clean"] for c in cmp), default=0), max((c["completed"] for c in cmp), default=0))
+    walls = r["wall_s_after_first"]
+    wall = f"{sorted(walls)[len(walls) // 2]:.2f}" if walls else "-"
+    return (f"| {mode} | {r['processes']} x {reps} | {r['first_clean']} / {r['first_completed']} | "
+            f"{same} of {len(cmp)} | {flips[0]} / {flips[1]} | {wall} |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--modes", default="not_guaranteed,run_to_run,run_to_run+xla",
@@ -124,6 +154,7 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter() - (process_age() or 0.0)  # the clock starts with the process
     root = tempfile.mkdtemp(prefix="hyqjax-warp-determinism-")
+    settings = {k: v for k, v in vars(a).items() if k not in ("worker", "mode", "kernel_cache")}
     results = {}
     for mode in modes:
         t_mode = time.perf_counter()
@@ -138,44 +169,29 @@ def main(argv=None) -> int:
                 c = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=err, text=True, env=mode_env(mode))
                 err.seek(0)
                 tail = err.read()[-1500:]
-            if c.returncode != 0:
-                procs.append(dict(error=f"exit {c.returncode}: {tail}"))
+            procs.append(dict(error=f"exit {c.returncode}: {tail}") if c.returncode != 0
+                         else json.loads(c.stdout.strip().splitlines()[-1]))
+            results[mode] = summarise_mode(procs, time.perf_counter() - t_mode)
+            # Every finished process is on disk and on the console at once: a run stopped by a time limit keeps them.
+            print(f"{mode}: process {i + 1} of {a.processes} done ({time.perf_counter() - t0:.0f} s since the process "
+                  f"started): {table_row(mode, results[mode], a.reps)}", flush=True)
+            if a.out:
+                write_json(a.out, dict(date=datetime.date.today().isoformat(), python=platform.python_version(),
+                                       settings=settings, wall_s=time.perf_counter() - t0, modes=results,
+                                       complete=False))
+            if "error" in procs[-1]:
                 break
-            procs.append(json.loads(c.stdout.strip().splitlines()[-1]))
-        ok = [q for q in procs if "error" not in q]
-        runs = [r for q in ok for r in q["runs"]]
-        rows = [compare(runs[0], r) for r in runs[1:]] if runs else []
-        later = [r["wall_s"] for q in ok for r in q["runs"][1:]]
-        results[mode] = dict(processes=len(ok), error=next((q["error"] for q in procs if "error" in q), None),
-                             device=ok[0]["device"] if ok else None, impl=ok[0]["impl"] if ok else None,
-                             warp=ok[0]["warp"] if ok else None, xla_flags=ok[0].get("xla_flags") if ok else None,
-                             comparisons=rows,
-                             first_clean=int(sum(runs[0]["clean"])) if runs else None,
-                             first_completed=int(sum(runs[0]["completed"])) if runs else None,
-                             wall_s_after_first=later, mode_wall_s=time.perf_counter() - t_mode)
     import jax
 
     out = dict(date=datetime.date.today().isoformat(), jax=jax.__version__, python=platform.python_version(),
-               settings={k: v for k, v in vars(a).items() if k not in ("worker", "mode", "kernel_cache")},
-               wall_s=time.perf_counter() - t0, modes=results)
+               settings=settings, wall_s=time.perf_counter() - t0, modes=results, complete=True)
     print(f"| mode | processes x runs | clean / completed of {a.instances} (first run) | runs identical to the first "
           "| largest clean / completed flips | wall of a later run (s) |")
     print("|---|---|---|---|---|---|")
     for mode, r in results.items():
-        if r["error"]:
-            print(f"| {mode} | failed: {r['error'].strip().splitlines()[-1] if r['error'].strip() else r['error']} "
-                  "| | | | |")
-            continue
-        cmp = r["comparisons"]
-        same = sum(c["identical"] for c in cmp)
-        flips = (max((c["clean"] for c in cmp), default=0), max((c["completed"] for c in cmp), default=0))
-        walls = r["wall_s_after_first"]
-        wall = f"{sorted(walls)[len(walls) // 2]:.2f}" if walls else "-"
-        print(f"| {mode} | {r['processes']} x {a.reps} | {r['first_clean']} / {r['first_completed']} | "
-              f"{same} of {len(cmp)} | {flips[0]} / {flips[1]} | {wall} |")
+        print(table_row(mode, r, a.reps))
     if a.out:
-        with open(a.out, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(a.out, out)
     each = ", ".join(f"{m} {r['mode_wall_s']:.1f} s" for m, r in results.items())
     print(f"device {next((r['device'] for r in results.values() if r['device']), '-')}; wall "
           f"{time.perf_counter() - t0:.1f} s in all (since the process started): the modes' processes ({each}: "
