@@ -75,6 +75,10 @@ def parse(argv):
                     help="run the tuner runs and stop (exit 0 once all are finished): no held-out map, no judgement")
     ap.add_argument("--judge-only", action="store_true",
                     help="run nothing: judge the stored runs and DIR/heldout/reach_map.json again")
+    ap.add_argument("--heldout-dir", default=None, metavar="MAP_DIR",
+                    help="with --judge-only: judge the runs on this finished reach map instead of DIR/heldout (one "
+                         "made elsewhere, e.g. in C MuJoCo, or merged from parts by python -m "
+                         "experiments.reach_map_merge); targets.json and targets.md go beside it")
     ap.add_argument("--max-minutes", type=float, default=None,
                     help="stop (exit 75) before a run that would not finish in this many minutes of this process")
     ap.add_argument("--segment-minutes", type=float, default=None,
@@ -97,6 +101,12 @@ def parse(argv):
         raise ValueError(f"--max-minutes {args.max_minutes}: must be > 0")
     if args.runs_only and args.judge_only:
         raise ValueError("--runs-only and --judge-only: give one (the first runs, the second judges)")
+    if args.heldout_dir is not None and not args.judge_only:
+        raise ValueError(f"--heldout-dir {args.heldout_dir}: only with --judge-only (a map made elsewhere is judged, "
+                         "not made)")
+    if args.heldout_dir is not None and not os.path.isfile(os.path.join(args.heldout_dir, "reach_map.json")):
+        raise ValueError(f"--heldout-dir {args.heldout_dir}: no reach_map.json there (give a finished reach map's "
+                         "--out)")
     if args.segment_minutes is not None and not MIN_SEGMENT_MINUTES <= args.segment_minutes <= 600:
         raise ValueError(f"--segment-minutes {args.segment_minutes}: must be in [{MIN_SEGMENT_MINUTES:g}, 600]")
     if args.map_seed is not None and not 0 <= args.map_seed < 2**31:
@@ -169,7 +179,8 @@ def main(argv=None) -> int:
         for name, minutes in recorded.items():
             for m in minutes:
                 budgets.setdefault(m, []).append(name if m == minutes[-1] else targets.checkpoint_variant(name, m))
-    heldout = os.path.join(args.out, "heldout")
+    heldout = args.heldout_dir or os.path.join(args.out, "heldout")
+    judged = args.heldout_dir or args.out  # where targets.json and targets.md go
     rm_argv = targets.reach_map_arguments(runs, args.references, args.extra_run, args.impl, heldout, args.instances,
                                           args.map_seed, checkpoints=checkpoints)
     if args.gpus > 1:
@@ -197,9 +208,11 @@ def main(argv=None) -> int:
         print(f"tune_default_repeats: {heldout}/reach_map.json: {e}", file=sys.stderr)
         return 2
     command = "python -m experiments.reach_map " + " ".join(rm_argv)
-    if args.judge_only:  # the command that made the stored map, where an earlier judgement recorded it
+    if args.heldout_dir:  # a map made elsewhere: the command it recorded
+        command = (heldout_map.get("provenance") or {}).get("command") or command
+    elif args.judge_only:  # the command that made the stored map, where an earlier judgement recorded it
         try:
-            command = _read_targets(args.out).get("reach_map_command") or command
+            command = _read_targets(judged).get("reach_map_command") or command
         except (OSError, ValueError):
             pass
     ends = {minutes[-1] for minutes in recorded.values() if minutes}
@@ -207,13 +220,13 @@ def main(argv=None) -> int:
                    heldout_device=heldout_map.get("device"), heldout_wall_s=heldout_map.get("wall_s"),
                    run_walls_s={k: r.get("wall_s") for k, r in zip(runs, stored)},
                    returned={k: _returned(r) for k, r in zip(runs, stored)})
-    atomic.write_json(os.path.join(args.out, "targets.json"), summary)
+    atomic.write_json(os.path.join(judged, "targets.json"), summary)
     text = targets.table(summary)
-    atomic.atomic_write(os.path.join(args.out, "targets.md"), lambda f: f.write((text + "\n").encode()))
+    atomic.atomic_write(os.path.join(judged, "targets.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
     walls = [w for w in summary["run_walls_s"].values() if w]
     print(f"wall {time.time() - t0:.1f} s in all (this process: the runs it launched, the held-out map, the "
-          f"judgement); the runs' own walls {sum(walls):.0f} s over {len(walls)} runs; wrote {args.out}/targets.md")
+          f"judgement); the runs' own walls {sum(walls):.0f} s over {len(walls)} runs; wrote {judged}/targets.md")
     return 0
 
 

@@ -24,6 +24,19 @@ import numpy as np
 TMP_MARK = ".tmp-"
 
 
+def program(path: str | None = None) -> str:
+    """How the running program is started, for a result's recorded command: ``python -m experiments.reach_map`` for
+    a module of the repository's ``experiments`` or ``benchmarks`` (``sys.argv[0]`` is then its file), ``hyqjax``
+    for the command line tool."""
+    path = sys.argv[0] if path is None else path
+    parts = os.path.normpath(path).split(os.sep)
+    if path.endswith(".py") and len(parts) >= 2 and parts[-2] == "experiments":
+        return f"python -m experiments.{parts[-1][:-3]}"
+    if path.endswith(".py") and len(parts) >= 2 and parts[-2] == "benchmarks":
+        return f"python benchmarks/{parts[-1]}"
+    return "hyqjax"
+
+
 def provenance(argv: list[str] | None = None, seed: int | None = None) -> dict:
     import jax
     import mujoco
@@ -37,7 +50,7 @@ def provenance(argv: list[str] | None = None, seed: int | None = None) -> dict:
     import hyqjax
 
     return {
-        "command": " ".join(["hyqjax", *(sys.argv[1:] if argv is None else argv)]),
+        "command": " ".join([program(), *(sys.argv[1:] if argv is None else argv)]),
         "seed": seed,
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "hyqjax": hyqjax.__version__,
