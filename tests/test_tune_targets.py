@@ -780,3 +780,42 @@ def test_the_sets_lead_on_the_batch_that_chose_them_at_its_deepest_height():
         net_low = sum(h["only_set"] - h["only_start"] for h in low)
         assert deep["only_set"] - deep["only_start"] > max(net_low, 0) + 8, name
         assert sum(h["only_set"] for h in low) <= 13 and sum(h["only_start"] for h in low) >= 6, name
+
+
+def test_four_30_minute_runs_on_the_merged_c_mujoco_map():
+    """Runs 0-3 of the 30-minute study on one C MuJoCo map merged from two (``confirm_c_27182_runs0123``, made from
+    ``confirm_c_27182_runs01`` and ``..._runs23`` by experiments/reach_map_merge.py). ``clean``, which ran in both
+    parts, has the same outcome in every bit of every run in both; the merge recomputed from the parts gives the stored
+    rows; the stored judgement is what the merged cells give: over four runs 30 minutes 0.940 [0.933, 0.947] with a
+    range of 0.010, 3 minutes 0.927, budget gains that are ties, and every target met but h90 (run 3: 26 cm, 230 of
+    256 completed at 27 cm); no set diverged."""
+    from experiments import reach_map_merge as merge
+
+    root = os.path.dirname(STORED_30)
+    parts = [(p, *merge.load_part(os.path.join(root, p))) for p in ("confirm_c_27182_runs01", "confirm_c_27182_runs23")]
+    config, rows, notes = merge.merge(parts)
+    assert notes == [f"clean: in {parts[0][0]} and {parts[1][0]}, the same outcome in all 3072 runs (kept once)"]
+    d = os.path.join(root, "confirm_c_27182_runs0123")
+    with np.load(os.path.join(d, "reach_instances.npz")) as z:
+        assert sorted(z.files) == sorted(rows)
+        for k in z.files:
+            assert np.array_equal(z[k], rows[k]), k
+    with open(os.path.join(d, "reach_map.json")) as f:
+        m = json.load(f)
+    assert m["config"]["variants"] == config["variants"] and len(config["variants"]) == 13
+    runs = ["run_0", "run_1", "run_2", "run_3"]
+    budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
+    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets)
+    with open(os.path.join(d, "targets.json")) as f:
+        stored = json.load(f)
+    for k in ("budgets", "budget_gains", "targets", "over_runs"):
+        assert json.loads(json.dumps(s[k])) == stored[k], k
+    assert [round(b["mean"], 3) for b in s["budgets"]] == [0.927, 0.922, 0.940]
+    assert round(s["budgets"][-1]["ci95"][0], 3) == 0.933 and round(s["budgets"][-1]["range"], 3) == 0.010
+    assert [g["verdict"] for g in s["budget_gains"]] == ["tie", "tie"]
+    assert {k: t["ok"] for k, t in s["targets"].items()} == dict(clean_lower=True, per_height=True, h90=False,
+                                                                   spread=True)
+    cell = {c["variant"]: c for c in m["cells"]}["run_3"]
+    at27 = next(p for p in cell["per_height"] if abs(p["height"] - 0.27) < 1e-6)
+    assert round(at27["completed_rate"] * at27["n"]) == 230 and at27["n"] == 256 and cell["h90"] == 0.26
+    assert s["diverged"] == 0
