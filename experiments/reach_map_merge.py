@@ -109,9 +109,10 @@ def merge(parts: list[tuple[str, dict, dict]]) -> tuple[dict, dict, list[str]]:
                     same = (a == b) | (np.isnan(a) & np.isnan(b)) if a.dtype.kind == "f" else (a == b)
                     differ |= ~same.reshape(len(mine), -1).all(axis=1)
             if differ.any():
+                flips = int((table["out_clean"][mine] != table_k["out_clean"][theirs]).sum())
                 raise MergeError(f"{path}: variant {v} differs from {path_k} in {int(differ.sum())} of {len(mine)} "
-                                 f"runs (clean in {int((table['out_clean'][mine] != table_k['out_clean'][theirs]).sum())}"
-                                 "): a simulator that does not repeat a batch, or another code version")
+                                 f"runs (clean in {flips}): a simulator that does not repeat a batch, or another code "
+                                 "version")
             notes.append(f"{v}: in {path_k} and {path}, the same outcome in all {len(mine)} runs (kept once)")
     merged = {c: np.concatenate([t[c][r] for _, r, t in kept.values()]) for c in cols}
     variants = list(kept)
@@ -148,7 +149,8 @@ def main(argv=None) -> int:
     atomic.write_json(os.path.join(a.out, "reach_map.json"), dict(
         provenance=atomic.provenance(seed=config["seed"]), config=config, device=metas[0].get("device"),
         devices=metas[0].get("devices"), impl=metas[0].get("impl"), n_instances=len(rows["variant"]),
-        wall_s=sum(m.get("wall_s") or 0.0 for m in metas), physics_steps=sum(m.get("physics_steps") or 0 for m in metas),
+        wall_s=sum(m.get("wall_s") or 0.0 for m in metas),
+        physics_steps=sum(m.get("physics_steps") or 0 for m in metas),
         merged_from=[dict(dir=p, provenance=m.get("provenance"), device=m.get("device"), wall_s=m.get("wall_s"),
                           physics_steps=m.get("physics_steps"), variants=m["config"].get("variants"))
                      for p, m, _ in parts],
