@@ -155,6 +155,9 @@ def main(argv=None) -> int:
                           physics_steps=m.get("physics_steps"), variants=m["config"].get("variants"))
                      for p, m, _ in parts],
         cells=cells, figure=os.path.basename(fig)))
+    # reach_map resumes a map whose config.json holds its configuration's hash; a merged map has none, so this one
+    # makes reach_map refuse --out DIR instead of running the map again over it
+    atomic.write_json(os.path.join(a.out, "config.json"), dict(config_hash="merged", merged_from=list(a.parts)))
     tmp = os.path.join(a.out, "reach_instances.tmp.npz")
     np.savez_compressed(tmp, **rows)
     os.replace(tmp, os.path.join(a.out, "reach_instances.npz"))

@@ -101,4 +101,6 @@ def test_two_c_mujoco_maps_merge_into_the_map_of_all_their_variants(tmp_path):
         for k in w.files:
             assert np.array_equal(z[k], w[k]), k
     assert paired_map.main([str(tmp_path / "m"), "--reference", "default"]) == 0
+    # the merged map is not run over again by a reach map given it as --out
+    assert reach_map.main(["--out", str(tmp_path / "m"), *base, "--variants", "default"]) == 2
     assert os.path.exists(tmp_path / "m" / "paired_default.json")
