@@ -70,6 +70,14 @@ def tuned_conditioned(path: str, key: str):
 heldout_fig = from_results.heldout_figure
 
 
+def map_command(recorded: str) -> str:
+    """A reach map's recorded command as typed: maps stored before 2026-11-30 recorded it as ``hyqjax ARGS``,
+    later ones as ``python -m experiments.reach_map ARGS``."""
+    old = "hyqjax "
+    args = recorded[len(old):] if recorded.startswith(old) else recorded.split(" ", 3)[3]
+    return "python -m experiments.reach_map " + args
+
+
 def reach_fig(variant: str):
     res = read(REACH_MAP)
     cell = next(c for c in res["cells"] if c["variant"] == variant)
@@ -77,7 +85,7 @@ def reach_fig(variant: str):
     return dict(what="h90, wide spread", value=round(100 * cell["h90"]), unit="cm", interval=None,
                 heldout=f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), {n} runs per height at "
                         f"14-30 cm, seed {res['provenance']['seed']}",
-                command="python -m experiments.reach_map " + res["provenance"]["command"][len("hyqjax "):],
+                command=map_command(res["provenance"]["command"]),
                 device=res["device"], date=res["provenance"]["date"][:10], source=REACH_MAP)
 
 
@@ -149,8 +157,7 @@ def confirm_figs(variant: str, path: str = CONFIRM_LF) -> list[dict]:
     base = dict(heldout=(f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed "
                          f"{m['provenance']['seed']}, {n} runs per height at {hs} cm, the leading-foot start; "
                          f"{s['diverged']} diverged of {s['n']:,}"),
-                command=("python -m experiments.reach_map "
-                         + m["provenance"]["command"][len("hyqjax "):].replace("/root/out/", "out/").replace(
+                command=(map_command(m["provenance"]["command"]).replace("/root/out/", "out/").replace(
                              "/tmp/m/c31415", "out/confirm")),
                 device=f"{m['device']}, MuJoCo Warp", date=m["provenance"]["date"][:10], source=path)
     w, far = s["worst_low"], s["far_start"]
@@ -193,7 +200,7 @@ def confirm_c_figs(variant: str, reference: str = "clean") -> list[dict]:
     base = dict(heldout=(f"wide spread (friction 0.4-1.0, payload 0-15 kg, start 0-15 cm), seed "
                          f"{m['provenance']['seed']}, {n_h} runs per height at {hs} cm, the leading-foot start, C "
                          f"MuJoCo; {cell['diverged']} diverged of {cell['n']:,}"),
-                command="python -m experiments.reach_map " + m["provenance"]["command"][len("hyqjax "):],
+                command=map_command(m["provenance"]["command"]),
                 device=f"{m['device']} (C MuJoCo)", date=m["provenance"]["date"][:10], source=f"{CONFIRM_C}/reach_map.json")
     k = int(round(paired["variant"] * paired["n"]))
     first = dict(what="clean success at 15-25 cm, held-out step-downs (C MuJoCo confirmation)",
@@ -336,7 +343,7 @@ def build() -> dict[str, dict]:
 
     # ---- crawl ----
     rm = read(REACH_MAP)
-    rm_prov = dict(command="python -m experiments.reach_map " + rm["provenance"]["command"][len("hyqjax "):],
+    rm_prov = dict(command=map_command(rm["provenance"]["command"]),
                    seed=rm["provenance"]["seed"], device=rm["device"], date=rm["provenance"]["date"][:10],
                    hyqjax=rm["provenance"]["hyqjax"], source=REACH_MAP)
     add("paper", "crawl", "the paper's crawl and Table I reflex (CrawlParams.make()); the step-down default",
