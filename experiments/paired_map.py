@@ -92,10 +92,11 @@ def paired_difference(a, b, confidence: float = 0.95) -> dict:
 def aligned(table: dict, variant: str, reference: str):
     """The row indices of ``variant`` and ``reference`` in ``table`` (reach_instances.npz's columns) ordered so that
     row ``i`` of both is the same (spread, height, instance); refuses maps whose two variants ran other instances."""
+    from experiments.reach_map import row_keys
+
     def keyed(name):
         m = np.flatnonzero(table["variant"] == name)
-        keys = list(zip(table["spread"][m], np.round(table["height"][m], 6), table["instance"][m]))
-        return dict(zip(keys, m))
+        return dict(zip(row_keys(table, m), m))
 
     kv, kr = keyed(variant), keyed(reference)
     if set(kv) != set(kr):

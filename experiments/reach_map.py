@@ -176,6 +176,12 @@ def build_rows(variants, spreads, heights, instances: int, seed: int) -> dict[st
     return {k: np.concatenate(v) for k, v in cols.items()}
 
 
+def row_keys(table: dict, idx) -> list[tuple]:
+    """The step-down of each of rows ``idx`` of a map's rows (reach_instances.npz's columns): ``(spread, height,
+    instance)``, the same for every variant that ran it (common random numbers)."""
+    return list(zip(table["spread"][idx], np.round(table["height"][idx], 6), table["instance"][idx]))
+
+
 def scenario_of(rows: dict, idx: np.ndarray, params: dict):
     """The ``stepdown.Scenario`` of rows ``idx`` with each row's variant parameters (float32 leaves)."""
     import jax

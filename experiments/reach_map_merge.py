@@ -26,6 +26,8 @@ import sys
 
 import numpy as np
 
+from experiments.reach_map import row_keys
+
 #: Configuration keys that decide which step-downs a map runs and how: equal in every part.
 DRAW_KEYS = ("start_pose", "instances", "heights", "spreads", "seed", "duration", "terminate")
 #: Columns of reach_instances.npz that describe a row's scenario (the rest, ``out_*``, are its outcome).
@@ -51,10 +53,6 @@ def load_part(path: str) -> tuple[dict, dict]:
     return meta, table
 
 
-def _key(table: dict, i: np.ndarray) -> list[tuple]:
-    return list(zip(table["spread"][i], np.round(table["height"][i], 6), table["instance"][i]))
-
-
 def merge(parts: list[tuple[str, dict, dict]]) -> tuple[dict, dict, list[str]]:
     """Merge ``(path, meta, table)`` parts (module docstring): the merged configuration, the rows (every variant's
     once) and a line per variant found in several parts. Raises :class:`MergeError`."""
@@ -74,7 +72,7 @@ def merge(parts: list[tuple[str, dict, dict]]) -> tuple[dict, dict, list[str]]:
             raise MergeError(f"{path}: simulator {meta.get('impl')!r}, {path0}'s is {meta0.get('impl')!r}; parts must "
                              "run on one simulator")
         first = np.flatnonzero(table["variant"] == table["variant"][0])
-        for key, i in zip(_key(table, first), first):
+        for key, i in zip(row_keys(table, first), first):
             row = tuple(np.asarray(table[c][i]).tobytes() for c in SCENARIO_KEYS if c in table)
             if scen.setdefault(key, row) != row:
                 raise MergeError(f"{path}: the step-down {key} differs from {path0}'s: parts must draw the same "
@@ -96,8 +94,8 @@ def merge(parts: list[tuple[str, dict, dict]]) -> tuple[dict, dict, list[str]]:
             path_k, rows_k, table_k = kept[v]
             if p != params[v]:
                 raise MergeError(f"{path}: variant {v} has other parameters than in {path_k}: give it another name")
-            order_k = dict(zip(_key(table_k, rows_k), rows_k))
-            keys = _key(table, rows)
+            order_k = dict(zip(row_keys(table_k, rows_k), rows_k))
+            keys = row_keys(table, rows)
             if set(keys) != set(order_k):
                 raise MergeError(f"{path}: variant {v} ran other step-downs than in {path_k}")
             mine = np.asarray(rows)
