@@ -1441,15 +1441,16 @@ def test_tune_starts_from_a_preset_at_the_theta_that_runs_it():
                                atol=1e-4)
     args = build_parser().parse_args(["tune", "--out", "o"])
     from hyqjax.cli import tune as tune_cli
+    from hyqjax.cli import tune_start
 
     tune_cli._fill_hidden(args)
-    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "clean"
-    assert tune_cli._start_preset(args, ("cma_es",), ("shared",)) == "reach"
+    assert tune_start.start_preset(args, ("cma_es",), ("per_leg",)) == "clean"
+    assert tune_start.start_preset(args, ("cma_es",), ("shared",)) == "reach"
     args.objective = "reach"
-    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == "reach"
+    assert tune_start.start_preset(args, ("cma_es",), ("per_leg",)) == "reach"
     args.objective = "clean"
     args.preset = "none"
-    assert tune_cli._start_preset(args, ("cma_es",), ("per_leg",)) == ""
+    assert tune_start.start_preset(args, ("cma_es",), ("per_leg",)) == ""
     c = presets.get("tuned_per_leg_cond").values["conditioned"]
     pc = schedule.make(c["parameterisation"], tuple(c["groups"]))
     cfg = wallclock.WallClockConfig(dims=(pc.name,), methods=("cma_es",), start_preset="tuned_per_leg_cond")

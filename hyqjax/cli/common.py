@@ -23,6 +23,11 @@ class UsageError(ValueError):
     """A bad option or input file; the message names it and what is allowed."""
 
 
+def split_names(s: str) -> tuple:
+    """A comma-separated option: ``"a, b,"`` -> ``("a", "b")``."""
+    return tuple(x.strip() for x in s.split(",") if x.strip())
+
+
 def check_range(option: str, value, lo=None, hi=None, unit: str = "", integer: bool = False,
                 lo_open: bool = False, hi_open: bool = False) -> None:
     """Raise :class:`UsageError` unless ``value`` is finite and in the interval (``[lo, hi]``; open ends on request)."""
