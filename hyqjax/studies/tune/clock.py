@@ -59,14 +59,17 @@ class Clock:
 
     @contextlib.contextmanager
     def paused(self):
-        """Time inside the block is not counted (a resumed run compiling again what it paid for once), nor is a
-        kernel build in it counted as one."""
+        """Time inside the block is not counted (a resumed run compiling again what it paid for once); a kernel
+        build in it (a resumed run's new process building or loading MuJoCo Warp's kernels) is counted in
+        :meth:`kernel_build`, as every segment's is, and stays out of :meth:`elapsed`."""
         t, k = self._timer(), self._kernels()
         try:
             yield
         finally:
+            built = self._kernels() - k
             self.t0 += self._timer() - t
-            self._k0 += self._kernels() - k
+            self._k0 += built
+            self.kernels_before += built
 
 
 #: JAX's compile events (tracing, lowering to MLIR, XLA's backend compile) that :class:`Charges` adds up.
