@@ -199,11 +199,13 @@ def main(argv=None) -> int:
     except (OSError, ValueError, KeyError) as e:
         print(f"tune_default_repeats: cannot read the held-out map or a run under {args.out} ({e})", file=sys.stderr)
         return 2
+    references = list(args.references) + [t.split(":", 1)[0] for t in args.extra_run]
+    starts = {(r.get("config") or {}).get("start_preset") for r in stored}  # the preset every run started from
+    start = starts.pop() if len(starts) == 1 else None
     try:
-        summary = targets.judge(cells, list(runs),
-                                list(args.references) + [t.split(":", 1)[0] for t in args.extra_run],
+        summary = targets.judge(cells, list(runs), references,
                                 seed=(heldout_map.get("provenance") or {}).get("seed", args.map_seed),
-                                budgets=budgets)
+                                budgets=budgets, start=start if start in references else None)
     except ValueError as e:
         print(f"tune_default_repeats: {heldout}/reach_map.json: {e}", file=sys.stderr)
         return 2

@@ -677,19 +677,32 @@ def test_the_stored_30_minute_runs_resume_under_the_documented_command(tmp_path)
 
 
 def test_budget_gains_pair_runs_and_call_an_interval_across_zero_a_tie():
-    """The gain of a longer budget is paired run by run (a run missing at one budget is left out of that pair, not
-    matched to another run's value), and only an interval above zero says the longer budget returns more."""
+    """The gain of a longer budget over every shorter one (and over the runs' common start, when given) is paired run
+    by run (a run missing at one budget is left out of that pair, not matched to another run's value), and only an
+    interval above zero says the longer budget returns more."""
     curve = [dict(minutes=3.0, variants=["run_0@3min", "run_1@3min", "run_2@3min"], clean=[0.90, 0.80, 0.70]),
              dict(minutes=10.0, variants=["run_0@10min", "run_1@10min"], clean=[0.95, 0.78]),
              dict(minutes=30.0, variants=["run_1", "run_0"], clean=[0.70, 0.87])]
     g = targets.budget_gains(curve)
-    assert [(x["from"], x["to"], x["runs"]) for x in g] == [(3.0, 10.0, ["run_0", "run_1"]),
-                                                          (10.0, 30.0, ["run_1", "run_0"])]
+    assert [(x["from"], x["to"], x["runs"]) for x in g[:2]] == [(3.0, 10.0, ["run_0", "run_1"]),
+                                                              (10.0, 30.0, ["run_1", "run_0"])]
     assert g[0]["gain"] == pytest.approx([0.05, -0.02]) and g[0]["verdict"] == "tie"
     assert g[1]["gain"] == pytest.approx([-0.08, -0.08]) and g[1]["verdict"] == "less"
+    assert (g[2]["from"], g[2]["to"], g[2]["runs"]) == (3.0, 30.0, ["run_1", "run_0"])  # and every shorter budget
+    assert g[2]["gain"] == pytest.approx([-0.10, -0.03]) and g[2]["verdict"] == "tie" and len(g) == 3
     curve[2]["clean"] = [0.70, 0.85]  # -0.08 and -0.10: the t-interval over two runs reaches above zero
     assert targets.budget_gains(curve)[1]["verdict"] == "tie"
     assert targets.budget_gains(curve[:1]) == []
+    # against the start every run has (the same set for all of them): one row per budget, these first
+    g = targets.budget_gains(curve, dict(name="clean", clean=0.75))
+    assert [(x.get("start"), x["from"], x["to"]) for x in g[:3]] == [("clean", 0.0, m) for m in (3.0, 10.0, 30.0)]
+    assert g[0]["gain"] == pytest.approx([0.15, 0.05, -0.05]) and g[0]["runs"] == ["run_0", "run_1", "run_2"]
+    assert g[1]["gain"] == pytest.approx([0.20, 0.03]) and len(g) == 6
+    text = targets.table(dict(runs=[], references=[], variants={}, returned={},
+                              over_runs=dict(n=0, mean=None, range=None), targets={
+                                  k: dict(value=None, ok=False) for k in ("clean_lower", "per_height", "h90", "spread")},
+                              budget_gains=g))
+    assert "| the start (clean) -> 3 min | 3 | +0.050 [" in text
 
 
 def test_the_stored_runs_from_clean_measure_warps_run_to_run_noise():
@@ -738,7 +751,7 @@ def test_the_30_minute_runs_on_c_mujoco_beat_their_10_minute_iterates_paired_and
     s = targets.judge(m["cells"], ["run_0", "run_1"], ["clean"], seed=27182, budgets=budgets)
     assert s["heldout"]["instances"] == 256 and s["heldout"]["heights"] == targets.HELDOUT["heights"]
     assert [round(b["mean"], 3) for b in s["budgets"]] == [0.923, 0.908, 0.941]
-    assert [g["verdict"] for g in s["budget_gains"]] == ["tie", "tie"]  # two runs: no verdict over runs
+    assert [g["verdict"] for g in s["budget_gains"]] == ["tie"] * 3  # two runs: no verdict over runs
     assert s["diverged"] == 0 and round(s["variants"]["clean"]["clean"], 3) == 0.927
     with np.load(os.path.join(d, "reach_instances.npz")) as z:
         inst = {k: z[k] for k in z.files}
@@ -787,8 +800,8 @@ def test_four_30_minute_runs_on_the_merged_c_mujoco_map():
     ``confirm_c_27182_runs01`` and ``..._runs23`` by experiments/reach_map_merge.py). ``clean``, which ran in both
     parts, has the same outcome in every bit of every run in both; the merge recomputed from the parts gives the stored
     rows; the stored judgement is what the merged cells give: over four runs 30 minutes 0.940 [0.933, 0.947] with a
-    range of 0.010, 3 minutes 0.927, budget gains that are ties, and every target met but h90 (run 3: 26 cm, 230 of
-    256 completed at 27 cm); no set diverged."""
+    range of 0.010, 3 minutes 0.927, the gains of 10 over 3 and of 30 over 10 minutes ties, 30 minutes above 3 and
+    above the start, and every target met but h90 (run 3: 26 cm, 230 of 256 completed at 27 cm); no set diverged."""
     from experiments import reach_map_merge as merge
 
     root = os.path.dirname(STORED_30)
@@ -805,20 +818,60 @@ def test_four_30_minute_runs_on_the_merged_c_mujoco_map():
     assert m["config"]["variants"] == config["variants"] and len(config["variants"]) == 13
     runs = ["run_0", "run_1", "run_2", "run_3"]
     budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
-    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets)
+    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets, start="clean")
     with open(os.path.join(d, "targets.json")) as f:
         stored = json.load(f)
     for k in ("budgets", "budget_gains", "targets", "over_runs"):
         assert json.loads(json.dumps(s[k])) == stored[k], k
     assert [round(b["mean"], 3) for b in s["budgets"]] == [0.927, 0.922, 0.940]
     assert round(s["budgets"][-1]["ci95"][0], 3) == 0.933 and round(s["budgets"][-1]["range"], 3) == 0.010
-    assert [g["verdict"] for g in s["budget_gains"]] == ["tie", "tie"]
+    # from the start (clean): 3, 10, 30 min; then 3 -> 10, 10 -> 30, 3 -> 30
+    assert [g["verdict"] for g in s["budget_gains"]] == ["tie", "tie", "more", "tie", "tie", "more"]
     assert {k: t["ok"] for k, t in s["targets"].items()} == dict(clean_lower=True, per_height=True, h90=False,
                                                                    spread=True)
     cell = {c["variant"]: c for c in m["cells"]}["run_3"]
     at27 = next(p for p in cell["per_height"] if abs(p["height"] - 0.27) < 1e-6)
     assert round(at27["completed_rate"] * at27["n"]) == 230 and at27["n"] == 256 and cell["h90"] == 0.26
     assert s["diverged"] == 0
+
+
+def test_five_30_minute_runs_decide_the_default_budget():
+    """All five runs of the 30-minute study on one C MuJoCo map (``confirm_c_27182_runs01234``: runs 0-3's merged map
+    and run 4's, ``confirm_c_27182_run4``, merged again; run 4's map ran no variant of the other, so the merge keeps
+    every variant once). The stored judgement is what the cells give. Over five runs the returned sets score 0.941
+    [0.935, 0.947], range 0.010, and they are the only budget above the start (``clean``) in every run: 3 minutes
+    ties with the start (-0.000) and 10 minutes too, with a range of 0.054, wider than the spread target; 30 minutes
+    returns more than 3 (interval above zero) and ties with 10. h90 stays unmet (run 3: 26 cm); no set diverged."""
+    from experiments import reach_map_merge as merge
+
+    root = os.path.dirname(STORED_30)
+    parts = [(p, *merge.load_part(os.path.join(root, p))) for p in ("confirm_c_27182_runs0123", "confirm_c_27182_run4")]
+    config, rows, notes = merge.merge(parts)
+    assert notes == [] and len(config["variants"]) == 16
+    d = os.path.join(root, "confirm_c_27182_runs01234")
+    with np.load(os.path.join(d, "reach_instances.npz")) as z:
+        assert sorted(z.files) == sorted(rows)
+        for k in z.files:
+            assert np.array_equal(z[k], rows[k]), k
+    with open(os.path.join(d, "reach_map.json")) as f:
+        m = json.load(f)
+    runs = [f"run_{i}" for i in range(5)]
+    budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
+    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets, start="clean")
+    with open(os.path.join(d, "targets.json")) as f:
+        stored = json.load(f)
+    for k in ("budgets", "budget_gains", "targets", "over_runs", "variants"):
+        assert json.loads(json.dumps(s[k])) == stored[k], k
+    assert [round(b["mean"], 3) for b in s["budgets"]] == [0.927, 0.927, 0.941]
+    assert [round(b["range"], 3) for b in s["budgets"]] == [0.012, 0.054, 0.010]
+    assert round(s["budgets"][-1]["ci95"][0], 3) == 0.935 and s["budgets"][1]["range"] > targets.SPREAD
+    g = {(x["from"], x["to"]): x for x in s["budget_gains"]}
+    assert [g[(0.0, m)]["verdict"] for m in (3.0, 10.0, 30.0)] == ["tie", "tie", "more"]
+    assert all(x > 0 for x in g[(0.0, 30.0)]["gain"]) and round(g[(0.0, 30.0)]["ci95"][0], 3) == 0.008
+    assert [g[k]["verdict"] for k in ((3.0, 10.0), (10.0, 30.0), (3.0, 30.0))] == ["tie", "tie", "more"]
+    assert {k: t["ok"] for k, t in s["targets"].items()} == dict(clean_lower=True, per_height=True, h90=False,
+                                                                   spread=True)
+    assert [s["variants"][r]["h90"] for r in runs] == [0.27, 0.27, 0.27, 0.26, 0.27] and s["diverged"] == 0
 
 
 def test_the_30_minute_set_chosen_by_validation_ties_with_clean_refined_on_fresh_step_downs():

@@ -23,10 +23,11 @@ With runs that recorded checkpoints before the end of their budget (``hyqjax tun
 minutes), the iterate each run held at each earlier checkpoint runs on the same map as ``<run>@<minutes>min``
 (:func:`checkpoint_variant`), and ``budgets`` gives per budget the mean clean success over the runs with its
 t-interval and range: what a user gets at 3, 10 and 30 minutes (the last is the returned set). ``budget_gains``
-compares each budget with the one before it, paired run by run (the same run's clean success at the longer budget
-minus at the shorter, over the runs that have both): the mean gain with its t-interval over runs, and ``more``
-(the interval above 0: the longer budget returns more), ``less`` (below 0) or ``tie``. A longer default budget is
-worth its minutes only where it is ``more``.
+compares each budget with every shorter one, paired run by run (the same run's clean success at the longer budget
+minus at the shorter, over the runs that have both), and, where the runs' start point is one of the references
+(``start``), each budget with the start on the same step-downs: the mean gain with its t-interval over runs, and
+``more`` (the interval above 0: the longer budget returns more), ``less`` (below 0) or ``tie``. A longer default
+budget is worth its minutes only where it is ``more``.
 """
 from __future__ import annotations
 
@@ -71,11 +72,15 @@ def checkpoint_variant(run: str, minutes: float) -> str:
 
 
 def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: int | None = None,
-          budgets: dict | None = None) -> dict:
+          budgets: dict | None = None, start: str | None = None) -> dict:
     """The targets over ``runs`` (variant names of the reach map ``cells``), with ``references`` summarised beside
     them; ``seed`` is the map's draw seed (default :data:`HELDOUT`'s). ``budgets`` maps minutes to the variants of
     the runs at that budget (:func:`checkpoint_variant`; the end of the budget: ``runs``), summarised over runs
-    as ``budgets``. A run, reference or checkpoint variant missing from the map is a ``ValueError`` naming it."""
+    as ``budgets``; ``start``: the reference every run started from, against which each budget's gain is paired
+    (:func:`budget_gains`). A run, reference or checkpoint variant missing from the map is a ``ValueError`` naming
+    it, as is a ``start`` that is not one of the ``references``."""
+    if start is not None and start not in references:
+        raise ValueError(f"the start {start} is not one of the references ({', '.join(references) or 'none'})")
     by = {c["variant"]: c for c in cells if c.get("spread", HELDOUT["spread"]) == HELDOUT["spread"]}
     extra = [v for vs in (budgets or {}).values() for v in vs if v not in runs]
     missing = [v for v in list(runs) + list(references) + extra if v not in by]
@@ -105,7 +110,8 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
                 over_runs=dict(stats, range=rng, clean=clean), targets=targets, budgets=curve,
-                budget_gains=budget_gains(curve), diverged=sum(per[v]["diverged"] for v in per))
+                budget_gains=budget_gains(curve, None if start is None else dict(name=start, clean=per[start]["clean"])),
+                diverged=sum(per[v]["diverged"] for v in per))
 
 
 def map_layout(cell: dict | None) -> dict:
@@ -117,26 +123,34 @@ def map_layout(cell: dict | None) -> dict:
     return dict(instances=int(max(r["n"] for r in rows)), heights=tuple(float(r["height"]) for r in rows))
 
 
-def budget_gains(curve: list[dict]) -> list[dict]:
-    """Each budget of ``curve`` (:func:`judge`'s ``budgets``, shortest first) against the one before it, paired by
-    run (module docstring): ``from``/``to`` minutes, the runs paired, each run's gain, the mean gain, its 95%
-    t-interval over runs and the verdict ``more`` / ``less`` / ``tie``."""
+def budget_gains(curve: list[dict], start: dict | None = None) -> list[dict]:
+    """Each budget of ``curve`` (:func:`judge`'s ``budgets``, shortest first) against every shorter one, paired by
+    run (module docstring), and, with ``start`` (``{"name": reference, "clean": its clean success}``), against the
+    start point on the same step-downs (``from`` 0 minutes, ``start`` its name), these first: ``from``/``to``
+    minutes, the runs paired, each run's gain, the mean gain, its 95% t-interval over runs and the verdict
+    ``more`` / ``less`` / ``tie``."""
     from hyqjax.studies.tune.tuned import split_checkpoint  # the one parser of NAME@Nmin
 
     def run_of(variant: str) -> str:  # run_0@10min (checkpoint_variant) -> run_0
         return split_checkpoint(variant)[0]
 
-    out = []
-    for a, b in zip(curve, curve[1:]):
-        before = {run_of(v): c for v, c in zip(a["variants"], a["clean"])}
-        pairs = [(run_of(v), c - before[run_of(v)]) for v, c in zip(b["variants"], b["clean"]) if run_of(v) in before]
+    def gain(pairs, **where):
         gains = [g for _, g in pairs]
         stats = over_runs(gains)
         ci = stats.get("ci95")
         verdict = None if ci is None else "more" if ci[0] > 0 else "less" if ci[1] < 0 else "tie"
-        out.append(dict(stats, **{"from": a["minutes"], "to": b["minutes"]}, runs=[r for r, _ in pairs], gain=gains,
-                        verdict=verdict))
-    return out
+        return dict(stats, **where, runs=[r for r, _ in pairs], gain=gains, verdict=verdict)
+
+    out = []
+    if start is not None:
+        out += [gain([(run_of(v), c - start["clean"]) for v, c in zip(b["variants"], b["clean"])],
+                     **{"from": 0.0, "to": b["minutes"], "start": start["name"]}) for b in curve]
+    for j, b in enumerate(curve):
+        for a in curve[:j]:
+            before = {run_of(v): c for v, c in zip(a["variants"], a["clean"])}
+            out.append(gain([(run_of(v), c - before[run_of(v)]) for v, c in zip(b["variants"], b["clean"])
+                             if run_of(v) in before], **{"from": a["minutes"], "to": b["minutes"]}))
+    return sorted(out, key=lambda g: ("start" not in g, g["to"] - g["from"], g["from"]))
 
 
 def table(summary: dict) -> str:
@@ -186,7 +200,8 @@ def table(summary: dict) -> str:
                   "|---|---|---|---|---|"]
         for g in summary["budget_gains"]:
             ci = g.get("ci95")
-            lines.append(f"| {g['from']:g} -> {g['to']:g} min | {g['n']} | "
+            frm = f"the start ({g['start']})" if g.get("start") else f"{g['from']:g}"
+            lines.append(f"| {frm} -> {g['to']:g} min | {g['n']} | "
                          + ("-" if g["mean"] is None else f"{g['mean']:+.3f}")
                          + (f" [{ci[0]:+.3f}, {ci[1]:+.3f}]" if ci else "") + f" | {g['verdict'] or '-'} | "
                          + " / ".join(f"{x:+.3f}" for x in g["gain"]) + " |")
