@@ -455,12 +455,13 @@ def main(argv=None) -> int:
     wall = time.time() - t0
     cells = summarise(rows, out, args.variants, args.spread)
     fig = plot(cells, os.path.join(args.out, "reach_map.png"))
+    # the instances first, the map last (its presence says the map is whole), each written whole or not at all
+    atomic.atomic_write(os.path.join(args.out, "reach_instances.npz"), lambda f: np.savez_compressed(
+        f, **{k: np.asarray(v) for k, v in rows.items()}, **{f"out_{k}": v for k, v in out.items()}))
     atomic.write_json(os.path.join(args.out, "reach_map.json"), dict(
         provenance=atomic.provenance(seed=args.seed), config=config, device=devs[0].device_kind, devices=len(devs),
         impl=stepdown.setup(cfg).impl, n_instances=n, wall_s=wall, chunk=min(chunk, n),
         physics_steps=int(n * round(args.duration / cfg.control_dt)), cells=cells, figure=os.path.basename(fig)))
-    np.savez_compressed(os.path.join(args.out, "reach_instances.npz"), **{k: np.asarray(v) for k, v in rows.items()},
-                        **{f"out_{k}": v for k, v in out.items()})
     print(format_cells(cells))
     print(f"wall {wall:.1f} s (compile included); {args.out}/reach_map.json, {fig}")
     return 0
