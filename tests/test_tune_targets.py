@@ -795,6 +795,32 @@ def test_the_sets_lead_on_the_batch_that_chose_them_at_its_deepest_height():
         assert sum(h["only_set"] for h in low) <= 13 and sum(h["only_start"] for h in low) >= 6, name
 
 
+def _merged_map_judged(part_names, merged_name, n_runs):
+    """The stored merge of the 30-minute study's C MuJoCo maps ``part_names`` into ``merged_name``, checked against a
+    merge recomputed from the parts (the same rows), and the runs 0..``n_runs``-1 judged on it with their 3- and
+    10-minute iterates and the start ``clean``, checked against the stored judgement: (the map, the judgement, the
+    merged configuration, the merge's notes)."""
+    from experiments import reach_map_merge as merge
+
+    root = os.path.dirname(STORED_30)
+    config, rows, notes = merge.merge([(p, *merge.load_part(os.path.join(root, p))) for p in part_names])
+    d = os.path.join(root, merged_name)
+    with np.load(os.path.join(d, "reach_instances.npz")) as z:
+        assert sorted(z.files) == sorted(rows)
+        for k in z.files:
+            assert np.array_equal(z[k], rows[k]), k
+    with open(os.path.join(d, "reach_map.json")) as f:
+        m = json.load(f)
+    runs = [f"run_{i}" for i in range(n_runs)]
+    budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
+    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets, start="clean")
+    with open(os.path.join(d, "targets.json")) as f:
+        stored = json.load(f)
+    for k in ("budgets", "budget_gains", "targets", "over_runs", "variants"):
+        assert json.loads(json.dumps(s[k])) == stored[k], k
+    return m, s, config, notes
+
+
 def test_four_30_minute_runs_on_the_merged_c_mujoco_map():
     """Runs 0-3 of the 30-minute study on one C MuJoCo map merged from two (``confirm_c_27182_runs0123``, made from
     ``confirm_c_27182_runs01`` and ``..._runs23`` by experiments/reach_map_merge.py). ``clean``, which ran in both
@@ -802,27 +828,11 @@ def test_four_30_minute_runs_on_the_merged_c_mujoco_map():
     rows; the stored judgement is what the merged cells give: over four runs 30 minutes 0.940 [0.933, 0.947] with a
     range of 0.010, 3 minutes 0.927, the gains of 10 over 3 and of 30 over 10 minutes ties, 30 minutes above 3 and
     above the start, and every target met but h90 (run 3: 26 cm, 230 of 256 completed at 27 cm); no set diverged."""
-    from experiments import reach_map_merge as merge
-
-    root = os.path.dirname(STORED_30)
-    parts = [(p, *merge.load_part(os.path.join(root, p))) for p in ("confirm_c_27182_runs01", "confirm_c_27182_runs23")]
-    config, rows, notes = merge.merge(parts)
-    assert notes == [f"clean: in {parts[0][0]} and {parts[1][0]}, the same outcome in all 3072 runs (kept once)"]
-    d = os.path.join(root, "confirm_c_27182_runs0123")
-    with np.load(os.path.join(d, "reach_instances.npz")) as z:
-        assert sorted(z.files) == sorted(rows)
-        for k in z.files:
-            assert np.array_equal(z[k], rows[k]), k
-    with open(os.path.join(d, "reach_map.json")) as f:
-        m = json.load(f)
+    m, s, config, notes = _merged_map_judged(("confirm_c_27182_runs01", "confirm_c_27182_runs23"),
+                                             "confirm_c_27182_runs0123", 4)
+    assert notes == ["clean: in confirm_c_27182_runs01 and confirm_c_27182_runs23, the same outcome in all 3072 runs "
+                     "(kept once)"]
     assert m["config"]["variants"] == config["variants"] and len(config["variants"]) == 13
-    runs = ["run_0", "run_1", "run_2", "run_3"]
-    budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
-    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets, start="clean")
-    with open(os.path.join(d, "targets.json")) as f:
-        stored = json.load(f)
-    for k in ("budgets", "budget_gains", "targets", "over_runs"):
-        assert json.loads(json.dumps(s[k])) == stored[k], k
     assert [round(b["mean"], 3) for b in s["budgets"]] == [0.927, 0.922, 0.940]
     assert round(s["budgets"][-1]["ci95"][0], 3) == 0.933 and round(s["budgets"][-1]["range"], 3) == 0.010
     # from the start (clean): 3, 10, 30 min; then 3 -> 10, 10 -> 30, 3 -> 30
@@ -842,26 +852,10 @@ def test_five_30_minute_runs_decide_the_default_budget():
     [0.935, 0.947], range 0.010, and they are the only budget above the start (``clean``) in every run: 3 minutes
     ties with the start (-0.000) and 10 minutes too, with a range of 0.054, wider than the spread target; 30 minutes
     returns more than 3 (interval above zero) and ties with 10. h90 stays unmet (run 3: 26 cm); no set diverged."""
-    from experiments import reach_map_merge as merge
-
-    root = os.path.dirname(STORED_30)
-    parts = [(p, *merge.load_part(os.path.join(root, p))) for p in ("confirm_c_27182_runs0123", "confirm_c_27182_run4")]
-    config, rows, notes = merge.merge(parts)
+    _, s, config, notes = _merged_map_judged(("confirm_c_27182_runs0123", "confirm_c_27182_run4"),
+                                             "confirm_c_27182_runs01234", 5)
     assert notes == [] and len(config["variants"]) == 16
-    d = os.path.join(root, "confirm_c_27182_runs01234")
-    with np.load(os.path.join(d, "reach_instances.npz")) as z:
-        assert sorted(z.files) == sorted(rows)
-        for k in z.files:
-            assert np.array_equal(z[k], rows[k]), k
-    with open(os.path.join(d, "reach_map.json")) as f:
-        m = json.load(f)
     runs = [f"run_{i}" for i in range(5)]
-    budgets = {3.0: [f"{r}@3min" for r in runs], 10.0: [f"{r}@10min" for r in runs], 30.0: runs}
-    s = targets.judge(m["cells"], runs, ["clean"], seed=27182, budgets=budgets, start="clean")
-    with open(os.path.join(d, "targets.json")) as f:
-        stored = json.load(f)
-    for k in ("budgets", "budget_gains", "targets", "over_runs", "variants"):
-        assert json.loads(json.dumps(s[k])) == stored[k], k
     assert [round(b["mean"], 3) for b in s["budgets"]] == [0.927, 0.927, 0.941]
     assert [round(b["range"], 3) for b in s["budgets"]] == [0.012, 0.054, 0.010]
     assert round(s["budgets"][-1]["ci95"][0], 3) == 0.935 and s["budgets"][1]["range"] > targets.SPREAD
