@@ -587,6 +587,8 @@ def test_the_judgement_gives_clean_success_per_budget_over_runs(tmp_path):
     assert "| 3 -> 10 min | 2 | +0.200 [+0.200, +0.200] | more | +0.200 / +0.200 |" in text
     with pytest.raises(ValueError, match="variant run_2@3min"):
         targets.judge(cells, ["run_0"], budgets={3.0: ["run_2@3min"]})
+    with pytest.raises(ValueError, match="the start reach is not one of the references"):
+        targets.judge(cells, ["run_0"], ["clean"], start="reach")
 
 
 def test_repeats_driver_runs_only_leaves_the_map_to_a_later_call(tmp_path, capsys, monkeypatch):
@@ -698,10 +700,9 @@ def test_budget_gains_pair_runs_and_call_an_interval_across_zero_a_tie():
     assert [(x.get("start"), x["from"], x["to"]) for x in g[:3]] == [("clean", 0.0, m) for m in (3.0, 10.0, 30.0)]
     assert g[0]["gain"] == pytest.approx([0.15, 0.05, -0.05]) and g[0]["runs"] == ["run_0", "run_1", "run_2"]
     assert g[1]["gain"] == pytest.approx([0.20, 0.03]) and len(g) == 6
+    unmet = {k: dict(value=None, ok=False) for k in ("clean_lower", "per_height", "h90", "spread")}
     text = targets.table(dict(runs=[], references=[], variants={}, returned={},
-                              over_runs=dict(n=0, mean=None, range=None), targets={
-                                  k: dict(value=None, ok=False) for k in ("clean_lower", "per_height", "h90", "spread")},
-                              budget_gains=g))
+                              over_runs=dict(n=0, mean=None, range=None), targets=unmet, budget_gains=g))
     assert "| the start (clean) -> 3 min | 3 | +0.050 [" in text
 
 
