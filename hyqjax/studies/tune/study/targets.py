@@ -110,7 +110,7 @@ def judge(cells: list[dict], runs: list[str], references: list[str] = (), seed: 
                              clean_max_height=CLEAN_MAX_HEIGHT, per_height_max=PER_HEIGHT_MAX),
                 runs=list(runs), references=list(references), variants=per,
                 over_runs=dict(stats, range=rng, clean=clean), targets=targets, budgets=curve,
-                budget_gains=budget_gains(curve, start and dict(name=start, clean=per[start]["clean"])),
+                budget_gains=budget_gains(curve, dict(name=start, clean=per[start]["clean"]) if start else None),
                 diverged=sum(per[v]["diverged"] for v in per))
 
 
