@@ -182,6 +182,16 @@ def row_keys(table: dict, idx) -> list[tuple]:
     return list(zip(table["spread"][idx], np.round(table["height"][idx], 6), table["instance"][idx]))
 
 
+def write_map(out_dir: str, columns: dict, record: dict) -> None:
+    """A finished map: ``columns`` (each row's scenario and, as ``out_*``, its outcome) to ``reach_instances.npz``,
+    then ``record`` to ``reach_map.json``, whose presence says the map is whole; each written whole or not at all."""
+    from hyqjax.io import atomic
+
+    atomic.atomic_write(os.path.join(out_dir, "reach_instances.npz"),
+                        lambda f: np.savez_compressed(f, **{k: np.asarray(v) for k, v in columns.items()}))
+    atomic.write_json(os.path.join(out_dir, "reach_map.json"), record)
+
+
 def scenario_of(rows: dict, idx: np.ndarray, params: dict):
     """The ``stepdown.Scenario`` of rows ``idx`` with each row's variant parameters (float32 leaves)."""
     import jax
@@ -379,6 +389,9 @@ def plot(cells, path: str) -> str:
 
 
 def main(argv=None) -> int:
+    from hyqjax.io.phases import process_age
+
+    t_process = time.perf_counter() - (process_age() or 0.0)
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="out/reach_map")
     ap.add_argument("--impl", default="auto", help="simulator: auto | jax | warp | c (auto: warp on a CUDA GPU with "
@@ -455,15 +468,13 @@ def main(argv=None) -> int:
     wall = time.time() - t0
     cells = summarise(rows, out, args.variants, args.spread)
     fig = plot(cells, os.path.join(args.out, "reach_map.png"))
-    # the instances first, the map last (its presence says the map is whole), each written whole or not at all
-    atomic.atomic_write(os.path.join(args.out, "reach_instances.npz"), lambda f: np.savez_compressed(
-        f, **{k: np.asarray(v) for k, v in rows.items()}, **{f"out_{k}": v for k, v in out.items()}))
-    atomic.write_json(os.path.join(args.out, "reach_map.json"), dict(
+    write_map(args.out, {**rows, **{f"out_{k}": v for k, v in out.items()}}, dict(
         provenance=atomic.provenance(seed=args.seed), config=config, device=devs[0].device_kind, devices=len(devs),
         impl=stepdown.setup(cfg).impl, n_instances=n, wall_s=wall, chunk=min(chunk, n),
         physics_steps=int(n * round(args.duration / cfg.control_dt)), cells=cells, figure=os.path.basename(fig)))
     print(format_cells(cells))
-    print(f"wall {wall:.1f} s (compile included); {args.out}/reach_map.json, {fig}")
+    print(f"wall {time.perf_counter() - t_process:.1f} s in all (since the process started): the runs {wall:.1f} s "
+          f"(compile included); {args.out}/reach_map.json, {fig}")
     return 0
 
 

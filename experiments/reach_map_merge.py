@@ -144,7 +144,10 @@ def main(argv=None) -> int:
     os.makedirs(a.out, exist_ok=True)
     fig = reach_map.plot(cells, os.path.join(a.out, "reach_map.png"))
     metas = [m for _, m, _ in parts]
-    atomic.write_json(os.path.join(a.out, "reach_map.json"), dict(
+    # reach_map resumes a map whose config.json holds its configuration's hash; a merged map has none, so this one
+    # makes reach_map refuse --out DIR instead of running the map again over it
+    atomic.write_json(os.path.join(a.out, "config.json"), dict(config_hash="merged", merged_from=list(a.parts)))
+    reach_map.write_map(a.out, rows, dict(
         provenance=atomic.provenance(seed=config["seed"]), config=config, device=metas[0].get("device"),
         devices=metas[0].get("devices"), impl=metas[0].get("impl"), n_instances=len(rows["variant"]),
         wall_s=sum(m.get("wall_s") or 0.0 for m in metas),
@@ -153,12 +156,6 @@ def main(argv=None) -> int:
                           physics_steps=m.get("physics_steps"), variants=m["config"].get("variants"))
                      for p, m, _ in parts],
         cells=cells, figure=os.path.basename(fig)))
-    # reach_map resumes a map whose config.json holds its configuration's hash; a merged map has none, so this one
-    # makes reach_map refuse --out DIR instead of running the map again over it
-    atomic.write_json(os.path.join(a.out, "config.json"), dict(config_hash="merged", merged_from=list(a.parts)))
-    tmp = os.path.join(a.out, "reach_instances.tmp.npz")
-    np.savez_compressed(tmp, **rows)
-    os.replace(tmp, os.path.join(a.out, "reach_instances.npz"))
     for n in notes:
         print(n)
     print(reach_map.format_cells(cells))

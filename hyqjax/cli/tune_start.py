@@ -4,7 +4,7 @@ probe on, and a warm start from an earlier run (``--start-from``); each refused 
 compiles (:func:`hyqjax.cli.tune.validate_wallclock` calls them)."""
 from __future__ import annotations
 
-from hyqjax.cli.common import split_names
+from hyqjax.cli.common import UsageError, split_names
 
 
 def start_preset(args, methods, dims) -> str:
@@ -12,7 +12,6 @@ def start_preset(args, methods, dims) -> str:
     (its values are checked by :func:`load_preset`), a per-leg set only for per-leg parameterisations, not with
     --start-from. Without --preset: ``hyqjax tune`` starts from :data:`names.DEFAULT_PRESETS` where the registry
     holds it; the studies start from Table I with the shin remedy, as every stored study did."""
-    from hyqjax.cli.common import UsageError
     from hyqjax.studies.tune import names
 
     given = args.preset
@@ -57,8 +56,6 @@ def start_preset(args, methods, dims) -> str:
 def load_preset(name: str) -> None:
     """The preset's stored values in their declared ranges (JAX's parameter classes, no MJX): after every other
     check, since it runs JAX operations."""
-    from hyqjax.cli.common import UsageError
-
     if not name:
         return
     from hyqjax import presets
@@ -73,7 +70,6 @@ def check_edge_start(cfg) -> None:
     """The edge groups (:data:`hyqjax.studies.tune.space.EDGE_GROUPS`) act only with the edge probe on, and a
     ``box`` coordinate cannot hold the probe's ``0`` (off): from a start with the probe off they are refused in one
     line, since their start point would turn the probe on (a step of 0.2 um) instead of running the start."""
-    from hyqjax.cli.common import UsageError
     from hyqjax.studies.tune import space, wallclock
 
     edge = [g for g in cfg.groups if g in space.EDGE_GROUPS]
@@ -93,7 +89,6 @@ def start_from(path: str, methods, dims, groups) -> tuple:
     import json
     import os
 
-    from hyqjax.cli.common import UsageError
     from hyqjax.studies.tune import schedule
 
     if not os.path.isfile(path):
