@@ -78,3 +78,19 @@ def test_the_default_clock_reads_the_process_kernel_build(monkeypatch):
     monkeypatch.setitem(warp_kernels._STATE, "seconds", warp_kernels._STATE["seconds"] + 30.0)
     assert c.kernel_build() == pytest.approx(30.0)
     assert c.elapsed() < 0.0  # 30 s left out of the few microseconds since the clock started
+
+
+def test_a_resumed_study_keeps_the_compile_charges_it_first_measured():
+    """A later process of a resumed study compiles its programs again, mostly from JAX's persistent cache; the
+    study's record keeps what each program cost when first measured (what its runs were charged) and puts the
+    later process's shorter measurement beside it, and a program first compiled in the later process is added."""
+    from hyqjax.studies.tune.wallclock import record_charges
+
+    res = dict(charges={})
+    record_charges(res, {"gradient_windows": 40.3, "jacfwd/per_leg": 67.3, "forward": 4.9})
+    record_charges(res, {"gradient_windows": 40.3, "jacfwd/per_leg": 67.3, "forward": 4.9})  # the same process again
+    assert "charges_remeasured" not in res
+    record_charges(res, {"gradient_windows": 19.1, "jacfwd/per_leg": 16.1, "forward": 4.9, "forward/final_3x544": 2.0})
+    assert res["charges"] == {"gradient_windows": 40.3, "jacfwd/per_leg": 67.3, "forward": 4.9,
+                              "forward/final_3x544": 2.0}
+    assert res["charges_remeasured"] == {"gradient_windows": 19.1, "jacfwd/per_leg": 16.1}
