@@ -64,6 +64,46 @@ def test_guided_es_with_the_true_gradient_beats_isotropic_es_at_equal_evaluation
     assert abs(ratio_rand) < 0.3 and abs(cos_rand) < 0.6, (ratio_rand, cos_rand)
 
 
+def test_guided_es_explores_as_far_per_coordinate_as_the_other_searches():
+    """``--sigma`` is the first step per coordinate for every method: guided ES's perturbations have the total
+    variance ``sigma^2 P`` of OpenES's (``theta + sigma z``), and with ``alpha = 1`` each coordinate's spread is
+    ``sigma`` like OpenES's, measured on the populations both draw (40 generations of 8 pairs in 30 coordinates);
+    with ``alpha = 0.5`` half that variance lies along the surrogate."""
+    import jax
+    import jax.numpy as jnp
+
+    p, sigma, gens = 30, 0.2, 40
+    g_dir = np.zeros(p)
+    g_dir[0] = 1.0
+    pops = {}
+    for alpha in (1.0, 0.5):
+        seen = []
+
+        def f_rec(th, gen):
+            seen.append(np.asarray(th[1:], np.float64))  # row 0 is the mean
+            return dict(fitness=-(np.asarray(th) ** 2).sum(-1), clean=np.zeros((len(th), 1)),
+                        completed=np.zeros((len(th), 1)), physics_steps=0)
+
+        trace = search.Trace((1e9,), np.zeros(p))
+        guided.run_guided(f_rec, lambda th: dict(loss=0.0, grad=g_dir), np.zeros(p), 16, sigma, search.Clock(),
+                          trace, alpha=alpha, lr=1e-9, generations=gens)
+        pops[alpha] = np.concatenate(seen)  # around the mean, which stays at 0 (Adam at 1e-9)
+    es, params = search.make_strategy("open_es", p, 16, sigma)
+    state, key, open_pops = es.init(jax.random.key(1), jnp.zeros(p), params), jax.random.key(2), []
+    for _ in range(gens):
+        key, k = jax.random.split(key)
+        pop, state = es.ask(k, state, params)
+        open_pops.append(np.asarray(pop, np.float64))
+    open_pops = np.concatenate(open_pops)
+    for z in (pops[1.0], pops[0.5], open_pops):  # total variance sigma^2 P within the sampling error (~3 %)
+        assert abs(np.mean((z ** 2).sum(1)) / (sigma**2 * p) - 1.0) < 0.1
+    per_coord_iso, per_coord_open = pops[1.0][:, 1:].std(0), open_pops[:, 1:].std(0)
+    assert abs(per_coord_iso.mean() / sigma - 1.0) < 0.05 and abs(per_coord_open.mean() / sigma - 1.0) < 0.05
+    along = np.mean(pops[0.5][:, 0] ** 2) / (sigma**2 * p)  # the share of the variance along the surrogate
+    assert 0.4 < along < 0.6, along
+    assert abs(pops[0.5][:, 1:].std(0).mean() / (sigma * np.sqrt(0.5)) - 1.0) < 0.05
+
+
 def test_guided_cosines_on_a_linear_function():
     """On ``f(x) = c . x`` every antithetic pair measures ``2 z . c`` exactly: the slope along ``c`` is ``|c|``,
     along ``-c`` it is ``-|c|``, and the search direction is parallel to ``c`` for a surrogate equal to ``c``."""
@@ -126,6 +166,7 @@ def test_guided_es_and_the_blend_on_the_step_down_record_finite_agreement(tmp_pa
     from hyqjax.studies.tune.wallclock_results import member_key
 
     assert run["physics_steps"] > 0
+    assert run["guided_std"] == pytest.approx(res["config"]["sigma"] * np.sqrt(run["size"]))  # sigma per coordinate
     # guided ES takes no line search: the windows' value program is not compiled, only the tuning step
     assert {"gradient_windows", "jacfwd/shared"} <= set(res["charges"]), res["charges"]
     assert "window_value/shared" not in res["charges"], res["charges"]

@@ -69,9 +69,16 @@ def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspa
                 pairs_differing=int(np.sum(d != 0.0)))
 
 
+def sampling_std(sigma: float, size: int) -> float:
+    """GuidedES's ``std`` (the perturbations' expected norm) for a first step ``sigma`` per coordinate over ``size``
+    coordinates: ``sigma sqrt(size)`` (:func:`run_guided`)."""
+    return float(sigma) * float(np.sqrt(size))
+
+
 @functools.lru_cache(maxsize=16)
 def make_guided(size: int, popsize: int, sigma: float, alpha: float = 0.5, subspace: int = 1, lr: float = 0.05):
-    """evosax's ``GuidedES`` (antithetic; the mean moved by Adam at ``lr``; constant ``sigma``), its parameters and
+    """evosax's ``GuidedES`` (antithetic; the mean moved by Adam at ``lr``; constant ``sigma``, the perturbations'
+    expected norm: :func:`sampling_std` gives it for a step per coordinate), its parameters and
     its jitted ``ask`` and ``tell`` (one compile per setting in a process); ``alpha = 1`` is isotropic antithetic
     ES on the same code path."""
     import optax
@@ -89,8 +96,13 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
                checkpoint: Callable | None = None, generations: int | None = None):
     """Guided evolution strategies (Maheswaranathan et al., ICML 2019; evosax ``GuidedES``): maximise
     ``f_gen(thetas (N, P), generation) -> dict(fitness, clean, completed, physics_steps)`` (as :func:`run_search`)
-    with antithetic samples from ``sigma^2 (alpha / P I + (1 - alpha) / k Q Q^T)``, ``Q`` spanning the last ``k =
-    subspace`` surrogate gradients. ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
+    with antithetic samples from ``s^2 (alpha / P I + (1 - alpha) / k Q Q^T)``, ``Q`` spanning the last ``k =
+    subspace`` surrogate gradients and ``s = sigma sqrt(P)``: ``sigma`` is the first step per coordinate, as it is
+    for CMA-ES, SNES, OpenES and the blend (their samples ``theta + sigma z``), so every method explores the same
+    total variance ``sigma^2 P`` and ``alpha = 1`` samples exactly as OpenES does. (GuidedES's ``std`` is the
+    perturbations' expected norm; given ``sigma`` itself, its samples would be ``sqrt(P)`` times smaller per
+    coordinate than the other methods' at the same ``--sigma``, as in the tuner's guided-ES measurements before
+    2026-11-30 19:00 UTC.) ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
     *minimised* (the window objective of :mod:`.objective` on MJX-JAX), evaluated at the mean every
     ``grad_every`` generations (its wall time on ``clock``, ``grad_cost`` physics steps each) and handed to the
     search with ``state.replace(grad=g)`` before each ``ask`` (the last one again between two). Only the subspace
@@ -100,8 +112,8 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
     population measured (the slope along it, the cosines). Returns the final mean; ``checkpoint`` / ``resume`` as in
     :func:`run_search`; ``generations``: also stop after that many (equal-evaluation comparisons)."""
     theta0 = np.asarray(theta0, np.float64)
-    es, params, ask, tell = make_guided(int(theta0.size), int(popsize), float(sigma), float(alpha), int(subspace),
-                                        float(lr))
+    std = sampling_std(sigma, theta0.size)
+    es, params, ask, tell = make_guided(int(theta0.size), int(popsize), std, float(alpha), int(subspace), float(lr))
     key = jax.random.key(seed)
     key, k0 = jax.random.split(key)
     state = es.init(k0, jnp.asarray(theta0, jnp.float32), params)
@@ -124,7 +136,7 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
                 g = np.zeros_like(g)  # a non-finite surrogate guides nothing: isotropic this generation
         pop, state = ask(ka, state.replace(grad=jnp.asarray(g, jnp.float32)), params)
         r, fit = evaluate_generation(f_gen, mean, pop, gen, clock)
-        cosines = guided_cosines(g, np.asarray(pop, np.float64), mean, -fit[1:], sigma, alpha,
+        cosines = guided_cosines(g, np.asarray(pop, np.float64), mean, -fit[1:], std, alpha,
                                  np.asarray(state.grad_subspace))
         state, new_mean = tell_generation(tell, kt, pop, fit, state, params, "guided_es", gen)
         trace.advance(clock, new_mean, dict(generation=gen, iterate_fitness=float(fit[0]),

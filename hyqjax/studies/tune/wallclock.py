@@ -118,6 +118,14 @@ def _fingerprint(config: dict) -> dict:
     return dict(fp, start_pose=recorded_start_pose(config))
 
 
+def _run_fingerprint(cfg: WallClockConfig, method: str) -> dict:
+    """What a run's stored mid-budget state must agree with: the study's fingerprint and, for guided ES, its sampling
+    scale (:func:`.guided.sampling_std`: ``--sigma`` per coordinate since 2026-11-30; a state stored before starts
+    over)."""
+    fp = _fingerprint(_config(cfg))
+    return dict(fp, guided_std="sigma sqrt(P)") if method in search.GUIDED_METHODS else fp
+
+
 def _methods_union(*lists) -> list:
     seen = [m for ms in lists for m in ms]
     return [m for m in search.METHODS if m in seen]
@@ -194,7 +202,7 @@ def run_wallclock_study(cfg: WallClockConfig, out_dir: str, log=print, checkpoin
         return res
 
     for m, d in todo:
-        store = resume.RunCheckpoint(out_dir, run_key(m, d), _fingerprint(_config(cfg)), checkpoint_every_s,
+        store = resume.RunCheckpoint(out_dir, run_key(m, d), _run_fingerprint(cfg, m), checkpoint_every_s,
                                      segment_s, log, t_process)
         if resume.segment_over(segment_s, t_process):
             return pause(run_key(m, d))

@@ -135,7 +135,9 @@ def run_method(method: str, param: schedule.Parameterisation, cfg: WallClockConf
                 kernel_build_s=clock.kernel_build(),
                 segments=segment,
                 physics_steps=int(clock.physics_steps), theta=points[-1]["theta"],
-                params=describe(param, np.asarray(points[-1]["theta"])))
+                params=describe(param, np.asarray(points[-1]["theta"])),
+                **({"guided_std": guided.sampling_std(cfg.sigma, param.size)} if method in search.GUIDED_METHODS
+                   else {}))
 
 
 def describe(param: schedule.Parameterisation, theta) -> dict:
