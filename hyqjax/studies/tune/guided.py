@@ -31,8 +31,9 @@ def guided_cosines(g, pop, mean, fitness_min, sigma: float, alpha: float, subspa
       orthogonal to the true gradient);
     * ``cos_zero_order``: cosine of ``g`` with the unbiased zero-order estimate ``Sigma^-1 sum_i (f_i+ - f_i-)
       z_i`` (``Sigma = a^2 I + c^2 Q Q^T`` the sampling covariance, ``a^2 = sigma^2 alpha / P``, ``c^2 = sigma^2
-      (1 - alpha) / k``, ``Q`` an orthonormal basis of ``subspace`` (P, k)); unbiased but noisy unless the
-      population is large against ``P``. NaN when ``alpha`` is 0 or a vector is zero;
+      (1 - alpha) / k`` with ``sigma`` GuidedES's ``std`` (:func:`sampling_std`), ``Q`` an orthonormal basis of
+      ``subspace`` (P, k)); unbiased but noisy unless the population is large against ``P``. NaN when ``alpha`` is
+      0 or a vector is zero;
     * ``cos_sampled``: the same comparison inside the directions the population explored: the least-squares
       (minimum-norm) zero-order gradient ``h`` with ``z_i . h = (f_i+ - f_i-) / 2`` against ``g`` projected onto the
       span of the ``z_i``. For a linear ``f`` ``h`` is exactly the projection of ``grad f``, so it is 1 when ``g`` is
@@ -101,8 +102,8 @@ def run_guided(f_gen: Callable, grad_fn: Callable, theta0, popsize: int, sigma: 
     for CMA-ES, SNES, OpenES and the blend (their samples ``theta + sigma z``), so every method explores the same
     total variance ``sigma^2 P`` and ``alpha = 1`` samples exactly as OpenES does. (GuidedES's ``std`` is the
     perturbations' expected norm; given ``sigma`` itself, its samples would be ``sqrt(P)`` times smaller per
-    coordinate than the other methods' at the same ``--sigma``, as in the tuner's guided-ES measurements before
-    2026-11-30 19:00 UTC.) ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
+    coordinate than the other methods' at the same ``--sigma``, as in the tuner's guided-ES measurements of
+    2026-11-29 and 2026-11-30.) ``grad_fn(theta) -> dict(loss, grad)`` is the gradient of a surrogate that is
     *minimised* (the window objective of :mod:`.objective` on MJX-JAX), evaluated at the mean every
     ``grad_every`` generations (its wall time on ``clock``, ``grad_cost`` physics steps each) and handed to the
     search with ``state.replace(grad=g)`` before each ``ask`` (the last one again between two). Only the subspace
