@@ -121,8 +121,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--select-every", type=int, default=H["select_every"],
                    help="iterates compared by the selection: every N iterations")
     g.add_argument("--guided-alpha", type=float, default=H["guided_alpha"],
-                   help="guided ES: share of the sampling variance in the full space (1: isotropic ES; the rest in "
-                        "the subspace of the recent surrogate gradients)")
+                   help="guided ES: share of the sampling variance in the full space (1: isotropic ES, OpenES's "
+                        "samples; the rest in the subspace of the recent surrogate gradients); the variance in all "
+                        "is --sigma^2 a coordinate, as for the other methods")
     g.add_argument("--guided-subspace", type=int, default=H["guided_subspace"],
                    help="guided ES: number of recent surrogate gradients spanning the guiding subspace")
     g.add_argument("--guided-lr", type=float, default=H["guided_lr"], help="guided ES: Adam learning rate of the mean")
