@@ -3,12 +3,14 @@ step size a search started from a tuned preset should take.
 
     python -m experiments.tune_step_size --out DIR                                   # C MuJoCo on a CPU
     python -m experiments.tune_step_size --out DIR --impl warp --samples 64 --instances 256     # one GPU
+    python -m experiments.tune_step_size --out DIR --preset none --antithetic --samples 64 --sigmas 0.028 0.1 0.3
 
 The start is a crawl preset (``--preset``, ``clean`` by default) in the tuner's coordinates (``--dim``, the 56
 per-leg ones by default; :func:`hyqjax.studies.tune.wallclock_config.start_theta`). For every step size ``sigma``
 of ``--sigmas`` it draws ``--samples`` points ``theta_0 + sigma z`` (``z`` standard normal: exactly a first
 generation of CMA-ES, SNES or isotropic ES at that step) and runs the start and every sample on the same
-``--instances`` training step-downs (the tuner's training heights, 16-28 cm, on the wide spread; seed ``--seed``).
+``--instances`` training step-downs (the tuner's training heights, 16-28 cm, on the wide spread or ``--spread``'s;
+seed ``--seed``).
 Because every member runs the same instances, the differences are paired: per sample the difference of its clean
 rate from the start's, ``d_i``, and of its fitness (clean + 0.1 x completed, the tuner's). Per step size: the mean
 ``d`` with its 95% interval over samples, the best and worst sample, the share of samples at least as clean as the
@@ -18,6 +20,15 @@ start, and the runs not completed, not clean, fallen and diverged. Writes ``DIR/
 A sample as clean as its start on the same instances is what a search needs to climb; a step size whose mean loss is
 large and whose best sample does not beat the start spends its generations off the ridge (the measured cause of
 five 3-minute runs from ``clean`` returning it, docs/tuning.md).
+
+``--antithetic`` draws the samples as ``--samples / 2`` pairs ``theta_0 +- sigma z`` (an antithetic generation of
+OpenES or guided ES) and measures whether their differences carry a direction the search can follow: per pair the
+fitness difference ``d = f(theta_0 + sigma z) - f(theta_0 - sigma z)`` on each half of the instances (the halves
+split every height's instances in two), and over pairs the correlation of the two halves' ``d`` (Pearson, 95%
+interval by Fisher's z): near 0 when the differences are outcome noise of the instances, positive when the same
+perturbation helps on other instances too, i.e. when the zero-order estimate ``sum_i d_i z_i`` measures a
+gradient. Also the cosine of the two halves' estimates, the pairs whose members differ at all and the mean
+``|d|``. ``--preset none`` starts from Table I with the shin remedy (the equal-wall-clock study's start).
 """
 from __future__ import annotations
 
@@ -44,6 +55,11 @@ def parse(argv=None):
     ap.add_argument("--seed", type=int, default=0, help="draws the samples and the instances")
     ap.add_argument("--duration", type=float, default=24.0, help="simulated seconds per run (the tuner's 24)")
     ap.add_argument("--impl", default="c", help="simulator: auto | jax | warp | c (default c: a CPU)")
+    ap.add_argument("--spread", default="wide",
+                    help="the training step-downs' spread: wide (hyqjax tune's) or train (the equal-wall-clock "
+                         "study's)")
+    ap.add_argument("--antithetic", action="store_true",
+                    help="samples in antithetic pairs; adds the split-half signal of the pairs' differences")
     a = ap.parse_args(argv)
     if a.impl not in ("auto", "jax", "warp", "c"):
         raise UsageError(f"--impl must be auto, jax, warp or c, got {a.impl!r}")
@@ -51,8 +67,15 @@ def parse(argv=None):
         raise UsageError(f"--sigmas must be in (0, 5], got {a.sigmas}")
     if not 2 <= a.samples <= 4096:
         raise UsageError(f"--samples must be in [2, 4096], got {a.samples}")
+    if a.spread not in ("wide", "train"):
+        raise UsageError(f"--spread must be wide or train, got {a.spread!r}")
+    if a.antithetic and (a.samples % 2 or a.samples < 8):
+        raise UsageError(f"--samples must be even and at least 8 with --antithetic (4 pairs), got {a.samples}")
     if not (4 <= a.instances <= 65536 and a.instances % 4 == 0):
         raise UsageError(f"--instances must be a multiple of 4 in [4, 65536], got {a.instances}")
+    if a.antithetic and a.instances % 8:
+        raise UsageError(f"--instances must be a multiple of 8 with --antithetic (two halves of every height), "
+                         f"got {a.instances}")
     if not 0 <= a.seed < 2**31:
         raise UsageError(f"--seed must be in [0, 2^31), got {a.seed}")
     if not 2 <= a.duration <= 60:
@@ -60,8 +83,11 @@ def parse(argv=None):
     from hyqjax import presets
     from hyqjax.studies.tune import schedule
 
+    if a.preset.lower() == "none":
+        a.preset = ""
     try:
-        presets.check_kind(a.preset, "crawl", "--preset")
+        if a.preset:
+            presets.check_kind(a.preset, "crawl", "--preset")
     except ValueError as e:
         raise UsageError(str(e)) from None
     if a.dim not in schedule.NAMES:
@@ -75,6 +101,43 @@ def sample_points(theta0, sigmas, samples: int, seed: int) -> dict:
     theta0 = np.asarray(theta0, np.float64)
     z = np.random.default_rng(seed).standard_normal((samples, theta0.size))
     return {float(s): theta0[None] + float(s) * z for s in sigmas}
+
+
+def antithetic_points(theta0, sigmas, pairs: int, seed: int) -> tuple[dict, np.ndarray]:
+    """``2 pairs`` points per step size, ``theta0 + sigma z`` then ``theta0 - sigma z`` (the same ``z`` for every
+    ``sigma``), and ``z`` (pairs, P)."""
+    theta0 = np.asarray(theta0, np.float64)
+    z = np.random.default_rng(seed).standard_normal((pairs, theta0.size))
+    return {float(s): np.concatenate([theta0[None] + float(s) * z, theta0[None] - float(s) * z]) for s in sigmas}, z
+
+
+def halves(instances: int, heights: int) -> np.ndarray:
+    """True for the first half of every height's instances (the training scenarios run height by height, the same
+    instance draws at every height)."""
+    per = instances // heights
+    return (np.arange(instances) % per) < per // 2
+
+
+def pair_signal(members: dict, z, half, completed_weight: float) -> dict:
+    """Whether an antithetic generation's differences measure a direction (module docstring): ``members`` the
+    evaluation of :func:`antithetic_points`' rows, ``half`` (M,) bool the instances of the first half."""
+    from scipy import stats
+
+    f = np.asarray(members["clean"], np.float64) + completed_weight * np.asarray(members["completed"], np.float64)
+    n = len(z)
+    d = f[:n] - f[n:]  # (pairs, M)
+    d_all, d_a, d_b = d.mean(1), d[:, half].mean(1), d[:, ~half].mean(1)
+    if np.std(d_a) > 0 and np.std(d_b) > 0:
+        r = float(stats.pearsonr(d_a, d_b)[0])
+        zr, se = np.arctanh(np.clip(r, -0.999999, 0.999999)), 1.0 / np.sqrt(max(n - 3, 1))
+        ci = [float(np.tanh(zr - 1.96 * se)), float(np.tanh(zr + 1.96 * se))]
+    else:
+        r, ci = float("nan"), [float("nan"), float("nan")]
+    g_a, g_b = d_a @ z, d_b @ z
+    na, nb = np.linalg.norm(g_a), np.linalg.norm(g_b)
+    return dict(pairs=int(n), pairs_differing=int(np.sum(d_all != 0)), mean_abs_diff=float(np.abs(d_all).mean()),
+                split_half_r=r, split_half_r_ci95=ci,
+                split_half_cos=float(g_a @ g_b / (na * nb)) if na > 0 and nb > 0 else float("nan"))
 
 
 def summarize(start: dict, members: dict, sigma: float) -> dict:
@@ -120,7 +183,19 @@ def markdown(rows: list, instances: int) -> str:
                      f"{r['share_at_least_start']:.2f} of {r['samples']} | {r['mean_fitness_diff']:+.3f} / "
                      f"{r['best_fitness_diff']:+.3f} | {c['not_completed']} / {c['not_clean']} / {c['fell']} / "
                      f"{c['diverged']} of {c['runs']} |")
-    return "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
+    text = "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
+    anti = [r for r in rows if "antithetic" in r]
+    if anti:
+        text += ("\n\n| sigma | pairs whose members differ | mean abs(d) | split-half correlation of d [95%] | "
+                 "cosine of the halves' estimates |\n|---:|---|---:|---|---:|\n")
+        for r in anti:
+            x = r["antithetic"]
+            lo, hi = x["split_half_r_ci95"]
+            text += (f"| {r['sigma']:g} | {x['pairs_differing']} of {x['pairs']} | {x['mean_abs_diff']:.4f} | "
+                     f"{x['split_half_r']:+.2f} [{lo:+.2f}, {hi:+.2f}] | {x['split_half_cos']:+.2f} |\n")
+        text += (f"\n(d: a pair's fitness difference, clean + 0.1 x completed; halves: {instances // 2} step-downs "
+                 f"each, every height in both)")
+    return text
 
 
 def main(argv=None) -> int:
@@ -139,29 +214,40 @@ def main(argv=None) -> int:
     from hyqjax.studies.tune.wallclock import start_evaluator
     from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
-    cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread="wide",
+    cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread=a.spread,
                           impl=a.impl, train_duration=a.duration)
     try:
         param, theta0, evaluator = start_evaluator(cfg)
     except ValueError as e:
         print(f"tune_step_size: --preset {a.preset} on --dim {a.dim}: {e}", file=sys.stderr)
         return 2
-    sc = forward.train_scenarios(a.instances, a.seed, 0, cfg.train_heights, "wide")
-    points = sample_points(theta0, a.sigmas, a.samples, a.seed)
+    sc = forward.train_scenarios(a.instances, a.seed, 0, cfg.train_heights, a.spread)
+    if a.antithetic:
+        points, z = antithetic_points(theta0, a.sigmas, a.samples // 2, a.seed)
+        half = halves(a.instances, len(cfg.train_heights))
+    else:
+        points = sample_points(theta0, a.sigmas, a.samples, a.seed)
     clock.lap("startup")
     start = evaluator(theta0[None], sc)
-    print(f"start ({a.preset}, {param.size} coordinates of {a.dim}): clean {np.mean(start['clean']):.3f} on "
+    print(f"start ({a.preset or 'Table I with the shin remedy'}, {param.size} coordinates of {a.dim}): clean "
+          f"{np.mean(start['clean']):.3f} on "
           f"{a.instances} step-downs ({start['wall_s']:.0f} s with its compile)", flush=True)
     rows = []
     for s, th in points.items():
         r = evaluator(th, sc)
         rows.append(summarize(start, r, s))
+        if a.antithetic:
+            rows[-1]["antithetic"] = pair_signal(r, z, half, cfg.completed_weight)
+            y = rows[-1]["antithetic"]
+            print(f"sigma {s:g}: {y['pairs_differing']} of {y['pairs']} pairs differ, split-half correlation "
+                  f"{y['split_half_r']:+.2f} {y['split_half_r_ci95']}", flush=True)
         x = rows[-1]
         print(f"sigma {s:g}: mean clean difference {x['mean_diff']:+.3f}, best {x['best_diff']:+.3f}, "
               f"{x['share_at_least_start']:.2f} of samples at least as clean ({r['wall_s']:.0f} s)", flush=True)
     os.makedirs(a.out, exist_ok=True)
-    res = dict(provenance=atomic.provenance(seed=a.seed), preset=a.preset, dim=a.dim, size=param.size,
-               impl=evaluator.setup.impl, instances=a.instances, duration=a.duration, spread="wide",
+    res = dict(provenance=atomic.provenance(seed=a.seed), preset=a.preset or "none", dim=a.dim, size=param.size,
+               antithetic=bool(a.antithetic),
+               impl=evaluator.setup.impl, instances=a.instances, duration=a.duration, spread=a.spread,
                heights=[float(h) for h in cfg.train_heights], completed_weight=cfg.completed_weight,
                start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
                           fitness=float(start["fitness"][0]), counts=counts(start)),

@@ -15,6 +15,39 @@ def test_samples_share_their_directions_across_step_sizes():
     assert z1.shape == (5, 7) and abs(z1.mean()) < 1.0
 
 
+def test_antithetic_pairs_mirror_the_same_directions_and_the_halves_split_every_height():
+    theta0 = np.linspace(-1, 1, 7)
+    pts, z = ts.antithetic_points(theta0, [0.028, 0.3], 4, seed=3)
+    for s, th in pts.items():
+        assert th.shape == (8, 7)
+        np.testing.assert_allclose(th[:4] - theta0, s * z, atol=1e-12)
+        np.testing.assert_allclose(th[4:] - theta0, -s * z, atol=1e-12)
+    half = ts.halves(32, 4)  # height by height, 8 instances each: the first 4 of every height
+    assert half.reshape(4, 8)[:, :4].all() and not half.reshape(4, 8)[:, 4:].any()
+
+
+def test_pair_signal_tells_a_direction_from_outcome_noise():
+    """A fitness whose pair differences follow ``z . u`` on every instance correlates across the two halves of the
+    instances (and the halves' zero-order estimates point alike); one whose differences are independent noise per
+    instance does not."""
+    rng = np.random.default_rng(0)
+    n, m, p = 64, 32, 10
+    z, u = rng.standard_normal((n, p)), rng.standard_normal(p)
+    half = ts.halves(m, 4)
+    noise = rng.standard_normal((2 * n, m))
+    signal = np.concatenate([z @ u, -(z @ u)])[:, None] * np.ones((1, m))
+    for f, direction in ((0.3 * signal + noise, True), (noise, False)):
+        r = ts.pair_signal(dict(clean=f, completed=np.zeros_like(f)), z, half, 0.1)
+        lo, hi = r["split_half_r_ci95"]
+        assert r["pairs"] == n and r["pairs_differing"] == n
+        if direction:
+            assert lo > 0.5 and r["split_half_cos"] > 0.5, r
+        else:
+            assert lo < 0 < hi and abs(r["split_half_cos"]) < 0.5, r
+    same = ts.pair_signal(dict(clean=np.ones((2 * n, m)), completed=np.ones((2 * n, m))), z, half, 0.1)
+    assert same["pairs_differing"] == 0 and np.isnan(same["split_half_r"])  # no difference: nothing measured
+
+
 def test_summary_is_the_paired_difference_from_the_start():
     start = dict(clean=np.array([[1, 1, 0, 1]], bool), fitness=np.array([0.8]))
     members = dict(clean=np.array([[1, 1, 0, 1], [0, 1, 0, 0], [1, 1, 1, 1]], bool), fitness=np.array([0.8, 0.3, 1.1]))
@@ -28,7 +61,10 @@ def test_summary_is_the_paired_difference_from_the_start():
 
 @pytest.mark.parametrize("argv, needle", [(["--sigmas", "0"], "--sigmas"), (["--instances", "6"], "--instances"),
                                           (["--samples", "1"], "--samples"), (["--preset", "bound_robust"], "bound"),
-                                          (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl")])
+                                          (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl"),
+                                          (["--spread", "narrow"], "--spread"),
+                                          (["--antithetic", "--samples", "9"], "--samples"),
+                                          (["--antithetic", "--instances", "12"], "--instances")])
 def test_bad_input_is_refused_in_one_line(argv, needle, tmp_path, capsys):
     assert ts.main(argv + ["--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
