@@ -29,6 +29,13 @@ interval by Fisher's z): near 0 when the differences are outcome noise of the in
 perturbation helps on other instances too, i.e. when the zero-order estimate ``sum_i d_i z_i`` measures a
 gradient. Also the cosine of the two halves' estimates, the pairs whose members differ at all and the mean
 ``|d|``. ``--preset none`` starts from Table I with the shin remedy (the equal-wall-clock study's start).
+
+``--surrogate`` (with ``--antithetic``) also computes at the start the surrogate gradient guided ES is given there
+(the tuner's window objective differentiated on MJX-JAX, :class:`hyqjax.studies.tune.gradient_programs.
+GradientPrograms`, ``jacfwd``) and measures, per step size, its agreement with the pairs
+(:func:`hyqjax.studies.tune.guided.guided_cosines` with isotropic samples): the slope of the fitness along its descent
+direction, its cosine with the pairs' zero-order estimate (and with each half's), and inside the sampled directions.
+A step size whose estimate reproduces across the halves is a reference the surrogate can be judged against.
 """
 from __future__ import annotations
 
@@ -60,6 +67,10 @@ def parse(argv=None):
                          "study's)")
     ap.add_argument("--antithetic", action="store_true",
                     help="samples in antithetic pairs; adds the split-half signal of the pairs' differences")
+    ap.add_argument("--surrogate", action="store_true",
+                    help="with --antithetic: the tuner's surrogate gradient at the start (MJX-JAX jacfwd of the "
+                         "window objective) against every step size's pairs")
+    ap.add_argument("--window-ticks", type=int, default=500, help="--surrogate: control ticks of each window")
     a = ap.parse_args(argv)
     if a.impl not in ("auto", "jax", "warp", "c"):
         raise UsageError(f"--impl must be auto, jax, warp or c, got {a.impl!r}")
@@ -67,6 +78,10 @@ def parse(argv=None):
         raise UsageError(f"--sigmas must be in (0, 5], got {a.sigmas}")
     if not 2 <= a.samples <= 4096:
         raise UsageError(f"--samples must be in [2, 4096], got {a.samples}")
+    if a.surrogate and not a.antithetic:
+        raise UsageError("--surrogate needs --antithetic (the pairs it is compared with)")
+    if not 1 <= a.window_ticks <= 20000:
+        raise UsageError(f"--window-ticks must be in [1, 20000], got {a.window_ticks}")
     if a.spread not in ("wide", "train"):
         raise UsageError(f"--spread must be wide or train, got {a.spread!r}")
     if a.antithetic and (a.samples % 2 or a.samples < 8):
@@ -138,6 +153,25 @@ def pair_signal(members: dict, z, half, completed_weight: float) -> dict:
     return dict(pairs=int(n), pairs_differing=int(np.sum(d_all != 0)), mean_abs_diff=float(np.abs(d_all).mean()),
                 split_half_r=r, split_half_r_ci95=ci,
                 split_half_cos=float(g_a @ g_b / (na * nb)) if na > 0 and nb > 0 else float("nan"))
+
+
+def surrogate_agreement(g, thetas, theta0, members: dict, sigma: float, half, completed_weight: float) -> dict:
+    """The surrogate gradient ``g`` (of a minimised objective) against one step size's antithetic pairs ``thetas``
+    (rows ``theta0 + sigma z`` then ``theta0 - sigma z``): :func:`guided.guided_cosines` on the maximised fitness's
+    negative (isotropic samples: ``alpha`` 1, GuidedES's ``std`` ``sigma sqrt(P)``), and the cosine of ``-g`` with each
+    half's zero-order estimate."""
+    from hyqjax.studies.tune import guided
+
+    f = np.asarray(members["clean"], np.float64) + completed_weight * np.asarray(members["completed"], np.float64)
+    g = np.asarray(g, np.float64)
+    out = guided.guided_cosines(g, thetas, theta0, -f.mean(1), guided.sampling_std(sigma, g.size), 1.0, g[:, None])
+    n = len(thetas) // 2
+    z = (np.asarray(thetas[:n], np.float64) - np.asarray(theta0, np.float64)) / sigma
+    for name, cols in (("cos_half_a", half), ("cos_half_b", ~half)):
+        est = (f[:n, cols].mean(1) - f[n:, cols].mean(1)) @ z  # ascent of the fitness
+        den = np.linalg.norm(est) * np.linalg.norm(g)
+        out[name] = float(-g @ est / den) if den > 0 else float("nan")
+    return {k: out[k] for k in ("descent_slope", "cos_zero_order", "cos_sampled", "cos_half_a", "cos_half_b")}
 
 
 def summarize(start: dict, members: dict, sigma: float) -> dict:
@@ -215,6 +249,7 @@ def main(argv=None) -> int:
     from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread=a.spread,
+                          window_ticks=a.window_ticks,
                           impl=a.impl, train_duration=a.duration)
     try:
         param, theta0, evaluator = start_evaluator(cfg)
@@ -232,12 +267,32 @@ def main(argv=None) -> int:
     print(f"start ({a.preset or 'Table I with the shin remedy'}, {param.size} coordinates of {a.dim}): clean "
           f"{np.mean(start['clean']):.3f} on "
           f"{a.instances} step-downs ({start['wall_s']:.0f} s with its compile)", flush=True)
+    surrogate = None
+    if a.surrogate:
+        import time
+
+        from hyqjax.studies.tune import search
+        from hyqjax.studies.tune.gradient_programs import GradientPrograms
+        from hyqjax.studies.tune.wallclock import start_params
+
+        t = time.perf_counter()
+        grad = GradientPrograms(cfg, start_params(cfg), search.Charges(), print)
+        step_fn, _, _ = grad.programs(param, line_search=False)
+        r = step_fn(theta0)
+        g = np.asarray(r["grad"], np.float64)
+        surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
+                         window_ticks=a.window_ticks, seconds=time.perf_counter() - t)
+        print(f"surrogate at the start: |g| {surrogate['grad_norm']:.4g}, window loss {surrogate['loss']:.4g} "
+              f"({surrogate['seconds']:.0f} s: windows, compile and one jacfwd step on MJX-JAX)", flush=True)
     rows = []
     for s, th in points.items():
         r = evaluator(th, sc)
         rows.append(summarize(start, r, s))
         if a.antithetic:
             rows[-1]["antithetic"] = pair_signal(r, z, half, cfg.completed_weight)
+            if surrogate is not None and surrogate["finite"]:
+                rows[-1]["surrogate"] = surrogate_agreement(g, th, theta0, r, s, half, cfg.completed_weight)
+                print(f"sigma {s:g}: surrogate {rows[-1]['surrogate']}", flush=True)
             y = rows[-1]["antithetic"]
             print(f"sigma {s:g}: {y['pairs_differing']} of {y['pairs']} pairs differ, split-half correlation "
                   f"{y['split_half_r']:+.2f} {y['split_half_r_ci95']}", flush=True)
@@ -246,7 +301,7 @@ def main(argv=None) -> int:
               f"{x['share_at_least_start']:.2f} of samples at least as clean ({r['wall_s']:.0f} s)", flush=True)
     os.makedirs(a.out, exist_ok=True)
     res = dict(provenance=atomic.provenance(seed=a.seed), preset=a.preset or "none", dim=a.dim, size=param.size,
-               antithetic=bool(a.antithetic),
+               antithetic=bool(a.antithetic), surrogate=surrogate,
                impl=evaluator.setup.impl, instances=a.instances, duration=a.duration, spread=a.spread,
                heights=[float(h) for h in cfg.train_heights], completed_weight=cfg.completed_weight,
                start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
@@ -256,6 +311,16 @@ def main(argv=None) -> int:
     res.update(wall_s=clock.wall(), phases=clock.to_dict())
     atomic.write_json(os.path.join(a.out, "step_size.json"), res)
     text = markdown(rows, a.instances)
+    sur = [r for r in rows if "surrogate" in r]
+    if sur:
+        text += ("\n\n| sigma | slope along the surrogate's descent | cosine with the pairs' estimate | with each "
+                 "half's | inside the sampled directions |\n|---:|---:|---:|---|---:|\n")
+        for r in sur:
+            x = r["surrogate"]
+            text += (f"| {r['sigma']:g} | {x['descent_slope']:+.4f} | {x['cos_zero_order']:+.3f} | "
+                     f"{x['cos_half_a']:+.3f} / {x['cos_half_b']:+.3f} | {x['cos_sampled']:+.3f} |\n")
+        text += (f"\n(the surrogate: the tuner's window objective at the start, MJX-JAX jacfwd, {a.window_ticks} ticks "
+                 f"a window; |g| {surrogate['grad_norm']:.4g})")
     atomic.atomic_write(os.path.join(a.out, "step_size.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
     print(f"wrote {a.out}/step_size.json and step_size.md")

@@ -48,6 +48,26 @@ def test_pair_signal_tells_a_direction_from_outcome_noise():
     assert same["pairs_differing"] == 0 and np.isnan(same["split_half_r"])  # no difference: nothing measured
 
 
+def test_the_surrogate_agrees_with_pairs_that_measure_its_direction_and_not_with_noise():
+    """Pairs on a fitness that rises along ``u``: a surrogate whose descent is ``u`` (the gradient of ``-u . theta``)
+    has a positive slope and cosines near 1 with the estimate, each half's and the sampled one; a random surrogate's
+    are near 0."""
+    rng = np.random.default_rng(1)
+    n, m, p, sigma = 64, 32, 12, 0.1
+    theta0 = rng.standard_normal(p)
+    u = rng.standard_normal(p)
+    pts, z = ts.antithetic_points(theta0, [sigma], n, seed=2)
+    th = pts[sigma]
+    f = ((th - theta0) @ u)[:, None] * np.ones((1, m)) + 0.01 * rng.standard_normal((2 * n, m))
+    members = dict(clean=f, completed=np.zeros_like(f))
+    half = ts.halves(m, 4)
+    right = ts.surrogate_agreement(-u, th, theta0, members, sigma, half, 0.1)
+    assert right["descent_slope"] > 0 and right["cos_zero_order"] > 0.9 and right["cos_sampled"] > 0.9
+    assert right["cos_half_a"] > 0.9 and right["cos_half_b"] > 0.9
+    rand = ts.surrogate_agreement(rng.standard_normal(p), th, theta0, members, sigma, half, 0.1)
+    assert abs(rand["cos_zero_order"]) < 0.7 and abs(rand["cos_sampled"]) < 0.7
+
+
 def test_summary_is_the_paired_difference_from_the_start():
     start = dict(clean=np.array([[1, 1, 0, 1]], bool), fitness=np.array([0.8]))
     members = dict(clean=np.array([[1, 1, 0, 1], [0, 1, 0, 0], [1, 1, 1, 1]], bool), fitness=np.array([0.8, 0.3, 1.1]))
@@ -64,7 +84,8 @@ def test_summary_is_the_paired_difference_from_the_start():
                                           (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl"),
                                           (["--spread", "narrow"], "--spread"),
                                           (["--antithetic", "--samples", "9"], "--samples"),
-                                          (["--antithetic", "--instances", "12"], "--instances")])
+                                          (["--antithetic", "--instances", "12"], "--instances"),
+                                          (["--surrogate"], "--surrogate"), (["--window-ticks", "0"], "--window-ticks")])
 def test_bad_input_is_refused_in_one_line(argv, needle, tmp_path, capsys):
     assert ts.main(argv + ["--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
