@@ -204,7 +204,14 @@ def counts(r: dict) -> dict:
                 fell=n("terminated"), diverged=n("diverged"))
 
 
-def markdown(rows: list, instances: int) -> str:
+def _table(header: str, rows: list, cells, note: str) -> str:
+    """A further table of the report: ``header`` (its two lines), a row per ``(sigma, record)`` with ``cells(record)``
+    after the step size, and ``note`` below it."""
+    return ("\n\n" + header + "\n" + "".join(f"| {sigma:g} | {cells(x)} |\n" for sigma, x in rows)
+            + f"\n({note})")
+
+
+def markdown(rows: list, instances: int, surrogate: dict | None = None) -> str:
     lines = ["| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
              "samples at least as clean as the start | fitness difference: mean / best | runs: not completed / "
              "not clean / fell / diverged |",
@@ -220,15 +227,23 @@ def markdown(rows: list, instances: int) -> str:
     text = "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
     anti = [r for r in rows if "antithetic" in r]
     if anti:
-        text += ("\n\n| sigma | pairs whose members differ | mean abs(d) | split-half correlation of d [95%] | "
-                 "cosine of the halves' estimates |\n|---:|---|---:|---|---:|\n")
-        for r in anti:
-            x = r["antithetic"]
-            lo, hi = x["split_half_r_ci95"]
-            text += (f"| {r['sigma']:g} | {x['pairs_differing']} of {x['pairs']} | {x['mean_abs_diff']:.4f} | "
-                     f"{x['split_half_r']:+.2f} [{lo:+.2f}, {hi:+.2f}] | {x['split_half_cos']:+.2f} |\n")
-        text += (f"\n(d: a pair's fitness difference, clean + 0.1 x completed; halves: {instances // 2} step-downs "
-                 f"each, every height in both)")
+        text += _table("| sigma | pairs whose members differ | mean abs(d) | split-half correlation of d [95%] | "
+                       "cosine of the halves' estimates |\n|---:|---|---:|---|---:|",
+                       [(r["sigma"], r["antithetic"]) for r in anti], lambda x: (
+                           f"{x['pairs_differing']} of {x['pairs']} | {x['mean_abs_diff']:.4f} | "
+                           f"{x['split_half_r']:+.2f} [{x['split_half_r_ci95'][0]:+.2f}, "
+                           f"{x['split_half_r_ci95'][1]:+.2f}] | {x['split_half_cos']:+.2f}"),
+                       f"d: a pair's fitness difference, clean + 0.1 x completed; halves: {instances // 2} step-downs "
+                       f"each, every height in both")
+    sur = [r for r in rows if "surrogate" in r]
+    if sur:
+        text += _table("| sigma | slope along the surrogate's descent | cosine with the pairs' estimate | with each "
+                       "half's | inside the sampled directions |\n|---:|---:|---:|---|---:|",
+                       [(r["sigma"], r["surrogate"]) for r in sur], lambda x: (
+                           f"{x['descent_slope']:+.4f} | {x['cos_zero_order']:+.3f} | {x['cos_half_a']:+.3f} / "
+                           f"{x['cos_half_b']:+.3f} | {x['cos_sampled']:+.3f}"),
+                       f"the surrogate: the tuner's window objective at the start, MJX-JAX jacfwd, "
+                       f"{surrogate['window_ticks']} ticks a window; |g| {surrogate['grad_norm']:.4g}")
     return text
 
 
@@ -310,17 +325,7 @@ def main(argv=None) -> int:
     clock.lap("simulation")
     res.update(wall_s=clock.wall(), phases=clock.to_dict())
     atomic.write_json(os.path.join(a.out, "step_size.json"), res)
-    text = markdown(rows, a.instances)
-    sur = [r for r in rows if "surrogate" in r]
-    if sur:
-        text += ("\n\n| sigma | slope along the surrogate's descent | cosine with the pairs' estimate | with each "
-                 "half's | inside the sampled directions |\n|---:|---:|---:|---|---:|\n")
-        for r in sur:
-            x = r["surrogate"]
-            text += (f"| {r['sigma']:g} | {x['descent_slope']:+.4f} | {x['cos_zero_order']:+.3f} | "
-                     f"{x['cos_half_a']:+.3f} / {x['cos_half_b']:+.3f} | {x['cos_sampled']:+.3f} |\n")
-        text += (f"\n(the surrogate: the tuner's window objective at the start, MJX-JAX jacfwd, {a.window_ticks} ticks "
-                 f"a window; |g| {surrogate['grad_norm']:.4g})")
+    text = markdown(rows, a.instances, surrogate)
     atomic.atomic_write(os.path.join(a.out, "step_size.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
     print(f"wrote {a.out}/step_size.json and step_size.md")
