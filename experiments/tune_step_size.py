@@ -133,26 +133,38 @@ def halves(instances: int, heights: int) -> np.ndarray:
     return (np.arange(instances) % per) < per // 2
 
 
+def scenario_fitness(members: dict, completed_weight: float) -> np.ndarray:
+    """Each run's fitness (N, M): the tuner's clean + ``completed_weight`` x completed, per step-down."""
+    return np.asarray(members["clean"], np.float64) + completed_weight * np.asarray(members["completed"], np.float64)
+
+
+def half_differences(f, pairs: int, half) -> tuple:
+    """The antithetic pairs' fitness differences ``f(theta_0 + sigma z_i) - f(theta_0 - sigma z_i)`` over all
+    step-downs, the first half (``half``) and the second: three (pairs,) arrays."""
+    d = f[:pairs] - f[pairs:]
+    return d.mean(1), d[:, half].mean(1), d[:, ~half].mean(1)
+
+
+def _cos(a, b) -> float:
+    den = np.linalg.norm(a) * np.linalg.norm(b)
+    return float(a @ b / den) if den > 0 else float("nan")
+
+
 def pair_signal(members: dict, z, half, completed_weight: float) -> dict:
     """Whether an antithetic generation's differences measure a direction (module docstring): ``members`` the
     evaluation of :func:`antithetic_points`' rows, ``half`` (M,) bool the instances of the first half."""
     from scipy import stats
 
-    f = np.asarray(members["clean"], np.float64) + completed_weight * np.asarray(members["completed"], np.float64)
     n = len(z)
-    d = f[:n] - f[n:]  # (pairs, M)
-    d_all, d_a, d_b = d.mean(1), d[:, half].mean(1), d[:, ~half].mean(1)
+    d_all, d_a, d_b = half_differences(scenario_fitness(members, completed_weight), n, half)
     if np.std(d_a) > 0 and np.std(d_b) > 0:
         r = float(stats.pearsonr(d_a, d_b)[0])
         zr, se = np.arctanh(np.clip(r, -0.999999, 0.999999)), 1.0 / np.sqrt(max(n - 3, 1))
         ci = [float(np.tanh(zr - 1.96 * se)), float(np.tanh(zr + 1.96 * se))]
     else:
         r, ci = float("nan"), [float("nan"), float("nan")]
-    g_a, g_b = d_a @ z, d_b @ z
-    na, nb = np.linalg.norm(g_a), np.linalg.norm(g_b)
     return dict(pairs=int(n), pairs_differing=int(np.sum(d_all != 0)), mean_abs_diff=float(np.abs(d_all).mean()),
-                split_half_r=r, split_half_r_ci95=ci,
-                split_half_cos=float(g_a @ g_b / (na * nb)) if na > 0 and nb > 0 else float("nan"))
+                split_half_r=r, split_half_r_ci95=ci, split_half_cos=_cos(d_a @ z, d_b @ z))
 
 
 def surrogate_agreement(g, thetas, theta0, members: dict, sigma: float, half, completed_weight: float) -> dict:
@@ -162,15 +174,12 @@ def surrogate_agreement(g, thetas, theta0, members: dict, sigma: float, half, co
     half's zero-order estimate."""
     from hyqjax.studies.tune import guided
 
-    f = np.asarray(members["clean"], np.float64) + completed_weight * np.asarray(members["completed"], np.float64)
-    g = np.asarray(g, np.float64)
+    f, g = scenario_fitness(members, completed_weight), np.asarray(g, np.float64)
     out = guided.guided_cosines(g, thetas, theta0, -f.mean(1), guided.sampling_std(sigma, g.size), 1.0, g[:, None])
     n = len(thetas) // 2
     z = (np.asarray(thetas[:n], np.float64) - np.asarray(theta0, np.float64)) / sigma
-    for name, cols in (("cos_half_a", half), ("cos_half_b", ~half)):
-        est = (f[:n, cols].mean(1) - f[n:, cols].mean(1)) @ z  # ascent of the fitness
-        den = np.linalg.norm(est) * np.linalg.norm(g)
-        out[name] = float(-g @ est / den) if den > 0 else float("nan")
+    _, d_a, d_b = half_differences(f, n, half)
+    out.update(cos_half_a=_cos(-g, d_a @ z), cos_half_b=_cos(-g, d_b @ z))  # the estimates ascend the fitness
     return {k: out[k] for k in ("descent_slope", "cos_zero_order", "cos_sampled", "cos_half_a", "cos_half_b")}
 
 
