@@ -1,0 +1,59 @@
+"""``python -m experiments.tune_judge``: finished tuning studies judged together on their shared held-out set."""
+import json
+import shutil
+
+import pytest
+
+from experiments import tune_judge
+
+STORED = "docs/results/tune_guided_h200x2_3min"
+MATCHED = "docs/results/tune_guided_matched_h200x2_3min_56"
+
+
+def _clean(comp, member):
+    return [r["clean"] for r in comp["summary"][member]["runs"]]
+
+
+def test_merged_studies_keep_every_run_its_own_held_out_result(tmp_path):
+    """The stored SNES and CMA-ES runs (five seeds, budgets 1 and 3 min) judged with the guided-ES and OpenES runs at
+    the matched scale (three seeds, 3 min): every member's per-run held-out clean rates are exactly those its own
+    study measured, the start is counted once per seed, and the result is the stored comparison."""
+    out = tmp_path / "j"
+    assert tune_judge.main(["--out", str(out), f"{STORED}:snes,cma_es", f"{MATCHED}/guided_es",
+                            f"{MATCHED}/open_es"]) == 0
+    comp = json.loads((out / "comparison.json").read_text())
+    old = json.loads(open(f"{STORED}/comparison.json").read())
+    for m in ("snes/per_leg", "cma_es/per_leg", "start", "table1"):
+        assert _clean(comp, m) == _clean(old, m)
+    for m in ("guided_es", "open_es"):
+        own = [json.loads(open(f"{MATCHED}/{m}/seed{s}/results.json").read())["heldout"][f"{m}/per_leg@3min"]["clean"]
+               for s in range(3)]
+        assert _clean(comp, f"{m}/per_leg") == own
+    assert _clean(comp, "guided_es/per_leg") != _clean(old, "guided_es/per_leg")  # the old scale's runs left out
+    assert comp["minutes"] == 3.0 and comp["summary"]["start"]["clean"]["n"] == 5
+    stored = json.loads(open(f"{MATCHED}/comparison.json").read())
+    assert comp["summary"] == stored["summary"] and comp["differences"] == stored["differences"]
+
+
+def test_a_run_given_twice_and_runs_of_other_settings_are_refused_in_one_line(tmp_path, capsys):
+    assert tune_judge.main(["--out", str(tmp_path / "a"), f"{MATCHED}/guided_es", f"{MATCHED}/guided_es"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "given by two sources" in err[0]
+    other = tmp_path / "other" / "seed0"
+    other.mkdir(parents=True)
+    shutil.copy(f"{MATCHED}/open_es/seed0/tuning.png", other)
+    res = json.loads(open(f"{MATCHED}/open_es/seed0/results.json").read())
+    res["config"]["popsize"] = 32
+    (other / "results.json").write_text(json.dumps(res))
+    assert tune_judge.main(["--out", str(tmp_path / "b"), f"{MATCHED}/guided_es", str(tmp_path / "other")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "popsize" in err[0] and "Traceback" not in err[0]
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+@pytest.mark.parametrize("source, needle", [("/nonexistent", "not a directory"), (f"{STORED}:", "at least one"),
+                                            ("docs", "no finished")])
+def test_bad_sources_are_refused_in_one_line(source, needle, tmp_path, capsys):
+    assert tune_judge.main(["--out", str(tmp_path / "x"), source]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
