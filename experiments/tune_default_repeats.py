@@ -358,14 +358,18 @@ def _read(d: str) -> dict:
 
 
 def _returned(res: dict) -> dict | None:
-    """The returned iterate of a run's one search (its final re-evaluation's choice): iteration, validation and
-    pooled clean rates."""
+    """The returned iterate of a run's one search: its final re-evaluation's choice (iteration, validation and
+    pooled clean rates) or, where the selection validated a single iterate and so re-evaluated nothing, that one
+    (pooled clean None)."""
     run = next(iter((res.get("runs") or {}).values()), None)
     fr = (run or {}).get("final_reevaluation") or {}
-    if not fr.get("candidates"):
+    if fr.get("candidates"):
+        c = fr["candidates"][fr["chosen"]]
+        return dict(iteration=c["iteration"], validation_clean=c["validation_clean"], pooled_clean=c["pooled_clean"])
+    chosen = [x for x in ((run or {}).get("selection") or {}).get("log", []) if x.get("selected")]
+    if not chosen:
         return None
-    c = fr["candidates"][fr["chosen"]]
-    return dict(iteration=c["iteration"], validation_clean=c["validation_clean"], pooled_clean=c["pooled_clean"])
+    return dict(iteration=chosen[-1]["iteration"], validation_clean=chosen[-1]["clean"], pooled_clean=None)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,13 @@ GradientPrograms`, ``jacfwd``) and measures, per step size, its agreement with t
 (:func:`hyqjax.studies.tune.guided.guided_cosines` with isotropic samples): the slope of the fitness along its descent
 direction, its cosine with the pairs' zero-order estimate (and with each half's), and inside the sampled directions.
 A step size whose estimate reproduces across the halves is a reference the surrogate can be judged against.
+
+``--line T [T ...]`` also computes that surrogate gradient ``g`` and runs the points ``theta_0 - t g / |g|`` (``t``
+the distance in the tuner's normalised coordinates; a negative ``t`` goes up the surrogate) on the same step-downs:
+per distance the clean rate and fitness and their differences from the start's, paired over the step-downs, with
+95% intervals. It measures how far the surrogate's descent direction stays a descent of the full-run fitness, the
+distance a guided search's mean may travel along it (its Adam step moves every coordinate about ``lr`` a
+generation, ``lr sqrt(P)`` in norm). ``--sigmas`` with no value runs the line alone.
 """
 from __future__ import annotations
 
@@ -54,8 +61,9 @@ def parse(argv=None):
     ap.add_argument("--out", default="out/tune_step_size")
     ap.add_argument("--preset", default="clean", help="the crawl preset the samples are drawn around")
     ap.add_argument("--dim", default="per_leg", help="the tuner's parameterisation (hyqjax tune --dim)")
-    ap.add_argument("--sigmas", type=float, nargs="+", default=[0.03, 0.1, 0.3],
-                    help="step sizes in the tuner's normalised coordinates (hyqjax tune --sigma: 0.3)")
+    ap.add_argument("--sigmas", type=float, nargs="*", default=[0.03, 0.1, 0.3],
+                    help="step sizes in the tuner's normalised coordinates (hyqjax tune --sigma: 0.3); none: only "
+                         "--line")
     ap.add_argument("--samples", type=int, default=8, help="samples per step size")
     ap.add_argument("--instances", type=int, default=32,
                     help="training step-downs every member runs (a multiple of the 4 training heights)")
@@ -71,11 +79,16 @@ def parse(argv=None):
                     help="with --antithetic: the tuner's surrogate gradient at the start (MJX-JAX jacfwd of the "
                          "window objective) against every step size's pairs")
     ap.add_argument("--window-ticks", type=int, default=500, help="--surrogate: control ticks of each window")
+    ap.add_argument("--line", type=float, nargs="+", default=[], metavar="T",
+                    help="distances along the surrogate's descent direction at the start (normalised coordinates; "
+                         "negative: up the surrogate), run on the same step-downs")
     a = ap.parse_args(argv)
     if a.impl not in ("auto", "jax", "warp", "c"):
         raise UsageError(f"--impl must be auto, jax, warp or c, got {a.impl!r}")
-    if not a.sigmas or any(not 0 < s <= 5 for s in a.sigmas):
-        raise UsageError(f"--sigmas must be in (0, 5], got {a.sigmas}")
+    if any(not 0 < s <= 5 for s in a.sigmas) or not (a.sigmas or a.line):
+        raise UsageError(f"--sigmas must be in (0, 5] (none only with --line), got {a.sigmas}")
+    if len(a.line) > 64 or any(not -10 <= t <= 10 for t in a.line):
+        raise UsageError(f"--line must be at most 64 distances in [-10, 10], got {a.line}")
     if not 2 <= a.samples <= 4096:
         raise UsageError(f"--samples must be in [2, 4096], got {a.samples}")
     if a.surrogate and not a.antithetic:
@@ -183,6 +196,36 @@ def surrogate_agreement(g, thetas, theta0, members: dict, sigma: float, half, co
     return {k: out[k] for k in ("descent_slope", "cos_zero_order", "cos_sampled", "cos_half_a", "cos_half_b")}
 
 
+def line_points(theta0, g, distances) -> np.ndarray:
+    """The points ``theta0 - t g / |g|`` (len(distances), P): distance ``t`` down the surrogate ``g`` (of a minimised
+    objective) in the tuner's normalised coordinates."""
+    g = np.asarray(g, np.float64)
+    u = -g / np.linalg.norm(g)
+    return np.asarray(theta0, np.float64)[None] + np.asarray(distances, np.float64)[:, None] * u[None]
+
+
+def line_summary(start: dict, members: dict, distances, completed_weight: float) -> list:
+    """Per distance of :func:`line_points`: the clean rate and fitness (clean + ``completed_weight`` x completed,
+    the tuner's) and their differences from the start's, paired over the same step-downs (mean and 95% interval),
+    with the runs not completed, not clean, fallen and diverged."""
+    from hyqjax.studies import statistics
+
+    c0 = np.asarray(start["clean"], np.float64).reshape(-1)
+    f0 = scenario_fitness(start, completed_weight).reshape(-1)
+    f = scenario_fitness(members, completed_weight)
+    clean = np.asarray(members["clean"], np.float64)
+    out = []
+    for i, t in enumerate(distances):
+        dc, df = clean[i] - c0, f[i] - f0
+        one = {k: (None if v is None else np.asarray(v)[i:i + 1]) for k, v in members.items()
+               if k in ("clean", "completed")}
+        one["columns"] = {k: np.asarray(v)[i:i + 1] for k, v in members.get("columns", {}).items()}
+        out.append(dict(distance=float(t), clean=float(clean[i].mean()), clean_diff=float(dc.mean()),
+                        clean_diff_ci95=list(statistics.mean_interval(dc)), fitness_diff=float(df.mean()),
+                        fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(one)))
+    return out
+
+
 def summarize(start: dict, members: dict, sigma: float) -> dict:
     """Paired differences of the members' clean rate and fitness from the start's on the same instances."""
     from hyqjax.studies import statistics
@@ -220,7 +263,22 @@ def _table(header: str, rows: list, cells, note: str) -> str:
             + f"\n({note})")
 
 
+def line_markdown(line: list, instances: int, surrogate: dict) -> str:
+    """The ``--line`` table: one row per distance down the surrogate."""
+    rows = [f"| {x['distance']:+g} | {x['clean']:.3f} | {x['clean_diff']:+.3f} [{x['clean_diff_ci95'][0]:+.3f}, "
+            f"{x['clean_diff_ci95'][1]:+.3f}] | {x['fitness_diff']:+.3f} [{x['fitness_diff_ci95'][0]:+.3f}, "
+            f"{x['fitness_diff_ci95'][1]:+.3f}] | {x['counts']['not_completed']} / {x['counts']['not_clean']} / "
+            f"{x['counts']['fell']} / {x['counts']['diverged']} of {x['counts']['runs']} |" for x in line]
+    return ("| distance down the surrogate | clean | clean difference from the start [95%] | fitness difference "
+            "[95%] | runs: not completed / not clean / fell / diverged |\n|---:|---:|---|---|---|\n"
+            + "\n".join(rows) + f"\n\n(points theta_0 - t g/|g|, g the tuner's window gradient at the start "
+            f"(|g| {surrogate['grad_norm']:.4g}); every point on the same {instances} training step-downs as the "
+            f"start, differences paired over them)")
+
+
 def markdown(rows: list, instances: int, surrogate: dict | None = None) -> str:
+    if not rows:
+        return ""
     lines = ["| sigma | clean: start / samples' mean | mean difference [95% over samples] | best / worst sample | "
              "samples at least as clean as the start | fitness difference: mean / best | runs: not completed / "
              "not clean / fell / diverged |",
@@ -292,7 +350,7 @@ def main(argv=None) -> int:
           f"{np.mean(start['clean']):.3f} on "
           f"{a.instances} step-downs ({start['wall_s']:.0f} s with its compile)", flush=True)
     surrogate = None
-    if a.surrogate:
+    if a.surrogate or a.line:
         import time
 
         from hyqjax.studies.tune import search
@@ -323,6 +381,16 @@ def main(argv=None) -> int:
         x = rows[-1]
         print(f"sigma {s:g}: mean clean difference {x['mean_diff']:+.3f}, best {x['best_diff']:+.3f}, "
               f"{x['share_at_least_start']:.2f} of samples at least as clean ({r['wall_s']:.0f} s)", flush=True)
+    line = None
+    if a.line and surrogate["finite"] and surrogate["grad_norm"] > 0:
+        r = evaluator(line_points(theta0, g, a.line), sc)
+        line = line_summary(start, r, a.line, cfg.completed_weight)
+        for x in line:
+            print(f"line {x['distance']:+g}: clean {x['clean']:.3f}, difference {x['clean_diff']:+.3f} "
+                  f"{[round(v, 3) for v in x['clean_diff_ci95']]}", flush=True)
+    elif a.line:
+        print("tune_step_size: the surrogate gradient at the start is zero or not finite: no line to run",
+              file=sys.stderr)
     os.makedirs(a.out, exist_ok=True)
     res = dict(provenance=atomic.provenance(seed=a.seed), preset=a.preset or "none", dim=a.dim, size=param.size,
                antithetic=bool(a.antithetic), surrogate=surrogate,
@@ -330,11 +398,13 @@ def main(argv=None) -> int:
                heights=[float(h) for h in cfg.train_heights], completed_weight=cfg.completed_weight,
                start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
                           fitness=float(start["fitness"][0]), counts=counts(start)),
-               rows=rows, physics_steps=int(evaluator.physics_steps))
+               rows=rows, line=line, physics_steps=int(evaluator.physics_steps))
     clock.lap("simulation")
     res.update(wall_s=clock.wall(), phases=clock.to_dict())
     atomic.write_json(os.path.join(a.out, "step_size.json"), res)
     text = markdown(rows, a.instances, surrogate)
+    if line is not None:
+        text = (text + "\n\n" if text else "") + line_markdown(line, a.instances, surrogate)
     atomic.atomic_write(os.path.join(a.out, "step_size.md"), lambda f: f.write((text + "\n").encode()))
     print(text)
     print(f"wrote {a.out}/step_size.json and step_size.md")

@@ -79,13 +79,41 @@ def test_summary_is_the_paired_difference_from_the_start():
     assert lo < r["mean_diff"] < hi
 
 
+def test_line_points_run_down_the_surrogate_at_the_given_distances():
+    rng = np.random.default_rng(4)
+    theta0, g = rng.standard_normal(9), rng.standard_normal(9)
+    t = np.array([-0.8, 0.1, 0.4, 1.6])
+    pts = ts.line_points(theta0, g, t)
+    step = pts - theta0
+    np.testing.assert_allclose(np.linalg.norm(step, axis=1), np.abs(t), rtol=1e-12)
+    np.testing.assert_allclose(step @ g, -t * np.linalg.norm(g), rtol=1e-12)  # descent for t > 0, ascent below 0
+
+
+def test_line_summary_is_paired_over_the_same_step_downs():
+    """Two points on four step-downs: the differences from the start are taken step-down by step-down (the same
+    instances), the fitness is clean + 0.1 x completed, and the outcome counts are the point's own."""
+    start = dict(clean=np.array([[1, 0, 1, 0]], bool), completed=np.array([[1, 1, 1, 0]], bool))
+    members = dict(clean=np.array([[1, 1, 1, 0], [0, 0, 1, 0]], bool),
+                   completed=np.array([[1, 1, 1, 1], [0, 1, 1, 0]], bool),
+                   columns=dict(terminated=np.array([[0, 0, 0, 0], [1, 0, 0, 0]], bool),
+                                diverged=np.zeros((2, 4), bool)))
+    near, far = ts.line_summary(start, members, [0.2, 1.0], 0.1)
+    assert near["distance"] == 0.2 and near["clean"] == 0.75 and near["clean_diff"] == pytest.approx(0.25)
+    assert near["fitness_diff"] == pytest.approx((1 + 0.1 * 1) / 4 * 1 + 0.1 * 0)  # one clean gained, one completed
+    assert far["clean_diff"] == pytest.approx(-0.25) and far["fitness_diff"] == pytest.approx(-1.1 / 4)
+    assert far["counts"] == dict(runs=4, not_completed=2, not_clean=3, fell=1, diverged=0)
+    lo, hi = far["clean_diff_ci95"]
+    assert lo < far["clean_diff"] < hi
+
+
 @pytest.mark.parametrize("argv, needle", [(["--sigmas", "0"], "--sigmas"), (["--instances", "6"], "--instances"),
                                           (["--samples", "1"], "--samples"), (["--preset", "bound_robust"], "bound"),
                                           (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl"),
                                           (["--spread", "narrow"], "--spread"),
                                           (["--antithetic", "--samples", "9"], "--samples"),
                                           (["--antithetic", "--instances", "12"], "--instances"),
-                                          (["--surrogate"], "--surrogate"), (["--window-ticks", "0"], "--window-ticks")])
+                                          (["--surrogate"], "--surrogate"), (["--window-ticks", "0"], "--window-ticks"),
+                                          (["--sigmas"], "--sigmas"), (["--line", "11"], "--line")])
 def test_bad_input_is_refused_in_one_line(argv, needle, tmp_path, capsys):
     assert ts.main(argv + ["--out", str(tmp_path / "x")]) == 2
     err = capsys.readouterr().err.strip().splitlines()

@@ -14,6 +14,8 @@ STORED_WIDE = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "
 STORED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_h200x2")
 STORED_S01 = os.path.join(os.path.dirname(__file__), "..", "docs", "results",
                           "tune_default_repeats_clean_sigma01_h200x2")
+STORED_GUIDED_CLEAN = os.path.join(os.path.dirname(__file__), "..", "docs", "results",
+                                   "tune_default_repeats_guided_clean_h200x2")
 CONFIRM_C = os.path.join(STORED_S01, "confirm_c_90210")
 STORED_30 = os.path.join(os.path.dirname(__file__), "..", "docs", "results", "tune_default_repeats_clean_30_h200x2",
                          "study")
@@ -704,6 +706,43 @@ def test_budget_gains_pair_runs_and_call_an_interval_across_zero_a_tie():
     text = targets.table(dict(runs=[], references=[], variants={}, returned={},
                               over_runs=dict(n=0, mean=None, range=None), targets=unmet, budget_gains=g))
     assert "| the start (clean) -> 3 min | 3 | +0.050 [" in text
+
+
+def test_stored_guided_es_runs_from_clean_return_clean_where_cma_es_climbs():
+    """``hyqjax tune --method guided_es`` (everything else at its default: ``clean``, step 0.1, the matched sampling
+    scale) five times for 3 minutes, judged on the CMA-ES runs' map (seed 27182): recomputed from the map, every run
+    returned the start (iteration 0), so the five score ``clean``'s 0.924 and the CMA-ES runs' mean is above them by
+    Welch's interval. The surrogate pointed down the fitness at ``clean`` (a positive slope in every run's first
+    generation) and later up it (a cosine inside the sampled directions below -0.5 in each of the three runs that
+    had more than 4 generations), and every later iterate validated below the start."""
+    from hyqjax.studies.tune import guided
+    from hyqjax.studies.tune.study import repeats
+
+    with open(os.path.join(STORED_GUIDED_CLEAN, "heldout", "reach_map.json")) as f:
+        m = json.load(f)
+    with open(os.path.join(STORED_GUIDED_CLEAN, "targets.json")) as f:
+        stored = json.load(f)
+    with open(os.path.join(STORED_S01, "targets.json")) as f:
+        cma = json.load(f)
+    assert m["provenance"]["seed"] == 27182 == cma["heldout"]["seed"]
+    s = targets.judge(m["cells"], stored["runs"], stored["references"], seed=27182)
+    assert round(s["over_runs"]["mean"], 3) == 0.924 == round(s["variants"]["clean"]["clean"], 3)
+    assert all(r["iteration"] == 0 for r in stored["returned"].values()) and s["diverged"] == 0
+    d = repeats.difference(cma["over_runs"]["clean"], s["over_runs"]["clean"])
+    assert d["ci95"][0] > 0 and round(d["mean"], 3) == 0.013
+    generations = []
+    for run in stored["runs"]:
+        with open(os.path.join(STORED_GUIDED_CLEAN, run, "results.json")) as f:
+            r = json.load(f)
+        g = r["runs"]["guided_es/per_leg"]
+        assert r["config"]["sigma"] == 0.1 and g["guided_std"] == pytest.approx(guided.sampling_std(0.1, 56))
+        assert g["log"][0]["descent_slope"] > 0
+        if len(g["log"]) > 4:
+            assert min(x["cos_sampled"] for x in g["log"]) < -0.5
+        start = next(x["clean"] for x in g["selection"]["log"] if x["iteration"] == 0)
+        assert all(x["clean"] < start for x in g["selection"]["log"] if x["iteration"] > 0)
+        generations.append(len(g["log"]))
+    assert sorted(generations) == [4, 4, 11, 12, 12]
 
 
 def test_the_stored_runs_from_clean_measure_warps_run_to_run_noise():
