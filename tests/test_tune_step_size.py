@@ -135,3 +135,22 @@ def test_a_vanishing_step_runs_exactly_the_start_and_a_large_one_loses(tmp_path,
     assert big["mean_diff"] < 0.0
     assert res["physics_steps"] == (1 + 2 * 2) * 4 * round(24.0 / 0.002)
     assert "| 2 |" in (out / "step_size.md").read_text()
+
+
+def test_stored_line_down_the_surrogate_at_clean_loses_at_every_distance():
+    """The stored C MuJoCo line at ``clean`` (docs/results/tune_surrogate_line_clean_cpu): the report is what the
+    stored rows give; every point down the window gradient loses clean success against ``clean`` on the same 256
+    step-downs (intervals below 0 from 0.1 on), the loss grows with the distance, and at 0.4 and 0.8 the ascent side
+    loses more than the descent side: ``clean`` sits on a ridge the surrogate tells apart but cannot climb."""
+    root = "docs/results/tune_surrogate_line_clean_cpu"
+    with open(f"{root}/step_size.json") as f:
+        res = json.load(f)
+    with open(f"{root}/step_size.md") as f:
+        assert f.read().strip() == ts.line_markdown(res["line"], res["instances"], res["surrogate"]).strip()
+    by_t = {x["distance"]: x for x in res["line"]}
+    assert res["instances"] == 256 and res["preset"] == "clean" and res["spread"] == "wide"
+    assert all(x["counts"]["diverged"] == 0 for x in res["line"])
+    down = [by_t[t] for t in sorted(t for t in by_t if t > 0)]
+    assert all(x["clean_diff_ci95"][1] < 0 for x in down)
+    assert [x["clean_diff"] for x in down] == sorted((x["clean_diff"] for x in down), reverse=True)
+    assert by_t[-0.4]["clean_diff"] < by_t[0.4]["clean_diff"] and by_t[-0.8]["clean_diff"] < by_t[0.8]["clean_diff"]
