@@ -4,6 +4,7 @@ step size a search started from a tuned preset should take.
     python -m experiments.tune_step_size --out DIR                                   # C MuJoCo on a CPU
     python -m experiments.tune_step_size --out DIR --impl warp --samples 64 --instances 256     # one GPU
     python -m experiments.tune_step_size --out DIR --preset none --antithetic --samples 64 --sigmas 0.028 0.1 0.3
+    python -m experiments.tune_step_size --out DIR --instances 256 --sigmas --line -0.4 0.1 0.4     # down the surrogate
 
 The start is a crawl preset (``--preset``, ``clean`` by default) in the tuner's coordinates (``--dim``, the 56
 per-leg ones by default; :func:`hyqjax.studies.tune.wallclock_config.start_theta`). For every step size ``sigma``
