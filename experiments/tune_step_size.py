@@ -41,9 +41,10 @@ A step size whose estimate reproduces across the halves is a reference the surro
 ``--line T [T ...]`` also computes that surrogate gradient ``g`` and runs the points ``theta_0 - t g / |g|`` (``t``
 the distance in the tuner's normalised coordinates; a negative ``t`` goes up the surrogate) on the same step-downs:
 per distance the clean rate and fitness and their differences from the start's, paired over the step-downs, with
-95% intervals. It measures how far the surrogate's descent direction stays a descent of the full-run fitness, the
-distance a guided search's mean may travel along it (its Adam step moves every coordinate about ``lr`` a
-generation, ``lr sqrt(P)`` in norm). ``--sigmas`` with no value runs the line alone.
+95% intervals, and the window objective the surrogate descends (on the start's windows) at that point. It measures
+how far the surrogate's descent direction stays a descent of the full-run fitness, the distance a guided search's
+mean may travel along it (its Adam step moves every coordinate about ``lr`` a generation, ``lr sqrt(P)`` in norm).
+``--sigmas`` with no value runs the line alone.
 """
 from __future__ import annotations
 
@@ -205,10 +206,11 @@ def line_points(theta0, g, distances) -> np.ndarray:
     return np.asarray(theta0, np.float64)[None] + np.asarray(distances, np.float64)[:, None] * u[None]
 
 
-def line_summary(start: dict, members: dict, distances, completed_weight: float) -> list:
+def line_summary(start: dict, members: dict, distances, completed_weight: float, window_loss=None) -> list:
     """Per distance of :func:`line_points`: the clean rate and fitness (clean + ``completed_weight`` x completed,
     the tuner's) and their differences from the start's, paired over the same step-downs (mean and 95% interval),
-    with the runs not completed, not clean, fallen and diverged."""
+    with the runs not completed, not clean, fallen and diverged; and, given ``window_loss`` (one per distance), the
+    surrogate's own window objective there (the value the gradient descends)."""
     from hyqjax.studies import statistics
 
     c0 = np.asarray(start["clean"], np.float64).reshape(-1)
@@ -224,6 +226,8 @@ def line_summary(start: dict, members: dict, distances, completed_weight: float)
         out.append(dict(distance=float(t), clean=float(clean[i].mean()), clean_diff=float(dc.mean()),
                         clean_diff_ci95=list(statistics.mean_interval(dc)), fitness_diff=float(df.mean()),
                         fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(one)))
+        if window_loss is not None:
+            out[-1]["window_loss"] = float(window_loss[i])
     return out
 
 
@@ -265,16 +269,22 @@ def _table(header: str, rows: list, cells, note: str) -> str:
 
 
 def line_markdown(line: list, instances: int, surrogate: dict) -> str:
-    """The ``--line`` table: one row per distance down the surrogate."""
+    """The ``--line`` table: one row per distance down the surrogate (with the window objective's column where
+    every row has it)."""
+    loss = all("window_loss" in x for x in line)
     rows = [f"| {x['distance']:+g} | {x['clean']:.3f} | {x['clean_diff']:+.3f} [{x['clean_diff_ci95'][0]:+.3f}, "
             f"{x['clean_diff_ci95'][1]:+.3f}] | {x['fitness_diff']:+.3f} [{x['fitness_diff_ci95'][0]:+.3f}, "
             f"{x['fitness_diff_ci95'][1]:+.3f}] | {x['counts']['not_completed']} / {x['counts']['not_clean']} / "
-            f"{x['counts']['fell']} / {x['counts']['diverged']} of {x['counts']['runs']} |" for x in line]
+            f"{x['counts']['fell']} / {x['counts']['diverged']} of {x['counts']['runs']} |"
+            + (f" {x['window_loss']:.4g} |" if loss else "") for x in line]
     return ("| distance down the surrogate | clean | clean difference from the start [95%] | fitness difference "
-            "[95%] | runs: not completed / not clean / fell / diverged |\n|---:|---:|---|---|---|\n"
+            "[95%] | runs: not completed / not clean / fell / diverged |"
+            + (f" window objective (start {surrogate['loss']:.4g}) |" if loss else "")
+            + "\n|---:|---:|---|---|---|" + ("---:|" if loss else "") + "\n"
             + "\n".join(rows) + f"\n\n(points theta_0 - t g/|g|, g the tuner's window gradient at the start "
             f"(|g| {surrogate['grad_norm']:.4g}); every point on the same {instances} training step-downs as the "
-            f"start, differences paired over them)")
+            f"start, differences paired over them"
+            + ("; the window objective, which g descends, on the start's windows" if loss else "") + ")")
 
 
 def markdown(rows: list, instances: int, surrogate: dict | None = None) -> str:
@@ -360,7 +370,7 @@ def main(argv=None) -> int:
 
         t = time.perf_counter()
         grad = GradientPrograms(cfg, start_params(cfg), search.Charges(), print)
-        step_fn, _, _ = grad.programs(param, line_search=False)
+        step_fn, window_value, _ = grad.programs(param, line_search=False)
         r = step_fn(theta0)
         g = np.asarray(r["grad"], np.float64)
         surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
@@ -384,11 +394,12 @@ def main(argv=None) -> int:
               f"{x['share_at_least_start']:.2f} of samples at least as clean ({r['wall_s']:.0f} s)", flush=True)
     line = None
     if a.line and surrogate["finite"] and surrogate["grad_norm"] > 0:
-        r = evaluator(line_points(theta0, g, a.line), sc)
-        line = line_summary(start, r, a.line, cfg.completed_weight)
+        pts = line_points(theta0, g, a.line)
+        r = evaluator(pts, sc)
+        line = line_summary(start, r, a.line, cfg.completed_weight, np.asarray(window_value(pts)).reshape(-1))
         for x in line:
             print(f"line {x['distance']:+g}: clean {x['clean']:.3f}, difference {x['clean_diff']:+.3f} "
-                  f"{[round(v, 3) for v in x['clean_diff_ci95']]}", flush=True)
+                  f"{[round(v, 3) for v in x['clean_diff_ci95']]}, window objective {x['window_loss']:.4g}", flush=True)
     elif a.line:
         print("tune_step_size: the surrogate gradient at the start is zero or not finite: no line to run",
               file=sys.stderr)

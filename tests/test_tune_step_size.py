@@ -104,6 +104,12 @@ def test_line_summary_is_paired_over_the_same_step_downs():
     assert far["counts"] == dict(runs=4, not_completed=2, not_clean=3, fell=1, diverged=0)
     lo, hi = far["clean_diff_ci95"]
     assert lo < far["clean_diff"] < hi
+    assert "window_loss" not in near
+    near_w, far_w = ts.line_summary(start, members, [0.2, 1.0], 0.1, window_loss=np.array([0.5, 0.25]))
+    assert (near_w["window_loss"], far_w["window_loss"]) == (0.5, 0.25)
+    table = ts.line_markdown([near_w, far_w], 4, dict(grad_norm=1.0, loss=0.75))
+    assert "window objective (start 0.75)" in table and "| 0.25 |" in table
+    assert "window objective" not in ts.line_markdown([near, far], 4, dict(grad_norm=1.0, loss=0.75))
 
 
 @pytest.mark.parametrize("argv, needle", [(["--sigmas", "0"], "--sigmas"), (["--instances", "6"], "--instances"),
