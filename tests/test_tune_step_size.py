@@ -146,8 +146,9 @@ def test_a_vanishing_step_runs_exactly_the_start_and_a_large_one_loses(tmp_path,
 def test_stored_line_down_the_surrogate_at_clean_loses_at_every_distance():
     """The stored C MuJoCo line at ``clean`` (docs/results/tune_surrogate_line_clean_cpu): the report is what the
     stored rows give; every point down the window gradient loses clean success against ``clean`` on the same 256
-    step-downs (intervals below 0 from 0.1 on), the loss grows with the distance, and at 0.4 and 0.8 the ascent side
-    loses more than the descent side: ``clean`` sits on a ridge the surrogate tells apart but cannot climb."""
+    step-downs (intervals below 0 at 0.025 and from 0.1 on), the loss grows with the distance from 0.1, and at 0.4
+    and 0.8 the ascent side loses more than the descent side, while the window objective falls down the gradient:
+    ``clean`` sits on a ridge the surrogate tells apart but cannot climb."""
     root = "docs/results/tune_surrogate_line_clean_cpu"
     with open(f"{root}/step_size.json") as f:
         res = json.load(f)
@@ -157,9 +158,14 @@ def test_stored_line_down_the_surrogate_at_clean_loses_at_every_distance():
     assert res["instances"] == 256 and res["preset"] == "clean" and res["spread"] == "wide"
     assert all(x["counts"]["diverged"] == 0 for x in res["line"])
     down = [by_t[t] for t in sorted(t for t in by_t if t > 0)]
-    assert all(x["clean_diff_ci95"][1] < 0 for x in down)
-    assert [x["clean_diff"] for x in down] == sorted((x["clean_diff"] for x in down), reverse=True)
+    assert all(x["clean_diff"] < 0 for x in down)
+    assert all(by_t[t]["clean_diff_ci95"][1] < 0 for t in (0.025, 0.1, 0.2, 0.4, 0.8, 1.6))
+    far = [by_t[t]["clean_diff"] for t in (0.1, 0.2, 0.4, 0.8, 1.6)]
+    assert far == sorted(far, reverse=True)
     assert by_t[-0.4]["clean_diff"] < by_t[0.4]["clean_diff"] and by_t[-0.8]["clean_diff"] < by_t[0.8]["clean_diff"]
+    loss0 = res["surrogate"]["loss"]  # while its own window objective falls all the way down to 0.8
+    losses = [loss0] + [by_t[t]["window_loss"] for t in (0.025, 0.05, 0.1, 0.2, 0.4, 0.8)]
+    assert losses == sorted(losses, reverse=True) and by_t[-0.4]["window_loss"] > loss0
 
 
 def test_stored_line_at_table_i_loses_more_down_the_surrogate_than_up_it():
