@@ -188,3 +188,19 @@ def test_stored_line_at_table_i_loses_more_down_the_surrogate_than_up_it():
     loss0 = res["surrogate"]["loss"]  # the gradient descends its own objective: lower down it, higher up it
     assert by_t[0.4]["window_loss"] < by_t[0.2]["window_loss"] < by_t[0.1]["window_loss"] < loss0
     assert loss0 < by_t[-0.4]["window_loss"] < by_t[-0.8]["window_loss"]
+
+
+def test_stored_line_with_long_windows_does_not_descend_its_own_objective():
+    """The stored C MuJoCo line at Table I with 2,000-tick windows (docs/results/tune_surrogate_line_tablei_w2000_cpu):
+    the gradient's norm is thousands of times the 500-tick one's, and a step of 0.1 down it already raises the window
+    objective it was taken from (and 0.4 up it lowers it), while the full runs lose at 0.4 down it."""
+    with open("docs/results/tune_surrogate_line_tablei_w2000_cpu/step_size.json") as f:
+        long = json.load(f)
+    with open("docs/results/tune_surrogate_line_tablei_cpu/step_size.json") as f:
+        short = json.load(f)
+    assert (long["surrogate"]["window_ticks"], short["surrogate"]["window_ticks"]) == (2000, 500)
+    assert long["start"] == short["start"] and long["surrogate"]["grad_norm"] > 1000 * short["surrogate"]["grad_norm"]
+    by_t = {x["distance"]: x for x in long["line"]}
+    loss0 = long["surrogate"]["loss"]
+    assert by_t[0.1]["window_loss"] > loss0 and by_t[0.4]["window_loss"] > loss0 > by_t[-0.4]["window_loss"]
+    assert by_t[0.4]["clean_diff_ci95"][1] < 0 and all(x["counts"]["diverged"] == 0 for x in long["line"])
