@@ -68,6 +68,10 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
     merged: dict[int, dict] = {}
     first = None
     for name, results, methods in sources:
+        held = {r["method"] for res in results.values() for r in res.get("runs", {}).values()}
+        missing = sorted(set(methods or ()) - held)
+        if missing:
+            raise ValueError(f"SOURCE {name} holds no run of {', '.join(missing)} (it has {', '.join(sorted(held))})")
         for seed, res in sorted(results.items()):
             if first is not None:
                 repeats.check_comparable([first[1], res], [first[0], f"{name}/seed{seed}"], free)

@@ -52,7 +52,7 @@ def test_a_run_given_twice_and_runs_of_other_settings_are_refused_in_one_line(tm
 
 
 @pytest.mark.parametrize("source, needle", [("/nonexistent", "not a directory"), (f"{STORED}:", "at least one"),
-                                            ("docs", "no finished")])
+                                            ("docs", "no finished"), (f"{STORED}:snes,cmaes", "no run of cmaes")])
 def test_bad_sources_are_refused_in_one_line(source, needle, tmp_path, capsys):
     assert tune_judge.main(["--out", str(tmp_path / "x"), source]) == 2
     err = capsys.readouterr().err.strip().splitlines()
