@@ -35,9 +35,9 @@ def parse(argv=None):
 
 def split_source(source: str) -> tuple[str, tuple[str, ...] | None]:
     """``DIR`` or ``DIR:m1,m2`` -> (DIR, methods or None for all)."""
-    path, sep, methods = source.rpartition(":") if ":" in source else (source, "", "")
-    if not sep:
+    if ":" not in source:
         return source, None
+    path, _, methods = source.rpartition(":")
     names = tuple(m.strip() for m in methods.split(",") if m.strip())
     if not names:
         raise UsageError(f"SOURCE {source!r}: name at least one method after ':'")

@@ -220,12 +220,9 @@ def line_summary(start: dict, members: dict, distances, completed_weight: float,
     out = []
     for i, t in enumerate(distances):
         dc, df = clean[i] - c0, f[i] - f0
-        one = {k: (None if v is None else np.asarray(v)[i:i + 1]) for k, v in members.items()
-               if k in ("clean", "completed")}
-        one["columns"] = {k: np.asarray(v)[i:i + 1] for k, v in members.get("columns", {}).items()}
         out.append(dict(distance=float(t), clean=float(clean[i].mean()), clean_diff=float(dc.mean()),
                         clean_diff_ci95=list(statistics.mean_interval(dc)), fitness_diff=float(df.mean()),
-                        fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(one)))
+                        fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(members, i)))
         if window_loss is not None:
             out[-1]["window_loss"] = float(window_loss[i])
     return out
@@ -246,19 +243,29 @@ def summarize(start: dict, members: dict, sigma: float) -> dict:
                 counts=counts(members))
 
 
-def counts(r: dict) -> dict:
-    """Runs of an evaluation (``SuccessEvaluator`` output) by outcome: all, not completed, not clean, fell (ended at
-    a fall: tilt or trunk strike) and diverged (a simulator blow-up or a non-finite state: a counted failure)."""
+def counts(r: dict, member: int | None = None) -> dict:
+    """Runs of an evaluation (``SuccessEvaluator`` output; ``member``: its row alone) by outcome: all, not completed,
+    not clean, fell (ended at a fall: tilt or trunk strike) and diverged (a simulator blow-up or a non-finite state: a
+    counted failure)."""
     cols = dict(r.get("columns", {}), completed=r.get("completed"), clean=r["clean"])
+
+    def rows(v):
+        v = np.asarray(v, bool)
+        return v if member is None else v[member]
 
     def n(key, false=False):
         if cols.get(key) is None:
             return None
-        x = np.asarray(cols[key], bool)
+        x = rows(cols[key])
         return int(np.sum(~x if false else x))
 
-    return dict(runs=int(np.size(r["clean"])), not_completed=n("completed", True), not_clean=n("clean", True),
+    return dict(runs=int(rows(r["clean"]).size), not_completed=n("completed", True), not_clean=n("clean", True),
                 fell=n("terminated"), diverged=n("diverged"))
+
+
+def _counts_cell(c: dict) -> str:
+    """A table cell of :func:`counts`: not completed / not clean / fell / diverged of all."""
+    return f"{c['not_completed']} / {c['not_clean']} / {c['fell']} / {c['diverged']} of {c['runs']}"
 
 
 def _table(header: str, rows: list, cells, note: str) -> str:
@@ -274,8 +281,7 @@ def line_markdown(line: list, instances: int, surrogate: dict) -> str:
     loss = all("window_loss" in x for x in line)
     rows = [f"| {x['distance']:+g} | {x['clean']:.3f} | {x['clean_diff']:+.3f} [{x['clean_diff_ci95'][0]:+.3f}, "
             f"{x['clean_diff_ci95'][1]:+.3f}] | {x['fitness_diff']:+.3f} [{x['fitness_diff_ci95'][0]:+.3f}, "
-            f"{x['fitness_diff_ci95'][1]:+.3f}] | {x['counts']['not_completed']} / {x['counts']['not_clean']} / "
-            f"{x['counts']['fell']} / {x['counts']['diverged']} of {x['counts']['runs']} |"
+            f"{x['fitness_diff_ci95'][1]:+.3f}] | {_counts_cell(x['counts'])} |"
             + (f" {x['window_loss']:.4g} |" if loss else "") for x in line]
     return ("| distance down the surrogate | clean | clean difference from the start [95%] | fitness difference "
             "[95%] | runs: not completed / not clean / fell / diverged |"
@@ -296,12 +302,10 @@ def markdown(rows: list, instances: int, surrogate: dict | None = None) -> str:
              "|---:|---|---|---|---|---|---|"]
     for r in rows:
         lo, hi = r["mean_diff_ci95"]
-        c = r["counts"]
         lines.append(f"| {r['sigma']:g} | {r['start_clean']:.3f} / {r['mean_clean']:.3f} | {r['mean_diff']:+.3f} "
                      f"[{lo:+.3f}, {hi:+.3f}] | {r['best_diff']:+.3f} / {r['worst_diff']:+.3f} | "
                      f"{r['share_at_least_start']:.2f} of {r['samples']} | {r['mean_fitness_diff']:+.3f} / "
-                     f"{r['best_fitness_diff']:+.3f} | {c['not_completed']} / {c['not_clean']} / {c['fell']} / "
-                     f"{c['diverged']} of {c['runs']} |")
+                     f"{r['best_fitness_diff']:+.3f} | {_counts_cell(r['counts'])} |")
     text = "\n".join(lines) + f"\n\n(every member on the same {instances} training step-downs; differences paired)"
     anti = [r for r in rows if "antithetic" in r]
     if anti:
@@ -411,7 +415,8 @@ def main(argv=None) -> int:
                start=dict(clean=float(np.mean(start["clean"])), completed=float(np.mean(start["completed"])),
                           fitness=float(start["fitness"][0]), counts=counts(start)),
                rows=rows, line=line, physics_steps=int(evaluator.physics_steps))
-    clock.lap("simulation")
+    # the surrogate gradient (the tuner's windows, compile and jacfwd step) is the tuning phase, apart from the runs
+    clock.lap("simulation", **({"tuning": surrogate["seconds"]} if surrogate else {}))
     res.update(wall_s=clock.wall(), phases=clock.to_dict())
     atomic.write_json(os.path.join(a.out, "step_size.json"), res)
     text = markdown(rows, a.instances, surrogate)
