@@ -81,6 +81,9 @@ def parse(argv=None):
                     help="with --antithetic: the tuner's surrogate gradient at the start (MJX-JAX jacfwd of the "
                          "window objective) against every step size's pairs")
     ap.add_argument("--window-ticks", type=int, default=500, help="--surrogate: control ticks of each window")
+    ap.add_argument("--surrogate-weights", nargs="+", default=[], metavar="TERM=W",
+                    help="--surrogate, --line: the window objective's term weights other than their defaults (e.g. "
+                         "mobility=0 progress=0 stability=0; hyqjax.studies.tune.objective)")
     ap.add_argument("--line", type=float, nargs="+", default=[], metavar="T",
                     help="distances along the surrogate's descent direction at the start (normalised coordinates; "
                          "negative: up the surrogate), run on the same step-downs")
@@ -97,6 +100,14 @@ def parse(argv=None):
         raise UsageError("--surrogate needs --antithetic (the pairs it is compared with)")
     if not 1 <= a.window_ticks <= 20000:
         raise UsageError(f"--window-ticks must be in [1, 20000], got {a.window_ticks}")
+    from hyqjax.studies.tune.objective import parse_weights
+
+    try:
+        a.surrogate_weights = parse_weights(a.surrogate_weights)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
+    if a.surrogate_weights and not (a.surrogate or a.line):
+        raise UsageError("--surrogate-weights weighs the surrogate: it needs --surrogate or --line")
     if a.spread not in ("wide", "train"):
         raise UsageError(f"--spread must be wide or train, got {a.spread!r}")
     if a.antithetic and (a.samples % 2 or a.samples < 8):
@@ -346,7 +357,7 @@ def main(argv=None) -> int:
     from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread=a.spread,
-                          window_ticks=a.window_ticks,
+                          window_ticks=a.window_ticks, surrogate_weights=a.surrogate_weights,
                           impl=a.impl, train_duration=a.duration)
     try:
         param, theta0, evaluator = start_evaluator(cfg)
@@ -378,7 +389,8 @@ def main(argv=None) -> int:
         r = step_fn(theta0)
         g = np.asarray(r["grad"], np.float64)
         surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
-                         window_ticks=a.window_ticks, seconds=time.perf_counter() - t)
+                         window_ticks=a.window_ticks, weights=grad.obj.weights(),
+                         seconds=time.perf_counter() - t)
         print(f"surrogate at the start: |g| {surrogate['grad_norm']:.4g}, window loss {surrogate['loss']:.4g} "
               f"({surrogate['seconds']:.0f} s: windows, compile and one jacfwd step on MJX-JAX)", flush=True)
     rows = []

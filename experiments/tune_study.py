@@ -35,7 +35,7 @@ GRADIENT_STUDY_ONLY = dict(surrogate="closed_loop", steps=20, line_search=(0.125
 WALLCLOCK_ONLY = ("select_every_s", "select_seed", "grad_directions", "grad_mode", "cold_compile", "retake_windows",
                   "train_spread", "contacts_from_distance", "state_every_s", "segment_minutes", "guided_alpha",
                   "guided_subspace", "guided_lr", "guided_grad_every", "blend_gamma", "blend_lr",
-                  "restart_stall")
+                  "restart_stall", "surrogate_weights")
 #: ``--guided-comparison``: the methods and parameterisations compared (each may be narrowed by --methods / --dims).
 GUIDED_COMPARISON = dict(methods=("guided_es", "cma_es", "snes"), dims=("per_leg", "per_leg_cond"))
 
@@ -124,6 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="guided ES: share of the sampling variance in the full space (1: isotropic ES, OpenES's "
                         "samples; the rest in the subspace of the recent surrogate gradients); the variance in all "
                         "is --sigma^2 a coordinate, as for the other methods")
+    g.add_argument("--surrogate-weights", nargs="+", default=H["surrogate_weights"], metavar="TERM=W",
+                   help="guided ES, the blend, the hybrid: the window objective's term weights other than their "
+                        "defaults, e.g. mobility=0 progress=0 stability=0 (terms: clearance, joint, workspace, "
+                        "foothold, tilt, mobility, progress, stability; hyqjax.studies.tune.objective)")
     g.add_argument("--guided-subspace", type=int, default=H["guided_subspace"],
                    help="guided ES: number of recent surrogate gradients spanning the guiding subspace")
     g.add_argument("--guided-lr", type=float, default=H["guided_lr"], help="guided ES: Adam learning rate of the mean")

@@ -963,12 +963,37 @@ def test_charges_count_compile_not_run_time():
                                        (dict(final_instances=6), "final_instances must be a multiple of 4"),
                                        (dict(final_instances=8, final_candidates=1), "final_candidates"),
                                        (dict(guided_alpha=1.5), "guided_alpha"),
+                                       (dict(surrogate_weights=(("speed", 1.0),)), "surrogate_weights: the term"),
+                                       (dict(surrogate_weights=(("tilt", -1.0),)), "the weight of tilt"),
+                                       (dict(surrogate_weights=(("tilt", 1.0), ("tilt", 2.0))), "tilt given twice"),
+                                       (dict(surrogate_weights=("tilt",)), "weight. pairs, got"),
                                        (dict(methods=("guided_es",), popsize=5), "popsize must be even")])
 def test_wallclock_config_validation(kw, match):
     from hyqjax.studies.tune import wallclock
 
     with pytest.raises(ValueError, match=match):
         wallclock.WallClockConfig(**kw)
+
+
+def test_surrogate_weights_reach_the_gradient_programs_and_survive_results_json(monkeypatch):
+    """``WallClockConfig.surrogate_weights`` reweighs the objective the gradient programs descend (the terms named,
+    the others at their defaults, each term's sign kept) and reads back from a ``results.json``'s ``config``."""
+    from hyqjax.studies.tune import evaluate, gradient_programs, search
+    from hyqjax.studies.tune.wallclock_config import WallClockConfig
+
+    cfg = WallClockConfig(surrogate_weights=(("progress", 0.0), ("tilt", 25.0)))
+    assert WallClockConfig.from_dict(json.loads(json.dumps(cfg.to_dict()))) == cfg
+    # the programs' windows are not what is tested here: no model, no forward run
+    monkeypatch.setattr(windows, "setup", lambda: None)
+    monkeypatch.setattr(evaluate, "scenarios", lambda *a, **k: (None, None))
+    monkeypatch.setattr(windows, "make_windows", lambda *a, **k: type("W", (), dict(valid=np.ones(4, bool), size=4)))
+    grad = gradient_programs.GradientPrograms(cfg, None, search.Charges(), lambda *_: None)
+    w, w0 = grad.obj.weights(), objective.ClosedLoopObjective().weights()
+    assert w["progress"] == 0.0 and w["tilt"] == 25.0 and w0["tilt"] == 10.0
+    assert {k: v for k, v in w.items() if k not in ("progress", "tilt")} == \
+        {k: v for k, v in w0.items() if k not in ("progress", "tilt")}
+    assert objective.ClosedLoopObjective().reweighted((("mobility", 3.0),)).weights()["mobility"] == -3.0
+    assert objective.parse_weights(["mobility=0", "stability=0.5"]) == (("mobility", 0.0), ("stability", 0.5))
 
 
 @pytest.mark.parametrize("argv, match", [(["--methods", "cma_es,pso"], "--methods must be"),
@@ -987,7 +1012,12 @@ def test_wallclock_config_validation(kw, match):
                                          (["--gradient-study", "--objective", "reach"], "--objective belongs"),
                                          (["--gradient-study", "--preset", "paper"], "--preset belongs"),
                                          (["--state-every-s", "-1"], "--state-every-s must be"),
-                                         (["--gradient-study", "--segment-minutes", "5"], "--segment-minutes belongs")])
+                                         (["--gradient-study", "--segment-minutes", "5"], "--segment-minutes belongs"),
+                                         (["--surrogate-weights", "tilt"], "--surrogate-weights takes TERM=W"),
+                                         (["--surrogate-weights", "tilt=x"], "--surrogate-weights takes TERM=W"),
+                                         (["--surrogate-weights", "tilt=2000"], "the weight of tilt must be"),
+                                         (["--gradient-study", "--surrogate-weights", "tilt=1"],
+                                          "--surrogate-weights belongs")])
 def test_tune_study_refuses_bad_settings_in_one_line(argv, match, tmp_path, capsys):
     from experiments import tune_study
 

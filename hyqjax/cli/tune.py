@@ -58,7 +58,7 @@ HIDDEN = dict(
     train_spread=None, train_heights=None, paper_crawl=False, lr=0.1, train_per_height=2, windows_per_scenario=2,
     lead=10.0, window_ticks=None, heldout_seed=7777, heldout_duration=24.0, select_instances=None,
     select_every=5, train_instances=32, guided_alpha=0.5, guided_subspace=1, guided_lr=0.05, guided_grad_every=1,
-    blend_gamma=2.0, blend_lr=0.05, restart_stall=25,
+    blend_gamma=2.0, blend_lr=0.05, restart_stall=25, surrogate_weights=(),
 )
 
 
@@ -203,6 +203,12 @@ def validate_wallclock(args) -> None:
     args.window_ticks = 500 if args.window_ticks is None else args.window_ticks
     args.heldout = 2000 if args.heldout is None else args.heldout
     check_range("--window-ticks", args.window_ticks, 1, 20000, integer=True)
+    from hyqjax.studies.tune.objective import parse_weights
+
+    try:
+        args.surrogate_weights = parse_weights(args.surrogate_weights)
+    except ValueError as e:
+        raise UsageError(str(e)) from None
     if args.sigma is not None:
         check_range("--sigma", args.sigma, 0.0, 5.0, lo_open=True)
     check_range("--heldout", args.heldout, 1, 10**6, integer=True)
@@ -259,7 +265,7 @@ def validate_wallclock(args) -> None:
             train_heights=tuple(float(h) for h in args.train_heights), train_spread=args.train_spread,
             guided_alpha=args.guided_alpha, guided_subspace=args.guided_subspace, guided_lr=args.guided_lr,
             guided_grad_every=args.guided_grad_every, blend_gamma=args.blend_gamma, blend_lr=args.blend_lr,
-            restart_stall=args.restart_stall,
+            restart_stall=args.restart_stall, surrogate_weights=args.surrogate_weights,
             start_preset=preset, final_instances=args.final_instances,
             start_from=tune_start.start_from(args.start_from, methods, dims, groups) if args.start_from else ())
     except ValueError as e:

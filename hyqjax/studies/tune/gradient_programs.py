@@ -55,7 +55,7 @@ class GradientPrograms:
             windows.make_windows(sc, spec, self.su)))
         self.win_start = self.win  # the start point's windows (the diagnostics' SNR reads these)
         self.obj = objective.ClosedLoopObjective(ticks=cfg.window_ticks, contacts_from_distance=ContactsFromDistance(
-            stiffness=float(cfg.contacts_from_distance)))
+            stiffness=float(cfg.contacts_from_distance))).reweighted(cfg.surrogate_weights)
         #: how the exact step differentiates: ``"jacfwd"`` or ``"reverse"`` (``WallClockConfig.grad_mode``)
         self.grad_mode = cfg.grad_mode
         self.fns: dict = {}

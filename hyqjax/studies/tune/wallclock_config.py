@@ -58,6 +58,9 @@ class WallClockConfig:
     windows_per_scenario: int = 2
     window_lead: float = 10.0
     window_ticks: int = 500
+    #: weights of the window objective's terms other than its defaults, ``(("progress", 0.0), ...)``
+    #: (:meth:`.objective.ClosedLoopObjective.reweighted`; every other weight at its default)
+    surrogate_weights: tuple = ()
     lr: float = 0.1
     #: tangents of the tuning step: 0 = exact ``jacfwd`` (``P``); ``K > 0`` = the forward-gradient estimate from
     #: ``K`` random directions (:func:`.objective.make_value_and_forward_gradient`, unbiased, ``(P + 1) / K``
@@ -231,6 +234,9 @@ class WallClockConfig:
             if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
                 raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
 
+        from hyqjax.studies.tune.objective import check_weights
+
+        check_weights(self.surrogate_weights)
         if not isinstance(self.start_preset, str):
             raise ValueError(f"start_preset must be a preset name or '', got {self.start_preset!r}")
 
