@@ -209,6 +209,24 @@ def surrogate_agreement(g, thetas, theta0, members: dict, sigma: float, half, co
     return {k: out[k] for k in ("descent_slope", "cos_zero_order", "cos_sampled", "cos_half_a", "cos_half_b")}
 
 
+def surrogate_windows(grad) -> list:
+    """When the surrogate's windows run: ``[first start, last end]`` (s) over its valid windows
+    (:class:`hyqjax.studies.tune.gradient_programs.GradientPrograms`)."""
+    t = np.asarray(grad.win.data.time, np.float64)[np.asarray(grad.win.valid, bool)]
+    span = grad.obj.ticks * float(grad.su.m.opt.timestep)
+    return [round(float(t.min()), 3), round(float(t.max() + span), 3)] if t.size else []
+
+
+def descent_direction(g, names, top: int = 8) -> list:
+    """The ``top`` largest components of the surrogate's descent direction ``-g / |g|``: ``[(coordinate, value)]``."""
+    g = np.asarray(g, np.float64)
+    n = np.linalg.norm(g)
+    if not n > 0:
+        return []
+    u = -g / n
+    return [(str(names[i]), round(float(u[i]), 4)) for i in np.argsort(-np.abs(u))[:top]]
+
+
 def line_points(theta0, g, distances) -> np.ndarray:
     """The points ``theta0 - t g / |g|`` (len(distances), P): distance ``t`` down the surrogate ``g`` (of a minimised
     objective) in the tuner's normalised coordinates."""
@@ -217,11 +235,13 @@ def line_points(theta0, g, distances) -> np.ndarray:
     return np.asarray(theta0, np.float64)[None] + np.asarray(distances, np.float64)[:, None] * u[None]
 
 
-def line_summary(start: dict, members: dict, distances, completed_weight: float, window_loss=None) -> list:
+def line_summary(start: dict, members: dict, distances, completed_weight: float, window_loss=None,
+                 dt: float = 0.002) -> list:
     """Per distance of :func:`line_points`: the clean rate and fitness (clean + ``completed_weight`` x completed,
     the tuner's) and their differences from the start's, paired over the same step-downs (mean and 95% interval),
     with the runs not completed, not clean, fallen and diverged; and, given ``window_loss`` (one per distance), the
-    surrogate's own window objective there (the value the gradient descends)."""
+    surrogate's own window objective there (the value the gradient descends); and the runs it ends early that the
+    start does not, with when (:func:`ended_early`)."""
     from hyqjax.studies import statistics
 
     c0 = np.asarray(start["clean"], np.float64).reshape(-1)
@@ -236,7 +256,22 @@ def line_summary(start: dict, members: dict, distances, completed_weight: float,
                         fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(members, i)))
         if window_loss is not None:
             out[-1]["window_loss"] = float(window_loss[i])
+        out[-1].update(ended_early(start, members, i, dt))
     return out
+
+
+def ended_early(start: dict, members: dict, member: int, dt: float) -> dict:
+    """The runs member ``member`` ends early (a fall, a strike: the rollout's failure tick) that the start does not,
+    on the same step-downs: their number and the 10th, 50th and 90th percentiles of when they end (s; ``dt`` the
+    control period), to set beside the surrogate's windows (``surrogate["windows_s"]``); empty without the
+    outcome columns."""
+    if "columns" not in members or "columns" not in start:
+        return {}
+    t0 = np.asarray(start["columns"]["terminated_tick"]).reshape(-1)
+    t = np.asarray(members["columns"]["terminated_tick"])[member].reshape(-1)
+    new = (t >= 0) & (t0 < 0)
+    q = np.percentile(t[new] * dt, [10, 50, 90]).round(2).tolist() if new.any() else None
+    return dict(ended_early_not_at_start=int(new.sum()), ended_early_time_s=q)
 
 
 def summarize(start: dict, members: dict, sigma: float) -> dict:
@@ -290,18 +325,41 @@ def line_markdown(line: list, instances: int, surrogate: dict) -> str:
     """The ``--line`` table: one row per distance down the surrogate (with the window objective's column where
     every row has it)."""
     loss = all("window_loss" in x for x in line)
+    early = all("ended_early_not_at_start" in x for x in line)
+
+    def early_cell(x):
+        q = x["ended_early_time_s"]
+        return f" {x['ended_early_not_at_start']}" + (f" ({q[0]:g} / {q[1]:g} / {q[2]:g} s)" if q else "") + " |"
+
     rows = [f"| {x['distance']:+g} | {x['clean']:.3f} | {x['clean_diff']:+.3f} [{x['clean_diff_ci95'][0]:+.3f}, "
             f"{x['clean_diff_ci95'][1]:+.3f}] | {x['fitness_diff']:+.3f} [{x['fitness_diff_ci95'][0]:+.3f}, "
             f"{x['fitness_diff_ci95'][1]:+.3f}] | {_counts_cell(x['counts'])} |"
-            + (f" {x['window_loss']:.4g} |" if loss else "") for x in line]
+            + (f" {x['window_loss']:.4g} |" if loss else "") + (early_cell(x) if early else "") for x in line]
+    win = surrogate.get("windows_s")
+    direction = surrogate.get("direction")
     return ("| distance down the surrogate | clean | clean difference from the start [95%] | fitness difference "
             "[95%] | runs: not completed / not clean / fell / diverged |"
             + (f" window objective (start {surrogate['loss']:.4g}) |" if loss else "")
-            + "\n|---:|---:|---|---|---|" + ("---:|" if loss else "") + "\n"
+            + (" ended early where the start did not: runs (when: 10 / 50 / 90 %) |" if early else "")
+            + "\n|---:|---:|---|---|---|" + ("---:|" if loss else "") + ("---|" if early else "") + "\n"
             + "\n".join(rows) + f"\n\n(points theta_0 - t g/|g|, g the tuner's window gradient at the start "
             f"(|g| {surrogate['grad_norm']:.4g}); every point on the same {instances} training step-downs as the "
             f"start, differences paired over them"
-            + ("; the window objective, which g descends, on the start's windows" if loss else "") + ")")
+            + ("; the window objective, which g descends, on the start's windows" if loss else "")
+            + (f"; the windows run from {win[0]:g} s to {win[1]:g} s into their step-downs" if win else "")
+            + _weights_note(surrogate) + ")"
+            + ("\n\nThe descent direction's largest components: "
+               + ", ".join(f"`{k}` {v:+.2f}" for k, v in direction) + "." if direction else ""))
+
+
+def _weights_note(surrogate: dict) -> str:
+    """``; its weights ...`` where the surrogate's term weights are not the window objective's defaults."""
+    from hyqjax.studies.tune.objective import ClosedLoopObjective
+
+    w, w0 = surrogate.get("weights"), ClosedLoopObjective().weights()
+    other = {k: v for k, v in (w or {}).items() if v != w0[k]}
+    return ("; the objective's weights other than their defaults: "
+            + ", ".join(f"{k} {abs(v):g}" for k, v in other.items())) if other else ""
 
 
 def markdown(rows: list, instances: int, surrogate: dict | None = None) -> str:
@@ -390,6 +448,7 @@ def main(argv=None) -> int:
         g = np.asarray(r["grad"], np.float64)
         surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
                          window_ticks=a.window_ticks, weights=grad.obj.weights(),
+                         windows_s=surrogate_windows(grad), direction=descent_direction(g, param.names),
                          seconds=time.perf_counter() - t)
         print(f"surrogate at the start: |g| {surrogate['grad_norm']:.4g}, window loss {surrogate['loss']:.4g} "
               f"({surrogate['seconds']:.0f} s: windows, compile and one jacfwd step on MJX-JAX)", flush=True)
@@ -412,7 +471,8 @@ def main(argv=None) -> int:
     if a.line and surrogate["finite"] and surrogate["grad_norm"] > 0:
         pts = line_points(theta0, g, a.line)
         r = evaluator(pts, sc)
-        line = line_summary(start, r, a.line, cfg.completed_weight, np.asarray(window_value(pts)).reshape(-1))
+        line = line_summary(start, r, a.line, cfg.completed_weight, np.asarray(window_value(pts)).reshape(-1),
+                            dt=a.duration / evaluator.ticks)
         for x in line:
             print(f"line {x['distance']:+g}: clean {x['clean']:.3f}, difference {x['clean_diff']:+.3f} "
                   f"{[round(v, 3) for v in x['clean_diff_ci95']]}, window objective {x['window_loss']:.4g}", flush=True)

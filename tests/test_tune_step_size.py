@@ -112,6 +112,22 @@ def test_line_summary_is_paired_over_the_same_step_downs():
     assert "window objective" not in ts.line_markdown([near, far], 4, dict(grad_norm=1.0, loss=0.75))
 
 
+def test_runs_ended_early_are_those_the_start_completes_with_their_times():
+    """A point's early ends are counted only on the step-downs where the start ran to the end, with when they end
+    (the failure tick times the control period), and the descent direction lists ``-g``'s largest components."""
+    start = dict(clean=np.ones((1, 5), bool), completed=np.ones((1, 5), bool),
+                 columns=dict(terminated_tick=np.array([[-1, 5, -1, -1, -1]])))
+    members = dict(clean=np.ones((2, 5), bool), completed=np.ones((2, 5), bool),
+                   columns=dict(terminated_tick=np.array([[10, 5, -1, 2000, 1000], [-1, 7, -1, -1, -1]])))
+    e = ts.ended_early(start, members, 0, 0.002)
+    assert e["ended_early_not_at_start"] == 3  # not step-down 1, where the start ended early too
+    assert e["ended_early_time_s"] == np.percentile([0.02, 4.0, 2.0], [10, 50, 90]).round(2).tolist()
+    assert ts.ended_early(start, members, 1, 0.002) == dict(ended_early_not_at_start=0, ended_early_time_s=None)
+    assert ts.ended_early(dict(clean=start["clean"]), members, 0, 0.002) == {}
+    d = ts.descent_direction(np.array([0.0, 3.0, -4.0]), ["a", "b", "c"], top=2)
+    assert d == [("c", 0.8), ("b", -0.6)]
+
+
 @pytest.mark.parametrize("argv, needle", [(["--sigmas", "0"], "--sigmas"), (["--instances", "6"], "--instances"),
                                           (["--samples", "1"], "--samples"), (["--preset", "bound_robust"], "bound"),
                                           (["--dim", "wings"], "--dim"), (["--impl", "gpu"], "--impl"),
@@ -188,6 +204,11 @@ def test_stored_line_at_table_i_loses_more_down_the_surrogate_than_up_it():
     loss0 = res["surrogate"]["loss"]  # the gradient descends its own objective: lower down it, higher up it
     assert by_t[0.4]["window_loss"] < by_t[0.2]["window_loss"] < by_t[0.1]["window_loss"] < loss0
     assert loss0 < by_t[-0.4]["window_loss"] < by_t[-0.8]["window_loss"]
+    # the runs it ends early (not at the start) end after its windows: nine in ten more than 2.5 s after the last
+    end = res["surrogate"]["windows_s"][1]
+    for t in (0.1, 0.2, 0.4, 0.8):
+        assert by_t[t]["ended_early_not_at_start"] >= 30 and by_t[t]["ended_early_time_s"][0] > end + 2.5
+    assert res["surrogate"]["direction"][0][0] == "body_height[RF]" and res["surrogate"]["direction"][0][1] > 0.5
 
 
 def test_stored_line_with_long_windows_does_not_descend_its_own_objective():
