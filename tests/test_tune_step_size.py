@@ -225,3 +225,28 @@ def test_stored_line_with_long_windows_does_not_descend_its_own_objective():
     loss0 = long["surrogate"]["loss"]
     assert by_t[0.1]["window_loss"] > loss0 and by_t[0.4]["window_loss"] > loss0 > by_t[-0.4]["window_loss"]
     assert by_t[0.4]["clean_diff_ci95"][1] < 0 and all(x["counts"]["diverged"] == 0 for x in long["line"])
+
+
+def test_stored_margins_line_at_table_i_falls_more_than_the_full_objectives():
+    """The stored C MuJoCo line at Table I down the surrogate of the failure margins alone (mobility, progress and
+    stability weighed 0; docs/results/tune_surrogate_line_tablei_margins_cpu): its report is what its rows give, it
+    was taken with those weights, it descends its own objective, and on the same step-downs as the full objective's
+    line HyQ falls at least as often down it at every distance, more at 0.4 and 0.8, and its extra early ends come
+    after the windows."""
+    root = "docs/results/tune_surrogate_line_tablei_margins_cpu"
+    with open(f"{root}/step_size.json") as f:
+        res = json.load(f)
+    with open("docs/results/tune_surrogate_line_tablei_cpu/step_size.json") as f:
+        full = json.load(f)
+    with open(f"{root}/step_size.md") as f:
+        assert f.read().strip() == ts.line_markdown(res["line"], res["instances"], res["surrogate"]).strip()
+    w = res["surrogate"]["weights"]
+    assert w["mobility"] == w["progress"] == w["stability"] == 0 and w["clearance"] == 100.0
+    assert res["start"] == full["start"] and res["surrogate"]["windows_s"] == full["surrogate"]["windows_s"]
+    mine, theirs = ({x["distance"]: x for x in r["line"]} for r in (res, full))
+    assert mine[0.4]["window_loss"] < mine[0.1]["window_loss"] < res["surrogate"]["loss"] < mine[-0.4]["window_loss"]
+    for t in (0.1, 0.2, 0.4, 0.8):
+        assert mine[t]["counts"]["fell"] >= theirs[t]["counts"]["fell"] > res["start"]["counts"]["fell"]
+        assert mine[t]["ended_early_time_s"][0] > res["surrogate"]["windows_s"][1] + 2.0
+    assert all(mine[t]["counts"]["fell"] > theirs[t]["counts"]["fell"] for t in (0.4, 0.8))
+    assert mine[0.4]["clean_diff_ci95"][1] < 0 and all(x["counts"]["diverged"] == 0 for x in res["line"])
