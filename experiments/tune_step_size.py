@@ -81,6 +81,9 @@ def parse(argv=None):
                     help="with --antithetic: the tuner's surrogate gradient at the start (MJX-JAX jacfwd of the "
                          "window objective) against every step size's pairs")
     ap.add_argument("--window-ticks", type=int, default=500, help="--surrogate: control ticks of each window")
+    ap.add_argument("--windows-per-scenario", type=int, default=2,
+                    help="--surrogate, --line: snapshot windows per scenario, legs in the order they step down (the "
+                         "tuner's 2: the front legs; 4 adds the hind legs)")
     ap.add_argument("--surrogate-weights", nargs="+", default=[], metavar="TERM=W",
                     help="--surrogate, --line: the window objective's term weights other than their defaults (e.g. "
                          "mobility=0 progress=0 stability=0; hyqjax.studies.tune.objective)")
@@ -100,7 +103,9 @@ def parse(argv=None):
         raise UsageError("--surrogate needs --antithetic (the pairs it is compared with)")
     if not 1 <= a.window_ticks <= 20000:
         raise UsageError(f"--window-ticks must be in [1, 20000], got {a.window_ticks}")
-    from hyqjax.studies.tune.objective import parse_weights
+    if not 1 <= a.windows_per_scenario <= 8:
+        raise UsageError(f"--windows-per-scenario must be in [1, 8], got {a.windows_per_scenario}")
+    from hyqjax.studies.tune.surrogate_weights import parse_weights
 
     try:
         a.surrogate_weights = parse_weights(a.surrogate_weights)
@@ -416,6 +421,7 @@ def main(argv=None) -> int:
 
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread=a.spread,
                           window_ticks=a.window_ticks, surrogate_weights=a.surrogate_weights,
+                          windows_per_scenario=a.windows_per_scenario,
                           impl=a.impl, train_duration=a.duration)
     try:
         param, theta0, evaluator = start_evaluator(cfg)
@@ -447,7 +453,8 @@ def main(argv=None) -> int:
         r = step_fn(theta0)
         g = np.asarray(r["grad"], np.float64)
         surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
-                         window_ticks=a.window_ticks, weights=grad.obj.weights(),
+                         window_ticks=a.window_ticks, windows_per_scenario=a.windows_per_scenario,
+                         windows_valid=int(np.asarray(grad.win.valid).sum()), weights=grad.obj.weights(),
                          windows_s=surrogate_windows(grad), direction=descent_direction(g, param.names),
                          seconds=time.perf_counter() - t)
         print(f"surrogate at the start: |g| {surrogate['grad_norm']:.4g}, window loss {surrogate['loss']:.4g} "

@@ -978,7 +978,7 @@ def test_wallclock_config_validation(kw, match):
 def test_surrogate_weights_reach_the_gradient_programs_and_survive_results_json(monkeypatch):
     """``WallClockConfig.surrogate_weights`` reweighs the objective the gradient programs descend (the terms named,
     the others at their defaults, each term's sign kept) and reads back from a ``results.json``'s ``config``."""
-    from hyqjax.studies.tune import evaluate, gradient_programs, search
+    from hyqjax.studies.tune import evaluate, gradient_programs, search, surrogate_weights
     from hyqjax.studies.tune.wallclock_config import WallClockConfig
 
     cfg = WallClockConfig(surrogate_weights=(("progress", 0.0), ("tilt", 25.0)))
@@ -993,7 +993,7 @@ def test_surrogate_weights_reach_the_gradient_programs_and_survive_results_json(
     assert {k: v for k, v in w.items() if k not in ("progress", "tilt")} == \
         {k: v for k, v in w0.items() if k not in ("progress", "tilt")}
     assert objective.ClosedLoopObjective().reweighted((("mobility", 3.0),)).weights()["mobility"] == -3.0
-    assert objective.parse_weights(["mobility=0", "stability=0.5"]) == (("mobility", 0.0), ("stability", 0.5))
+    assert surrogate_weights.parse_weights(["mobility=0", "stability=0.5"]) == (("mobility", 0.0), ("stability", 0.5))
 
 
 @pytest.mark.parametrize("argv, match", [(["--methods", "cma_es,pso"], "--methods must be"),

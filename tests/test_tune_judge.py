@@ -16,7 +16,7 @@ def _clean(comp, member):
 
 def test_merged_studies_keep_every_run_its_own_held_out_result(tmp_path):
     """The stored SNES and CMA-ES runs (five seeds, budgets 1 and 3 min) judged with the guided-ES and OpenES runs at
-    the matched scale (three seeds, 3 min): every member's per-run held-out clean rates are exactly those its own
+    the matched scale (five seeds, 3 min): every member's per-run held-out clean rates are exactly those its own
     study measured, the start is counted once per seed, and the result is the stored comparison."""
     out = tmp_path / "j"
     assert tune_judge.main(["--out", str(out), f"{STORED}:snes,cma_es", f"{MATCHED}/guided_es",
@@ -27,7 +27,7 @@ def test_merged_studies_keep_every_run_its_own_held_out_result(tmp_path):
         assert _clean(comp, m) == _clean(old, m)
     for m in ("guided_es", "open_es"):
         own = [json.loads(open(f"{MATCHED}/{m}/seed{s}/results.json").read())["heldout"][f"{m}/per_leg@3min"]["clean"]
-               for s in range(3)]
+               for s in range(5)]
         assert _clean(comp, f"{m}/per_leg") == own
     assert _clean(comp, "guided_es/per_leg") != _clean(old, "guided_es/per_leg")  # the old scale's runs left out
     assert comp["minutes"] == 3.0 and comp["summary"]["start"]["clean"]["n"] == 5

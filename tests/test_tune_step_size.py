@@ -135,6 +135,8 @@ def test_runs_ended_early_are_those_the_start_completes_with_their_times():
                                           (["--antithetic", "--samples", "9"], "--samples"),
                                           (["--antithetic", "--instances", "12"], "--instances"),
                                           (["--surrogate"], "--surrogate"), (["--window-ticks", "0"], "--window-ticks"),
+                                          (["--windows-per-scenario", "9"], "--windows-per-scenario"),
+                                          (["--line", "0.1", "--surrogate-weights", "tilt"], "TERM=W"),
                                           (["--sigmas"], "--sigmas"), (["--line", "11"], "--line")])
 def test_bad_input_is_refused_in_one_line(argv, needle, tmp_path, capsys):
     assert ts.main(argv + ["--out", str(tmp_path / "x")]) == 2

@@ -203,7 +203,7 @@ def validate_wallclock(args) -> None:
     args.window_ticks = 500 if args.window_ticks is None else args.window_ticks
     args.heldout = 2000 if args.heldout is None else args.heldout
     check_range("--window-ticks", args.window_ticks, 1, 20000, integer=True)
-    from hyqjax.studies.tune.objective import parse_weights
+    from hyqjax.studies.tune.surrogate_weights import parse_weights
 
     try:
         args.surrogate_weights = parse_weights(args.surrogate_weights)

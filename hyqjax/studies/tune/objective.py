@@ -70,6 +70,7 @@ from hyqjax.sim import contacts
 from hyqjax.sim import contacts_from_distance as cfdm
 from hyqjax.sim import rollout as sim
 from hyqjax.studies.tune import windows as wmod
+from hyqjax.studies.tune.surrogate_weights import check_weights
 from hyqjax.studies.tune.space import ParamSpace
 
 
@@ -121,46 +122,6 @@ class ClosedLoopObjective:
         """The same objective with the weights ``overrides`` (``((term, w), ...)``, :func:`check_weights`) names
         (``w_<term>``; the sign each term enters ``L`` with stays), the others unchanged."""
         return dataclasses.replace(self, **{f"w_{k}": float(w) for k, w in check_weights(overrides)})
-
-
-TERMS = ("clearance", "joint", "workspace", "foothold", "tilt", "mobility", "progress", "stability")
-
-#: The largest weight a term may be given (:func:`check_weights`).
-MAX_WEIGHT = 1000.0
-
-
-def check_weights(overrides, name: str = "surrogate_weights") -> tuple:
-    """``overrides`` (pairs ``(term, w)``; ``name`` the setting the messages name) checked: distinct terms of :data:`TERMS`, each ``w`` in [0,
-    :data:`MAX_WEIGHT`] (a weight's size; mobility and progress are rewarded, the others penalised, whatever ``w``).
-    Returns them as a tuple of ``(str, float)``; raises ``ValueError`` in one line naming the first bad one."""
-    out = []
-    for pair in overrides:
-        if isinstance(pair, str) or len(pair) != 2:
-            raise ValueError(f"{name} must be (term, weight) pairs, got {pair!r}")
-        k, w = pair
-        if k not in TERMS:
-            raise ValueError(f"{name}: the term must be one of {list(TERMS)}, got {k!r}")
-        if isinstance(w, bool) or not isinstance(w, (int, float)) or not 0.0 <= float(w) <= MAX_WEIGHT:
-            raise ValueError(f"{name}: the weight of {k} must be in [0, {MAX_WEIGHT:g}], got {w!r}")
-        if k in dict(out):
-            raise ValueError(f"{name}: {k} given twice")
-        out.append((str(k), float(w)))
-    return tuple(out)
-
-
-def parse_weights(items) -> tuple:
-    """Command-line ``TERM=W`` strings as :func:`check_weights`'s pairs (``ValueError`` in one line)."""
-    pairs = []
-    for s in items:
-        k, eq, w = str(s).partition("=")
-        try:
-            pairs.append((k, float(w)))
-        except ValueError:
-            raise ValueError(f"--surrogate-weights takes TERM=W with W a number in [0, {MAX_WEIGHT:g}] and TERM one "
-                             f"of {list(TERMS)}, got {s!r}") from None
-        if not eq:
-            raise ValueError(f"--surrogate-weights takes TERM=W, got {s!r}")
-    return check_weights(pairs, "--surrogate-weights")
 
 
 def _sp(x, s):

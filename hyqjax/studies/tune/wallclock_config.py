@@ -234,7 +234,7 @@ class WallClockConfig:
             if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
                 raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
 
-        from hyqjax.studies.tune.objective import check_weights
+        from hyqjax.studies.tune.surrogate_weights import check_weights
 
         check_weights(self.surrogate_weights)
         if not isinstance(self.start_preset, str):
