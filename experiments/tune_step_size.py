@@ -84,6 +84,9 @@ def parse(argv=None):
     ap.add_argument("--windows-per-scenario", type=int, default=2,
                     help="--surrogate, --line: snapshot windows per scenario, legs in the order they step down (the "
                          "tuner's 2: the front legs; 4 adds the hind legs)")
+    ap.add_argument("--lead", type=float, default=10.0,
+                    help="--surrogate, --line: seconds of the forward run that takes the snapshots (the tuner's 10; a "
+                         "window whose leg has not reached the edge by then stays empty)")
     ap.add_argument("--surrogate-weights", nargs="+", default=[], metavar="TERM=W",
                     help="--surrogate, --line: the window objective's term weights other than their defaults (e.g. "
                          "mobility=0 progress=0 stability=0; hyqjax.studies.tune.objective)")
@@ -103,6 +106,8 @@ def parse(argv=None):
         raise UsageError("--surrogate needs --antithetic (the pairs it is compared with)")
     if not 1 <= a.window_ticks <= 20000:
         raise UsageError(f"--window-ticks must be in [1, 20000], got {a.window_ticks}")
+    if not 0.1 <= a.lead <= 60:
+        raise UsageError(f"--lead must be in [0.1, 60] s, got {a.lead}")
     if not 1 <= a.windows_per_scenario <= 8:
         raise UsageError(f"--windows-per-scenario must be in [1, 8], got {a.windows_per_scenario}")
     from hyqjax.studies.tune.surrogate_weights import parse_weights
@@ -421,7 +426,7 @@ def main(argv=None) -> int:
 
     cfg = WallClockConfig(methods=("cma_es",), dims=(a.dim,), start_preset=a.preset, train_spread=a.spread,
                           window_ticks=a.window_ticks, surrogate_weights=a.surrogate_weights,
-                          windows_per_scenario=a.windows_per_scenario,
+                          windows_per_scenario=a.windows_per_scenario, window_lead=a.lead,
                           impl=a.impl, train_duration=a.duration)
     try:
         param, theta0, evaluator = start_evaluator(cfg)
@@ -453,7 +458,7 @@ def main(argv=None) -> int:
         r = step_fn(theta0)
         g = np.asarray(r["grad"], np.float64)
         surrogate = dict(loss=float(r["loss"]), grad_norm=float(np.linalg.norm(g)), finite=bool(np.all(np.isfinite(g))),
-                         window_ticks=a.window_ticks, windows_per_scenario=a.windows_per_scenario,
+                         window_ticks=a.window_ticks, windows_per_scenario=a.windows_per_scenario, lead_s=a.lead,
                          windows_valid=int(np.asarray(grad.win.valid).sum()), weights=grad.obj.weights(),
                          windows_s=surrogate_windows(grad), direction=descent_direction(g, param.names),
                          seconds=time.perf_counter() - t)
