@@ -229,19 +229,23 @@ def test_stored_line_with_long_windows_does_not_descend_its_own_objective():
     assert by_t[0.4]["clean_diff_ci95"][1] < 0 and all(x["counts"]["diverged"] == 0 for x in long["line"])
 
 
+def _stored_line(name: str) -> dict:
+    """A stored ``--line`` result (``docs/results/NAME/step_size.json``), its report checked to be what its rows give."""
+    root = f"docs/results/{name}"
+    with open(f"{root}/step_size.json") as f:
+        res = json.load(f)
+    with open(f"{root}/step_size.md") as f:
+        assert f.read().strip() == ts.line_markdown(res["line"], res["instances"], res["surrogate"]).strip()
+    return res
+
+
 def test_stored_margins_line_at_table_i_falls_more_than_the_full_objectives():
     """The stored C MuJoCo line at Table I down the surrogate of the failure margins alone (mobility, progress and
     stability weighed 0; docs/results/tune_surrogate_line_tablei_margins_cpu): its report is what its rows give, it
     was taken with those weights, it descends its own objective, and on the same step-downs as the full objective's
     line HyQ falls at least as often down it at every distance, more at 0.4 and 0.8, and its extra early ends come
     after the windows."""
-    root = "docs/results/tune_surrogate_line_tablei_margins_cpu"
-    with open(f"{root}/step_size.json") as f:
-        res = json.load(f)
-    with open("docs/results/tune_surrogate_line_tablei_cpu/step_size.json") as f:
-        full = json.load(f)
-    with open(f"{root}/step_size.md") as f:
-        assert f.read().strip() == ts.line_markdown(res["line"], res["instances"], res["surrogate"]).strip()
+    res, full = _stored_line("tune_surrogate_line_tablei_margins_cpu"), _stored_line("tune_surrogate_line_tablei_cpu")
     w = res["surrogate"]["weights"]
     assert w["mobility"] == w["progress"] == w["stability"] == 0 and w["clearance"] == 100.0
     assert res["start"] == full["start"] and res["surrogate"]["windows_s"] == full["surrogate"]["windows_s"]
@@ -260,13 +264,7 @@ def test_stored_line_with_the_hind_legs_windows_cuts_falls_without_more_clean_ru
     in fewer than half the start's runs at 0.2 and 0.4 and up it in more, while clean success ties with the start
     there; the gradient, through contacts late in the run, is thousands of times the front legs' and does not descend
     its own window objective."""
-    root = "docs/results/tune_surrogate_line_tablei_hind_cpu"
-    with open(f"{root}/step_size.json") as f:
-        res = json.load(f)
-    with open("docs/results/tune_surrogate_line_tablei_cpu/step_size.json") as f:
-        front = json.load(f)
-    with open(f"{root}/step_size.md") as f:
-        assert f.read().strip() == ts.line_markdown(res["line"], res["instances"], res["surrogate"]).strip()
+    res, front = _stored_line("tune_surrogate_line_tablei_hind_cpu"), _stored_line("tune_surrogate_line_tablei_cpu")
     sur = res["surrogate"]
     assert sur["windows_per_scenario"] == 4 and sur["windows_valid"] > 16 and sur["windows_s"][1] > 8.0
     assert res["start"] == front["start"] and sur["grad_norm"] > 1000 * front["surrogate"]["grad_norm"]
@@ -279,13 +277,11 @@ def test_stored_line_with_the_hind_legs_windows_cuts_falls_without_more_clean_ru
     assert by_t[0.4]["window_loss"] > sur["loss"]  # down its gradient, its own objective rises
     assert all(x["counts"]["diverged"] == 0 for x in res["line"])
     # with every hind-leg window (a 16-s snapshot run) the direction and the falls are the same within a few runs
-    with open("docs/results/tune_surrogate_line_tablei_hind_lead16_cpu/step_size.json") as f:
-        all32 = json.load(f)
+    all32 = _stored_line("tune_surrogate_line_tablei_hind_lead16_cpu")
     assert all32["surrogate"]["windows_valid"] == 32 and all32["surrogate"]["lead_s"] == 16.0
     assert all32["surrogate"]["direction"][:2] == sur["direction"][:2] == [["body_height[RH]", -0.9609],
                                                                             ["terrain_adaptation[RH]", 0.2768]]
-    with open("docs/results/tune_surrogate_line_tablei_hind_margins_cpu/step_size.json") as f:
-        margins = json.load(f)  # the failure margins alone over the same 32 windows: the same direction again
+    margins = _stored_line("tune_surrogate_line_tablei_hind_margins_cpu")  # the margins alone, the same 32 windows
     assert margins["surrogate"]["weights"]["progress"] == 0 and margins["surrogate"]["windows_valid"] == 32
     assert [k for k, _ in margins["surrogate"]["direction"][:2]] == ["body_height[RH]", "terrain_adaptation[RH]"]
     assert np.allclose([v for _, v in margins["surrogate"]["direction"][:2]], [-0.961, 0.277], atol=0.002)
