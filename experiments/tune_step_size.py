@@ -246,12 +246,12 @@ def line_points(theta0, g, distances) -> np.ndarray:
 
 
 def line_summary(start: dict, members: dict, distances, completed_weight: float, window_loss=None,
-                 dt: float = 0.002) -> list:
+                 dt: float | None = None) -> list:
     """Per distance of :func:`line_points`: the clean rate and fitness (clean + ``completed_weight`` x completed,
     the tuner's) and their differences from the start's, paired over the same step-downs (mean and 95% interval),
     with the runs not completed, not clean, fallen and diverged; and, given ``window_loss`` (one per distance), the
-    surrogate's own window objective there (the value the gradient descends); and the runs it ends early that the
-    start does not, with when (:func:`ended_early`)."""
+    surrogate's own window objective there (the value the gradient descends); and, given the control period ``dt``
+    (s), the runs it ends early that the start does not, with when (:func:`ended_early`)."""
     from hyqjax.studies import statistics
 
     c0 = np.asarray(start["clean"], np.float64).reshape(-1)
@@ -266,7 +266,8 @@ def line_summary(start: dict, members: dict, distances, completed_weight: float,
                         fitness_diff_ci95=list(statistics.mean_interval(df)), counts=counts(members, i)))
         if window_loss is not None:
             out[-1]["window_loss"] = float(window_loss[i])
-        out[-1].update(ended_early(start, members, i, dt))
+        if dt is not None:
+            out[-1].update(ended_early(start, members, i, dt))
     return out
 
 

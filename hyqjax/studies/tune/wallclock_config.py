@@ -15,6 +15,7 @@ from hyqjax.sim import backend
 from hyqjax.studies.tune import forward, schedule, search
 from hyqjax.studies.tune import space as spmod
 from hyqjax.studies.tune.gradient_programs import WINDOW_SEED_OFFSET
+from hyqjax.studies.tune.surrogate_weights import check_weights
 
 
 #: Differentiation modes of the exact tuning step (``WallClockConfig.grad_mode``).
@@ -233,8 +234,6 @@ class WallClockConfig:
             size = schedule.make(d, self.groups).size
             if len(theta) != size or not np.all(np.isfinite(np.asarray(theta, float))):
                 raise ValueError(f"start_from {key!r} must be {size} finite numbers, got {len(theta)}")
-
-        from hyqjax.studies.tune.surrogate_weights import check_weights
 
         check_weights(self.surrogate_weights)
         if not isinstance(self.start_preset, str):
