@@ -9,10 +9,10 @@ t-interval over seeds per method and Welch's differences (:func:`hyqjax.studies.
 
 A SOURCE is a study directory (its ``seed<N>/results.json``), optionally ``:`` and the methods taken from it
 (comma-separated; all by default). Runs of other settings or on another held-out set are refused in one line
-(:func:`hyqjax.studies.tune.study.repeats.check_comparable`), and so is one method of one seed given by two
-sources. The budget judged is the largest ``--wall-minutes`` every run recorded (a run with further checkpoints is
-judged at that one). Writes ``DIR/comparison.json`` and
-``DIR/comparison.md``; runs nothing.
+(:func:`hyqjax.studies.tune.study.repeats.check_comparable`; a setting only some methods read, such as the
+surrogate's windows, must agree only between runs judged for such a method), and so is one method of one seed given
+by two sources. The budget judged is the largest ``--wall-minutes`` every run recorded (a run with further
+checkpoints is judged at that one). Writes ``DIR/comparison.json`` and ``DIR/comparison.md``; runs nothing.
 """
 from __future__ import annotations
 
@@ -66,20 +66,18 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
 
     free = tuple(repeats.FREE_SETTINGS) + ("wall_minutes",)
     merged: dict[int, dict] = {}
-    first = None
+    taken: list[tuple[str, dict, set]] = []  # every run judged so far: name, results, the methods judged of it
     for name, results, methods in sources:
         held = {r["method"] for res in results.values() for r in res.get("runs", {}).values()}
         missing = sorted(set(methods or ()) - held)
         if missing:
             raise ValueError(f"SOURCE {name} holds no run of {', '.join(missing)} (it has {', '.join(sorted(held))})")
         for seed, res in sorted(results.items()):
-            if first is not None:
-                repeats.check_comparable([first[1], res], [first[0], f"{name}/seed{seed}"], free)
-            else:
-                first = (f"{name}/seed{seed}", res)
             runs = {k: r for k, r in res.get("runs", {}).items() if methods is None or r["method"] in methods}
             if methods is not None and not runs:
                 continue
+            taken.append((f"{name}/seed{seed}", res, {r["method"] for r in runs.values()}))
+            repeats.check_comparable([t[1] for t in taken], [t[0] for t in taken], free, [t[2] for t in taken])
             if seed not in merged:
                 merged[seed] = dict(copy.deepcopy({k: v for k, v in res.items() if k != "runs"}), runs={})
                 merged[seed]["config"]["wall_minutes"] = [minutes]

@@ -57,3 +57,30 @@ def test_bad_sources_are_refused_in_one_line(source, needle, tmp_path, capsys):
     assert tune_judge.main(["--out", str(tmp_path / "x"), source]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
+
+
+def test_settings_only_the_surrogate_reads_must_agree_only_between_runs_that_build_it(tmp_path, capsys):
+    """Guided ES with the hind legs' windows (``windows_per_scenario`` 4, ``window_lead`` 16) is judged with stored
+    SNES, CMA-ES and OpenES runs, which read neither setting; the same guided ES next to guided-ES runs with the
+    default windows is refused in one line naming the first setting that differs, and so is an OpenES run whose sampling step differs."""
+    out = tmp_path / "j"
+    assert tune_judge.main(["--out", str(out), f"{STORED}:snes,cma_es", f"{MATCHED}/open_es",
+                            f"{MATCHED}/guided_es_hind"]) == 0
+    comp = json.loads((out / "comparison.json").read_text())
+    own = [json.loads(open(f"{MATCHED}/guided_es_hind/seed{s}/results.json").read())["heldout"][
+        "guided_es/per_leg@3min"]["clean"] for s in range(5)]
+    assert _clean(comp, "guided_es/per_leg") == own
+    assert comp["summary"] == json.loads(open(f"{MATCHED}/judged_hind/comparison.json").read())["summary"]
+    capsys.readouterr()
+    assert tune_judge.main(["--out", str(tmp_path / "a"), f"{MATCHED}/guided_es", f"{MATCHED}/guided_es_hind"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "window_lead: 16.0 against 10.0" in err[0], err
+    other = tmp_path / "other" / "seed0"
+    other.mkdir(parents=True)
+    res = json.loads(open(f"{MATCHED}/open_es/seed0/results.json").read())
+    res["config"]["sigma"] = 0.2
+    (other / "results.json").write_text(json.dumps(res))
+    assert tune_judge.main(["--out", str(tmp_path / "b"), f"{MATCHED}/guided_es_hind", str(tmp_path / "other")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sigma" in err[0], err
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()

@@ -21,6 +21,23 @@ from hyqjax.studies.tune.surrogate_weights import check_weights
 #: Differentiation modes of the exact tuning step (``WallClockConfig.grad_mode``).
 GRAD_MODES = ("jacfwd", "reverse")
 
+#: The settings only some methods read, and those methods (every other setting is read by every method): the
+#: surrogate's windows and gradient by the methods that build it, the gradient step's rate by the gradient and the
+#: hybrid, and each method's own rates. Runs of a comparison may differ in such a setting where one of them runs no
+#: method that reads it (:func:`hyqjax.studies.tune.study.repeats.check_comparable`): the windows of guided ES's
+#: surrogate do not change what CMA-ES did.
+SETTING_READERS = {
+    **dict.fromkeys(("grad_train_per_height", "windows_per_scenario", "window_lead", "window_ticks",
+                     "surrogate_weights", "grad_directions", "grad_mode", "contacts_from_distance"),
+                    search.USES_GRADIENT),
+    "lr": search.GRADIENT_METHODS,
+    "hybrid_split": ("hybrid",),
+    "retake_windows": ("hybrid",),
+    **dict.fromkeys(("guided_alpha", "guided_subspace", "guided_lr", "guided_grad_every"), search.GUIDED_METHODS),
+    **dict.fromkeys(("blend_gamma", "blend_lr"), search.BLEND_METHODS),
+    "restart_stall": search.RESTART_METHODS,
+}
+
 
 def generation_seed(seed: int, dim: str) -> int:
     """The seed of the training scenarios of the search methods on parameterisation ``dim``."""

@@ -12,7 +12,9 @@ more than the methods did. The interval that ranks methods is therefore the one 
 * a method is *apart* from another when its interval over runs lies entirely above the other's.
 
 Every run must be a study directory of one configuration but for its seed (``config.seed``) and methods, on the
-same held-out set (``heldout_set``); anything else is refused naming the first setting that differs.
+same held-out set (``heldout_set``); anything else is refused naming the first setting that differs. A setting only
+some methods read (the surrogate's windows, a method's own rates) need agree only between runs that both ran such a
+method.
 ``python -m experiments.tune_repeats DIR [DIR ...] --minutes 10`` prints the table and writes JSON.
 """
 from __future__ import annotations
@@ -51,18 +53,28 @@ def _settings(config: dict, free=FREE_SETTINGS) -> dict:
     return {k: v for k, v in out.items() if k not in free}
 
 
-def check_comparable(results: list[dict], names: list[str], free=FREE_SETTINGS) -> None:
+def check_comparable(results: list[dict], names: list[str], free=FREE_SETTINGS, methods=None) -> None:
     """Refuse runs of different configurations (but for the ``free`` settings: by default their seed and methods)
-    or held-out sets."""
-    ref, ref_name = results[0], names[0]
-    fixed = _settings(ref["config"], free)
-    for res, name in zip(results[1:], names[1:]):
-        other = _settings(res["config"], free)
-        for k in sorted(set(fixed) | set(other)):
-            if fixed.get(k) != other.get(k):
-                raise ValueError(f"{name} differs from {ref_name} in {k}: {other.get(k)!r} against {fixed.get(k)!r}")
-        if res.get("heldout_set") != ref.get("heldout_set"):
-            raise ValueError(f"{name} was evaluated on another held-out set than {ref_name}")
+    or held-out sets, each run checked against every one before it. ``methods``: per run, the methods judged of it
+    (default: every method it ran); a setting only some methods read
+    (:data:`hyqjax.studies.tune.wallclock_config.SETTING_READERS`) is compared only between runs that both judge
+    a method reading it."""
+    from hyqjax.studies.tune.wallclock_config import SETTING_READERS
+
+    judged = [set(m if m is not None else r["config"].get("methods", ()))
+              for r, m in zip(results, methods or [None] * len(results))]
+    settings = [_settings(r["config"], free) for r in results]
+    for j in range(1, len(results)):
+        for i in range(j):
+            for k in sorted(set(settings[i]) | set(settings[j])):
+                readers = SETTING_READERS.get(k)
+                if readers is not None and not (judged[i] & set(readers) and judged[j] & set(readers)):
+                    continue
+                if settings[i].get(k) != settings[j].get(k):
+                    raise ValueError(f"{names[j]} differs from {names[i]} in {k}: {settings[j].get(k)!r} against "
+                                     f"{settings[i].get(k)!r}")
+            if results[j].get("heldout_set") != results[i].get("heldout_set"):
+                raise ValueError(f"{names[j]} was evaluated on another held-out set than {names[i]}")
 
 
 def t_quantile(df: int) -> float:
