@@ -84,3 +84,35 @@ def test_settings_only_the_surrogate_reads_must_agree_only_between_runs_that_bui
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sigma" in err[0], err
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_every_setting_some_methods_read_is_a_study_setting_read_by_named_methods():
+    """:data:`SETTING_READERS` names fields of :class:`WallClockConfig` and methods of the study, and a comparison
+    of a guided-ES run with a CMA-ES run ignores exactly those settings guided ES alone reads."""
+    import dataclasses
+
+    from hyqjax.studies.tune import names
+    from hyqjax.studies.tune.study import repeats
+    from hyqjax.studies.tune.wallclock_config import SETTING_READERS, WallClockConfig
+
+    fields = {f.name for f in dataclasses.fields(WallClockConfig)}
+    assert set(SETTING_READERS) <= fields
+    assert all(readers and set(readers) <= set(names.METHODS) for readers in SETTING_READERS.values())
+    base = json.loads(open(f"{MATCHED}/open_es/seed0/results.json").read())
+    for k in SETTING_READERS:
+        other = json.loads(json.dumps(base))
+        other["config"]["methods"] = ["guided_es"]
+        other["config"][k] = "changed"
+        readers = set(SETTING_READERS[k])
+        if "guided_es" in readers:  # read by guided ES: ignored against OpenES, refused against another guided run
+            repeats.check_comparable([base, other], ["a", "b"])
+            both = json.loads(json.dumps(base))
+            both["config"]["methods"] = ["guided_es"]
+            with pytest.raises(ValueError, match=k):
+                repeats.check_comparable([both, other], ["a", "b"])
+        else:  # guided ES does not read it either: the two runs differ in nothing they both read
+            repeats.check_comparable([base, other], ["a", "b"])
+    other = json.loads(json.dumps(base))
+    other["config"]["train_instances"] = 64  # read by every method
+    with pytest.raises(ValueError, match="train_instances"):
+        repeats.check_comparable([base, other], ["a", "b"])
