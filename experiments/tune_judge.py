@@ -12,7 +12,9 @@ A SOURCE is a study directory (its ``seed<N>/results.json``), optionally ``:`` a
 (:func:`hyqjax.studies.tune.study.repeats.check_comparable`; a setting only some methods read, such as the
 surrogate's windows, must agree only between runs judged for such a method), and so is one method of one seed given
 by two sources. The budget judged is the largest ``--wall-minutes`` every run recorded (a run with further
-checkpoints is judged at that one). Writes ``DIR/comparison.json`` and ``DIR/comparison.md``; runs nothing.
+checkpoints is judged at that one). Writes ``DIR/comparison.json`` and ``DIR/comparison.md``, which also name each
+member's settings that only its method reads where they are not the defaults (the windows of guided ES's
+surrogate, say); runs nothing.
 """
 from __future__ import annotations
 
@@ -92,6 +94,27 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
     return merged
 
 
+def member_settings(sources: list[tuple[str, dict, tuple[str, ...] | None]]) -> dict[str, dict]:
+    """Per member judged (``method/dim``), the settings only some methods read
+    (:data:`hyqjax.studies.tune.wallclock_config.SETTING_READERS`) that its method reads and its runs set away from
+    their defaults, e.g. ``{"guided_es/per_leg": {"windows_per_scenario": 4, "window_lead": 16.0}}``; members with
+    none are left out. The runs of one member agree on them (:func:`merge` refuses them otherwise)."""
+    from hyqjax.studies.tune.wallclock_config import SETTING_READERS, WallClockConfig
+
+    defaults = WallClockConfig.defaults()
+    out: dict[str, dict] = {}
+    for _, results, methods in sources:
+        for res in results.values():
+            for run in res.get("runs", {}).values():
+                if methods is not None and run["method"] not in methods:
+                    continue
+                own = {k: res["config"][k] for k, readers in SETTING_READERS.items()
+                       if run["method"] in readers and k in res["config"] and res["config"][k] != defaults[k]}
+                if own:
+                    out[f"{run['method']}/{run['dim']}"] = own
+    return out
+
+
 def main(argv=None) -> int:
     try:
         a = parse(argv)
@@ -127,6 +150,11 @@ def main(argv=None) -> int:
         comp = guided_report.compare(merged, minutes)
         table = guided_report.markdown(comp)
     comp["sources"] = list(a.sources)
+    comp["member_settings"] = member_settings(sources)
+    if comp["member_settings"]:
+        table += "\n\nsettings only some methods read, away from their defaults:\n" + "\n".join(
+            f"- {m}: " + ", ".join(f"{k} {v}" for k, v in sorted(own.items()))
+            for m, own in sorted(comp["member_settings"].items()))
     os.makedirs(a.out, exist_ok=True)
     write_json(os.path.join(a.out, "comparison.json"), comp)
     atomic_write(os.path.join(a.out, "comparison.md"), lambda f: f.write((table + "\n").encode()))
