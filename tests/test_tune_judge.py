@@ -61,8 +61,9 @@ def test_bad_sources_are_refused_in_one_line(source, needle, tmp_path, capsys):
 
 def test_settings_only_the_surrogate_reads_must_agree_only_between_runs_that_build_it(tmp_path, capsys):
     """Guided ES with the hind legs' windows (``windows_per_scenario`` 4, ``window_lead`` 16) is judged with stored
-    SNES, CMA-ES and OpenES runs, which read neither setting, and the judgement names the two settings; the same guided ES next to guided-ES runs with the
-    default windows is refused in one line naming the first setting that differs, and so is an OpenES run whose sampling step differs."""
+    SNES, CMA-ES and OpenES runs, which read neither setting, and the judgement names the two settings; the same
+    guided ES next to guided-ES runs with the default windows is refused in one line naming the first setting that
+    differs, and so is an OpenES run whose sampling step differs."""
     out = tmp_path / "j"
     assert tune_judge.main(["--out", str(out), f"{STORED}:snes,cma_es", f"{MATCHED}/open_es",
                             f"{MATCHED}/guided_es_hind"]) == 0
