@@ -64,6 +64,7 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
     ``wall_minutes`` that budget alone. Raises ValueError on runs that are not comparable (but for their seeds,
     methods and further budgets) or a run given twice."""
     from hyqjax.studies.tune.study import repeats
+    from hyqjax.studies.tune.wallclock_config import SETTING_READERS
     from hyqjax.studies.tune.wallclock_results import member_key
 
     free = tuple(repeats.FREE_SETTINGS) + ("wall_minutes",)
@@ -91,6 +92,12 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
                 mk = member_key(run["method"], run["dim"], minutes * 60.0)
                 if mk in res["heldout"]:
                     base["heldout"][mk] = res["heldout"][mk]
+            # the merged seed's config tells the truth about its runs: their methods, and each setting only some
+            # methods read as the runs that read it had it (they agree: checked above)
+            base["config"]["methods"] = sorted({r["method"] for r in base["runs"].values()})
+            for k, readers in SETTING_READERS.items():
+                if k in res["config"] and any(r["method"] in readers for r in runs.values()):
+                    base["config"][k] = copy.deepcopy(res["config"][k])
     return merged
 
 
@@ -147,7 +154,11 @@ def main(argv=None) -> int:
 
     with warnings.catch_warnings():  # Welch's test of a member whose runs all returned the same set
         warnings.simplefilter("ignore", RuntimeWarning)
-        comp = guided_report.compare(merged, minutes)
+        try:
+            comp = guided_report.compare(merged, minutes)
+        except ValueError as e:
+            print(f"tune_judge: {e}", file=sys.stderr)
+            return 2
         table = guided_report.markdown(comp)
     comp["sources"] = list(a.sources)
     comp["member_settings"] = member_settings(sources)

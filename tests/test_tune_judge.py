@@ -119,3 +119,22 @@ def test_every_setting_some_methods_read_is_a_study_setting_read_by_named_method
     other["config"]["train_instances"] = 64  # read by every method
     with pytest.raises(ValueError, match="train_instances"):
         repeats.check_comparable([base, other], ["a", "b"])
+
+
+def test_runs_of_other_seeds_with_other_surrogate_settings_are_judged_with_truthful_configs(tmp_path):
+    """Stored CMA-ES and SNES seeds 0-4 (their study also ran guided ES with the default windows, which is not
+    judged) and guided ES with the hind legs' windows as seeds 5-9: each merged seed's config names the methods it
+    holds and the windows its guided runs had, so the judgement over all ten seeds goes through."""
+    hind = tmp_path / "hind"
+    for s in range(5):
+        res = json.loads(open(f"{MATCHED}/guided_es_hind/seed{s}/results.json").read())
+        res["config"]["seed"] = s + 5
+        (hind / f"seed{s + 5}").mkdir(parents=True)
+        (hind / f"seed{s + 5}" / "results.json").write_text(json.dumps(res))
+    out = tmp_path / "j"
+    assert tune_judge.main(["--out", str(out), f"{STORED}:snes,cma_es", str(hind)]) == 0
+    comp = json.loads((out / "comparison.json").read_text())
+    assert comp["seeds"] == list(range(10))
+    assert comp["summary"]["guided_es/per_leg"]["clean"]["n"] == 5
+    assert comp["summary"]["snes/per_leg"]["clean"]["n"] == 5
+    assert comp["summary"]["start"]["clean"]["n"] == 10
