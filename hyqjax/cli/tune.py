@@ -67,7 +67,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     p.add_argument("--out", default="out/tune", help="run directory (the same command resumes from it)")
     p.add_argument("--method", "--methods", dest="methods", type=split_names, default=None,
-                   help=f"search method, one of {', '.join(names.METHODS)} (default: {names.DEFAULT_METHOD})")
+                   help=f"search method, one of {', '.join(names.METHODS)} (default: {names.DEFAULT_METHOD}; "
+                        "guided_es, with MJX-JAX gradients inside the search, loses to the gradient-free searches at "
+                        "equal wall-clock on the step-down: docs/tuning.md)")
     p.add_argument("--dim", "--dims", dest="dims", type=split_names, default=None,
                    help="parameterisation: shared (14 coordinates), per_leg (56), per_leg_cond (68), "
                         f"per_leg_cond_all (98) (default: {names.DEFAULT_DIM})")
