@@ -68,8 +68,7 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
     from hyqjax.studies.tune.wallclock_results import member_key
 
     free = tuple(repeats.FREE_SETTINGS) + ("wall_minutes",)
-    merged: dict[int, dict] = {}
-    taken: list[tuple[str, dict, set]] = []  # every run judged so far: name, results, the methods judged of it
+    taken: list[tuple[str, int, dict, dict]] = []  # every run judged: name, seed, results, the runs judged of it
     for name, results, methods in sources:
         held = {r["method"] for res in results.values() for r in res.get("runs", {}).values()}
         missing = sorted(set(methods or ()) - held)
@@ -77,27 +76,29 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
             raise ValueError(f"SOURCE {name} holds no run of {', '.join(missing)} (it has {', '.join(sorted(held))})")
         for seed, res in sorted(results.items()):
             runs = {k: r for k, r in res.get("runs", {}).items() if methods is None or r["method"] in methods}
-            if methods is not None and not runs:
-                continue
-            taken.append((f"{name}/seed{seed}", res, {r["method"] for r in runs.values()}))
-            repeats.check_comparable([t[1] for t in taken], [t[0] for t in taken], free, [t[2] for t in taken])
-            if seed not in merged:
-                merged[seed] = dict(copy.deepcopy({k: v for k, v in res.items() if k != "runs"}), runs={})
-                merged[seed]["config"]["wall_minutes"] = [minutes]
-            base = merged[seed]
-            for key, run in runs.items():
-                if key in base["runs"]:
-                    raise ValueError(f"{key} of seed {seed} is given by two sources ({name} and an earlier one)")
-                base["runs"][key] = run
-                mk = member_key(run["method"], run["dim"], minutes * 60.0)
-                if mk in res["heldout"]:
-                    base["heldout"][mk] = res["heldout"][mk]
-            # the merged seed's config tells the truth about its runs: their methods, and each setting only some
-            # methods read as the runs that read it had it (they agree: checked above)
-            base["config"]["methods"] = sorted({r["method"] for r in base["runs"].values()})
-            for k, readers in SETTING_READERS.items():
-                if k in res["config"] and any(r["method"] in readers for r in runs.values()):
-                    base["config"][k] = copy.deepcopy(res["config"][k])
+            if methods is None or runs:
+                taken.append((name, seed, res, runs))
+    repeats.check_comparable([t[2] for t in taken], [f"{t[0]}/seed{t[1]}" for t in taken], free,
+                             [{r["method"] for r in t[3].values()} for t in taken])
+    merged: dict[int, dict] = {}
+    for name, seed, res, runs in taken:
+        if seed not in merged:
+            merged[seed] = dict(copy.deepcopy({k: v for k, v in res.items() if k != "runs"}), runs={})
+            merged[seed]["config"]["wall_minutes"] = [minutes]
+        base = merged[seed]
+        for key, run in runs.items():
+            if key in base["runs"]:
+                raise ValueError(f"{key} of seed {seed} is given by two sources ({name} and an earlier one)")
+            base["runs"][key] = run
+            mk = member_key(run["method"], run["dim"], minutes * 60.0)
+            if mk in res["heldout"]:
+                base["heldout"][mk] = res["heldout"][mk]
+        # the merged seed's config tells the truth about its runs: their methods, and each setting only some methods
+        # read as the runs that read it had it (they agree: checked above)
+        base["config"]["methods"] = sorted({r["method"] for r in base["runs"].values()})
+        for k, readers in SETTING_READERS.items():
+            if k in res["config"] and any(r["method"] in readers for r in runs.values()):
+                base["config"][k] = copy.deepcopy(res["config"][k])
     return merged
 
 

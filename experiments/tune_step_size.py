@@ -52,7 +52,7 @@ import sys
 
 import numpy as np
 
-from hyqjax.cli.common import HelpFormatter, UsageError
+from hyqjax.cli.common import HelpFormatter, UsageError, check_range
 
 
 def parse(argv=None):
@@ -106,10 +106,8 @@ def parse(argv=None):
         raise UsageError("--surrogate needs --antithetic (the pairs it is compared with)")
     if not 1 <= a.window_ticks <= 20000:
         raise UsageError(f"--window-ticks must be in [1, 20000], got {a.window_ticks}")
-    if not 0.1 <= a.lead <= 60:
-        raise UsageError(f"--lead must be in [0.1, 60] s, got {a.lead}")
-    if not 1 <= a.windows_per_scenario <= 8:
-        raise UsageError(f"--windows-per-scenario must be in [1, 8], got {a.windows_per_scenario}")
+    check_range("--lead", a.lead, 0.1, 60.0, "s")
+    check_range("--windows-per-scenario", a.windows_per_scenario, 1, 8, integer=True)
     from hyqjax.studies.tune.surrogate_weights import parse_weights
 
     try:
