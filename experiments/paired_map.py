@@ -133,26 +133,32 @@ def compare(table: dict, reference: str, max_height: float = 0.26, levels=LEVELS
 
 
 def markdown(res: dict) -> str:
+    """The pooled rows (left out, with a line saying so, when the map has no height up to ``max_height``) and, per
+    level, one line per variant with every height's difference."""
     ref, hmax = res["reference"], res["max_height"]
-    lines = [f"paired against `{ref}` on the same instances (heights up to {100 * hmax:g} cm pooled; d = variant - "
-             f"reference, 95% paired interval; McNemar exact p)", "",
-             "| variant | level | n | variant | reference | d [95%] | only variant / only reference | p |",
-             "|---|---|---:|---:|---:|---|---|---:|"]
-    for v, row in res["variants"].items():
-        for lv in LEVELS:
-            if lv not in row:
-                continue
-            p = row[lv]["pooled"]
+    levels = [lv for lv in LEVELS if any(lv in row for row in res["variants"].values())]
+    pooled = [(v, lv, row[lv]["pooled"]) for v, row in res["variants"].items() for lv in levels if lv in row]
+    head = (f"paired against `{ref}` on the same instances (d = variant - reference, 95% paired interval; McNemar "
+            f"exact p)")
+    if any(p["n"] for _, _, p in pooled):
+        lines = [f"{head}; heights up to {100 * hmax:g} cm pooled", "",
+                 "| variant | level | n | variant | reference | d [95%] | only variant / only reference | p |",
+                 "|---|---|---:|---:|---:|---|---|---:|"]
+        for v, lv, p in pooled:
             lines.append(f"| {v} | {lv} | {p['n']:,} | {p['variant']:.3f} | {p['reference']:.3f} | {p['d']:+.3f} "
                          f"[{p['ci95'][0]:+.3f}, {p['ci95'][1]:+.3f}] | {p['only_variant']} / "
                          f"{p['only_reference']} | {p['p_mcnemar']:.2g} |")
-    lines += ["", "per height (clean): d [95%], p", ""]
-    for v, row in res["variants"].items():
-        if "clean" not in row:
-            continue
-        cells = [f"{100 * float(h):g} cm {x['d']:+.3f} [{x['ci95'][0]:+.3f}, {x['ci95'][1]:+.3f}] p {x['p_mcnemar']:.2g}"
-                 for h, x in row["clean"]["per_height"].items()]
-        lines.append(f"- {v}: " + "; ".join(cells))
+    else:
+        lines = [head, "", f"no height up to {100 * hmax:g} cm in this map: no pooled rows (--max-height)"]
+    for lv in levels:
+        lines += ["", f"per height ({lv}): variant / reference, d [95%], p", ""]
+        for v, row in res["variants"].items():
+            if lv not in row:
+                continue
+            cells = [f"{100 * float(h):g} cm {x['variant']:.3f} / {x['reference']:.3f}, {x['d']:+.3f} "
+                     f"[{x['ci95'][0]:+.3f}, {x['ci95'][1]:+.3f}] p {x['p_mcnemar']:.2g}"
+                     for h, x in row[lv]["per_height"].items()]
+            lines.append(f"- {v}: " + "; ".join(cells))
     lines.append("")
     lines.append(f"diverged: {ref} {res['reference_diverged']}, "
                  + ", ".join(f"{v} {row['diverged']}" for v, row in res["variants"].items()))

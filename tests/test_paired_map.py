@@ -99,3 +99,23 @@ def test_bad_input_is_one_line_before_anything_is_read(tmp_path, capsys):
         assert len(err) == 1 and needle in err[0] and "Traceback" not in err[0], err
     assert paired_map.main([str(tmp_path), "--reference", "ref"]) == 0
     assert (tmp_path / "paired_ref.md").read_text().startswith("paired against `ref`")
+
+
+def test_a_map_above_the_pooled_heights_reports_every_level_per_height_and_no_empty_pooled_row():
+    """A map of heights above --max-height (one deep height, say) has no pooled rows: the report says so in one
+    line instead of printing undefined ones, and its per-height lines give each level's rates and difference,
+    the same numbers as the per-height records."""
+    rng = np.random.default_rng(2)
+    t = _table(rng, heights=(0.27,), k=60)
+    res = paired_map.compare(t, "ref", max_height=0.26)
+    text = paired_map.markdown(res)
+    assert "nan" not in text and "no height up to 26 cm" in text
+    for lv in ("clean", "completed"):
+        x = res["variants"]["v"][lv]["per_height"]["0.27"]
+        iv, ir = t["variant"] == "v", t["variant"] == "ref"
+        assert x["variant"] == pytest.approx(t[f"out_{lv}"][iv].mean())
+        assert x["reference"] == pytest.approx(t[f"out_{lv}"][ir].mean())
+        assert f"per height ({lv})" in text
+        assert f"27 cm {x['variant']:.3f} / {x['reference']:.3f}, {x['d']:+.3f}" in text
+    both = paired_map.markdown(paired_map.compare(_table(rng), "ref", max_height=0.26))
+    assert "heights up to 26 cm pooled" in both and "| v | completed | 80 |" in both
