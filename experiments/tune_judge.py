@@ -64,8 +64,10 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
     ``wall_minutes`` that budget alone. Raises ValueError on runs that are not comparable (but for their seeds,
     methods and further budgets) or a run given twice."""
     from hyqjax.studies.tune.study import repeats
-    from hyqjax.studies.tune.wallclock_config import SETTING_READERS
+    from hyqjax.studies.tune.wallclock_config import SETTING_READERS, WallClockConfig
     from hyqjax.studies.tune.wallclock_results import member_key
+
+    defaults = WallClockConfig.defaults()
 
     free = tuple(repeats.FREE_SETTINGS) + ("wall_minutes",)
     taken: list[tuple[str, int, dict, dict]] = []  # every run judged: name, seed, results, the runs judged of it
@@ -94,32 +96,29 @@ def merge(sources: list[tuple[str, dict, tuple[str, ...] | None]], minutes: floa
             if mk in res["heldout"]:
                 base["heldout"][mk] = res["heldout"][mk]
         # the merged seed's config tells the truth about its runs: their methods, and each setting only some methods
-        # read as the runs that read it had it (they agree: checked above)
+        # read as the runs that read it had it (they agree: checked above; one their study predates at its default)
         base["config"]["methods"] = sorted({r["method"] for r in base["runs"].values()})
         for k, readers in SETTING_READERS.items():
-            if k in res["config"] and any(r["method"] in readers for r in runs.values()):
-                base["config"][k] = copy.deepcopy(res["config"][k])
+            if any(r["method"] in readers for r in runs.values()):
+                base["config"][k] = copy.deepcopy(res["config"].get(k, defaults[k]))
     return merged
 
 
-def member_settings(sources: list[tuple[str, dict, tuple[str, ...] | None]]) -> dict[str, dict]:
-    """Per member judged (``method/dim``), the settings only some methods read
+def member_settings(merged: dict) -> dict[str, dict]:
+    """Per member judged (``method/dim``) of :func:`merge`'s seeds, the settings only some methods read
     (:data:`hyqjax.studies.tune.wallclock_config.SETTING_READERS`) that its method reads and its runs set away from
     their defaults, e.g. ``{"guided_es/per_leg": {"windows_per_scenario": 4, "window_lead": 16.0}}``; members with
-    none are left out. The runs of one member agree on them (:func:`merge` refuses them otherwise)."""
+    none are left out. A merged seed's config holds them as its runs had them."""
     from hyqjax.studies.tune.wallclock_config import SETTING_READERS, WallClockConfig
 
     defaults = WallClockConfig.defaults()
     out: dict[str, dict] = {}
-    for _, results, methods in sources:
-        for res in results.values():
-            for run in res.get("runs", {}).values():
-                if methods is not None and run["method"] not in methods:
-                    continue
-                own = {k: res["config"][k] for k, readers in SETTING_READERS.items()
-                       if run["method"] in readers and k in res["config"] and res["config"][k] != defaults[k]}
-                if own:
-                    out[f"{run['method']}/{run['dim']}"] = own
+    for res in merged.values():
+        for run in res["runs"].values():
+            own = {k: res["config"][k] for k, readers in SETTING_READERS.items()
+                   if run["method"] in readers and res["config"].get(k, defaults[k]) != defaults[k]}
+            if own:
+                out[f"{run['method']}/{run['dim']}"] = own
     return out
 
 
@@ -162,7 +161,7 @@ def main(argv=None) -> int:
             return 2
         table = guided_report.markdown(comp)
     comp["sources"] = list(a.sources)
-    comp["member_settings"] = member_settings(sources)
+    comp["member_settings"] = member_settings(merged)
     if comp["member_settings"]:
         table += "\n\nsettings only some methods read, away from their defaults:\n" + "\n".join(
             f"- {m}: " + ", ".join(f"{k} {v}" for k, v in sorted(own.items()))
